@@ -1,0 +1,328 @@
+//! Mesh files: readers, writers and atomic output.
+//!
+//! | format | read | write |
+//! |---|---|---|
+//! | Gmsh `.msh` 2.2 / 4.1, ASCII / binary | [`read_msh`] | [`write_msh`] |
+//! | TetGen `.node` + `.ele` | [`read_tetgen`] | [`write_tetgen`] |
+//! | VTK `.vtu` + `.pvd` (ParaView) | | [`Vtu`], [`Pvd`] |
+//! | Wavefront `.obj` (surface) | | [`write_obj`] |
+//!
+//! [`read`] and [`write`] pick the format from the extension. Readers never panic on any
+//! input: every error names the file, the line (and byte offset) and what was expected.
+//! Writers go through [`write_atomic`]: a temporary file in the same directory, synced,
+//! then renamed over the target, so a crash never leaves a half-written file.
+
+mod cursor;
+mod gmsh;
+mod obj;
+mod tetgen;
+mod vtu;
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use nalgebra::Vector3;
+use thiserror::Error;
+
+pub use gmsh::{MshFormat, MshVersion};
+pub use vtu::{Pvd, Vtu};
+
+use crate::{MeshError, MeshOptions, TetMesh};
+use cursor::{ParseError, ParseErrorKind, line_of};
+
+/// Why a mesh file could not be read.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ReadError {
+    /// The file could not be opened or read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The file is malformed.
+    #[error("{}:{line}: expected {expected}, found {found} (byte {offset})", path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line of the failure (for binary data, the line the data starts on).
+        line: usize,
+        /// Byte offset of the failure.
+        offset: usize,
+        /// What the reader expected.
+        expected: String,
+        /// What it found.
+        found: String,
+    },
+    /// The file is well-formed but uses a feature deform does not read.
+    #[error("{}:{line}: unsupported: {what}", path.display())]
+    Unsupported {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// The feature.
+        what: String,
+    },
+    /// The file parsed but does not describe a valid mesh.
+    #[error("{}: {}invalid mesh: {source}", path.display(), context.as_deref().map(|c| format!("{c}: ")).unwrap_or_default())]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// The file's own tag of the offending element or node, when there is one.
+        context: Option<String>,
+        /// The validation failure (indices in deform's numbering).
+        source: MeshError,
+    },
+    /// The extension names no mesh format deform reads.
+    #[error("{}: unknown mesh format (expected .msh, .node or .ele)", path.display())]
+    UnknownFormat {
+        /// The file.
+        path: PathBuf,
+    },
+}
+
+/// Why a file could not be written.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum WriteError {
+    /// Writing, syncing or renaming failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The target file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The extension names no format deform writes.
+    #[error("{}: unknown output format (expected .msh, .vtu, .obj, .node or .ele)", path.display())]
+    UnknownFormat {
+        /// The target file.
+        path: PathBuf,
+    },
+}
+
+/// A mesh as a file states it, before validation, with the file's own node and element tags.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RawMesh {
+    /// Node positions, in file order.
+    pub positions: Vec<Vector3<f64>>,
+    /// Tetrahedra as 0-based indices into `positions`.
+    pub tets: Vec<[usize; 4]>,
+    /// Region tag per tetrahedron (0 for none).
+    pub regions: Vec<u32>,
+    /// Names of region tags.
+    pub region_names: BTreeMap<u32, String>,
+    /// The file's tag of each node.
+    pub node_tags: Vec<u64>,
+    /// The file's tag of each tetrahedron.
+    pub element_tags: Vec<u64>,
+}
+
+impl RawMesh {
+    /// Validates into a [`TetMesh`]; errors name the file's element or node tag.
+    ///
+    /// # Errors
+    /// [`ReadError::Invalid`] with `path` and the file's tag of what is wrong.
+    pub fn into_mesh(self, path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
+        let Self {
+            positions,
+            tets,
+            regions,
+            region_names,
+            node_tags,
+            element_tags,
+        } = self;
+        TetMesh::try_with_options(positions, tets, Some(regions), options)
+            .map(|m| m.with_region_names(region_names))
+            .map_err(|source| {
+                let context = match &source {
+                    MeshError::IndexOutOfRange { element, .. }
+                    | MeshError::RepeatedVertex { element, .. }
+                    | MeshError::DegenerateElement { element, .. } => {
+                        element_tags.get(*element).map(|t| format!("file element {t}"))
+                    }
+                    MeshError::NonFiniteCoordinate { vertex, .. } => {
+                        node_tags.get(*vertex).map(|t| format!("file node {t}"))
+                    }
+                    _ => None,
+                };
+                ReadError::Invalid {
+                    path: path.to_owned(),
+                    context,
+                    source,
+                }
+            })
+    }
+}
+
+fn parse_failure(path: &Path, data: &[u8], e: ParseError) -> ReadError {
+    let line = line_of(data, e.offset);
+    match e.kind {
+        ParseErrorKind::Expected { expected, found } => ReadError::Parse {
+            path: path.to_owned(),
+            line,
+            offset: e.offset,
+            expected,
+            found,
+        },
+        ParseErrorKind::Unsupported(what) => ReadError::Unsupported {
+            path: path.to_owned(),
+            line,
+            what,
+        },
+    }
+}
+
+fn read_bytes(path: &Path) -> Result<Vec<u8>, ReadError> {
+    fs::read(path).map_err(|source| ReadError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+/// Parses `.msh` bytes without validation; `path` only labels errors.
+///
+/// # Errors
+/// [`ReadError::Parse`] or [`ReadError::Unsupported`].
+pub fn parse_msh(data: &[u8], path: &Path) -> Result<RawMesh, ReadError> {
+    gmsh::parse(data).map_err(|e| parse_failure(path, data, e))
+}
+
+/// Parses TetGen `.node` and `.ele` bytes without validation; the paths label errors.
+///
+/// # Errors
+/// [`ReadError::Parse`] naming whichever file is malformed.
+pub fn parse_tetgen(node: &[u8], ele: &[u8], node_path: &Path, ele_path: &Path) -> Result<RawMesh, ReadError> {
+    tetgen::parse(node, ele).map_err(|(in_node, e)| {
+        if in_node {
+            parse_failure(node_path, node, e)
+        } else {
+            parse_failure(ele_path, ele, e)
+        }
+    })
+}
+
+/// Reads and validates a Gmsh `.msh` file (2.2 or 4.1, ASCII or binary).
+///
+/// # Errors
+/// Any [`ReadError`], naming the file and line.
+pub fn read_msh(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
+    let data = read_bytes(path)?;
+    parse_msh(&data, path)?.into_mesh(path, options)
+}
+
+/// Reads and validates a TetGen pair; `path` may name the `.node`, the `.ele` or their
+/// common stem.
+///
+/// # Errors
+/// Any [`ReadError`], naming the file and line.
+pub fn read_tetgen(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
+    let stem = match path.extension().and_then(|e| e.to_str()) {
+        Some("node" | "ele") => path.with_extension(""),
+        _ => path.to_owned(),
+    };
+    let node_path = stem.with_extension("node");
+    let ele_path = stem.with_extension("ele");
+    let node = read_bytes(&node_path)?;
+    let ele = read_bytes(&ele_path)?;
+    parse_tetgen(&node, &ele, &node_path, &ele_path)?.into_mesh(&ele_path, options)
+}
+
+/// Reads any supported mesh file, chosen by extension (`.msh`, `.node`, `.ele`).
+///
+/// # Errors
+/// Any [`ReadError`]; [`ReadError::UnknownFormat`] for another extension.
+pub fn read(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("msh") => read_msh(path, options),
+        Some("node" | "ele") => read_tetgen(path, options),
+        _ => Err(ReadError::UnknownFormat { path: path.to_owned() }),
+    }
+}
+
+/// Writes `path` atomically: `body` writes into a buffered temporary file beside it,
+/// which is synced and renamed over `path` only if everything succeeded.
+///
+/// # Errors
+/// [`WriteError::Io`] naming `path`; the temporary file is removed.
+pub fn write_atomic(
+    path: &Path,
+    body: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<(), WriteError> {
+    let fail = |source| WriteError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    let result = (|| {
+        let file = fs::File::create(&tmp)?;
+        let mut w = BufWriter::new(file);
+        body(&mut w)?;
+        let file = w.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    result.map_err(fail)
+}
+
+/// Writes a Gmsh `.msh` file.
+///
+/// # Errors
+/// [`WriteError`] naming the path.
+pub fn write_msh(path: &Path, mesh: &TetMesh, format: MshFormat) -> Result<(), WriteError> {
+    write_atomic(path, |w| gmsh::write(w, mesh, format))
+}
+
+/// Writes a TetGen pair `stem.node` + `stem.ele` (0-based, region as the element attribute).
+///
+/// # Errors
+/// [`WriteError`] naming the path.
+pub fn write_tetgen(stem: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
+    let stem = match stem.extension().and_then(|e| e.to_str()) {
+        Some("node" | "ele") => stem.with_extension(""),
+        _ => stem.to_owned(),
+    };
+    write_atomic(&stem.with_extension("node"), |w| tetgen::write_node(w, mesh))?;
+    write_atomic(&stem.with_extension("ele"), |w| tetgen::write_ele(w, mesh))
+}
+
+/// Writes the boundary surface at `positions` as Wavefront `.obj`.
+///
+/// # Errors
+/// [`WriteError`] naming the path.
+///
+/// # Panics
+/// If `positions` has fewer entries than the mesh has vertices.
+#[track_caller]
+pub fn write_obj(path: &Path, mesh: &TetMesh, positions: &[Vector3<f64>]) -> Result<(), WriteError> {
+    assert!(positions.len() >= mesh.num_vertices(), "one position per vertex");
+    write_atomic(path, |w| obj::write(w, mesh, positions))
+}
+
+/// Writes the rest mesh in the format its extension names: `.msh` (4.1 ASCII), `.vtu`,
+/// `.obj`, `.node`/`.ele` (both files).
+///
+/// # Errors
+/// [`WriteError::UnknownFormat`] for another extension, else I/O errors naming the path.
+pub fn write(path: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("msh") => write_msh(path, mesh, MshFormat::default()),
+        Some("vtu") => Vtu::new(mesh).write(path),
+        Some("obj") => write_obj(path, mesh, mesh.rest_positions()),
+        Some("node" | "ele") => write_tetgen(path, mesh),
+        _ => Err(WriteError::UnknownFormat { path: path.to_owned() }),
+    }
+}
