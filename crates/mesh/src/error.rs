@@ -20,7 +20,9 @@ pub enum MeshError {
         value: f64,
     },
     /// A tetrahedron refers to a vertex that does not exist.
-    #[error("element {element} refers to vertex {index}, but there are only {num_vertices} vertices")]
+    #[error(
+        "element {element} refers to vertex {index}, but there are only {num_vertices} vertices"
+    )]
     IndexOutOfRange {
         /// Element index.
         element: usize,

@@ -109,7 +109,10 @@ impl BoxGrid {
         if !self.size.iter().all(|s| s.is_finite() && *s > 0.0) {
             return Err(MeshError::InvalidParameter {
                 field: "size",
-                reason: format!("every edge must be finite and positive, got {:?}", self.size),
+                reason: format!(
+                    "every edge must be finite and positive, got {:?}",
+                    self.size
+                ),
             });
         }
         if !self.origin.iter().all(|s| s.is_finite()) {
@@ -146,7 +149,11 @@ impl BoxGrid {
                 for k in 0..=nz {
                     // Exact at the far faces: i == nx gives origin + size, not a rounded sum.
                     let c = |n: usize, m: usize, a: usize| {
-                        if n == m { self.size[a] } else { n as f64 * h[a] }
+                        if n == m {
+                            self.size[a]
+                        } else {
+                            n as f64 * h[a]
+                        }
                     };
                     rest.push(o + Vector3::new(c(i, nx, 0), c(j, ny, 1), c(k, nz, 2)));
                 }
@@ -156,7 +163,8 @@ impl BoxGrid {
         for ci in 0..nx {
             for cj in 0..ny {
                 for ck in 0..nz {
-                    let corner = |l: usize| vid(ci + (l & 1), cj + ((l >> 1) & 1), ck + ((l >> 2) & 1));
+                    let corner =
+                        |l: usize| vid(ci + (l & 1), cj + ((l >> 1) & 1), ck + ((l >> 2) & 1));
                     let table: &[[usize; 4]] = match self.split {
                         Split::Six => &SIX_TETS,
                         Split::Five if (ci + cj + ck) % 2 == 0 => &FIVE_TETS_EVEN,

@@ -73,7 +73,11 @@ impl ConsistentMass {
     /// Row sums: the lumped mass obtained by row-sum lumping (equal to [`TetMesh::lumped_mass`]).
     pub fn row_sums(&self, pattern: &BlockPattern) -> Vec<f64> {
         (0..pattern.num_rows())
-            .map(|i| self.values[pattern.offsets()[i]..pattern.offsets()[i + 1]].iter().sum())
+            .map(|i| {
+                self.values[pattern.offsets()[i]..pattern.offsets()[i + 1]]
+                    .iter()
+                    .sum()
+            })
             .collect()
     }
 }

@@ -38,7 +38,10 @@ pub fn rest_quality(mesh: &TetMesh) -> Quality {
 /// If `positions` has fewer entries than the mesh has vertices.
 #[track_caller]
 pub fn quality(mesh: &TetMesh, positions: &[Vector3<f64>]) -> Quality {
-    assert!(positions.len() >= mesh.num_vertices(), "one position per vertex");
+    assert!(
+        positions.len() >= mesh.num_vertices(),
+        "one position per vertex"
+    );
     let mut q = Quality {
         min_dihedral_deg: f64::INFINITY,
         max_dihedral_deg: f64::NEG_INFINITY,
@@ -79,7 +82,11 @@ pub fn quality(mesh: &TetMesh, positions: &[Vector3<f64>]) -> Quality {
             .fold(0.0, f64::max);
         let inradius = 3.0 * volume.abs() / area_sum;
         let aspect = longest / (2.0 * 6f64.sqrt() * inradius);
-        let aspect = if aspect.is_finite() { aspect } else { f64::INFINITY };
+        let aspect = if aspect.is_finite() {
+            aspect
+        } else {
+            f64::INFINITY
+        };
         q.max_aspect_ratio = q.max_aspect_ratio.max(aspect);
         aspect_sum += aspect;
     }

@@ -82,7 +82,9 @@ impl Selector {
             if v.iter().all(|c| c.is_finite()) {
                 Ok(Vector3::from(*v))
             } else {
-                Err(SelectError::InvalidGeometry(format!("{what} {v:?} is not finite")))
+                Err(SelectError::InvalidGeometry(format!(
+                    "{what} {v:?} is not finite"
+                )))
             }
         };
         let rest = mesh.rest_positions();
@@ -95,7 +97,10 @@ impl Selector {
                 }
             }
             Selector::Plane { point, normal } => {
-                let (q, n) = (finite(point, "plane point")?, finite(normal, "plane normal")?);
+                let (q, n) = (
+                    finite(point, "plane point")?,
+                    finite(normal, "plane normal")?,
+                );
                 let len = n.norm();
                 if len == 0.0 {
                     return Err(SelectError::InvalidGeometry("plane normal is zero".into()));
@@ -144,7 +149,10 @@ impl Selector {
 }
 
 /// Vertices whose rest position satisfies `predicate(index, position)`, sorted.
-pub fn select_by(mesh: &TetMesh, mut predicate: impl FnMut(usize, &Vector3<f64>) -> bool) -> Vec<usize> {
+pub fn select_by(
+    mesh: &TetMesh,
+    mut predicate: impl FnMut(usize, &Vector3<f64>) -> bool,
+) -> Vec<usize> {
     mesh.rest_positions()
         .iter()
         .enumerate()
@@ -154,5 +162,9 @@ pub fn select_by(mesh: &TetMesh, mut predicate: impl FnMut(usize, &Vector3<f64>)
 }
 
 fn mask_to_indices(mask: &[bool]) -> Vec<usize> {
-    mask.iter().enumerate().filter(|(_, m)| **m).map(|(i, _)| i).collect()
+    mask.iter()
+        .enumerate()
+        .filter(|(_, m)| **m)
+        .map(|(i, _)| i)
+        .collect()
 }

@@ -22,25 +22,50 @@ fn check_grid(grid: &BoxGrid) {
     let per_cell = if grid.split == Split::Six { 6 } else { 5 };
     assert_eq!(mesh.num_tets(), per_cell * nx * ny * nz);
     assert_eq!(mesh.num_vertices(), (nx + 1) * (ny + 1) * (nz + 1));
-    assert_eq!(mesh.build_report().reoriented, 0, "the tables are positively oriented");
+    assert_eq!(
+        mesh.build_report().reoriented,
+        0,
+        "the tables are positively oriented"
+    );
     let volume = grid.size.iter().product::<f64>();
-    assert_relative_eq!(mesh.volumes().iter().sum::<f64>(), volume, max_relative = 1e-12);
+    assert_relative_eq!(
+        mesh.volumes().iter().sum::<f64>(),
+        volume,
+        max_relative = 1e-12
+    );
     assert!(mesh.volumes().iter().all(|&v| v > 0.0));
 
     let f = faces(&mesh);
-    assert!(f.nonmanifold.is_empty(), "each face is shared by at most two tets");
+    assert!(
+        f.nonmanifold.is_empty(),
+        "each face is shared by at most two tets"
+    );
     // Closed 2-manifold: every surface edge is used by exactly two boundary triangles,
     // once in each direction (consistent outward orientation).
-    let mut directed: Vec<(usize, usize)> = f.boundary.iter().flat_map(|t| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])]).collect();
+    let mut directed: Vec<(usize, usize)> = f
+        .boundary
+        .iter()
+        .flat_map(|t| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])])
+        .collect();
     directed.sort_unstable();
-    assert!(directed.windows(2).all(|w| w[0] != w[1]), "no directed edge repeats");
+    assert!(
+        directed.windows(2).all(|w| w[0] != w[1]),
+        "no directed edge repeats"
+    );
     for &(a, b) in &directed {
-        assert!(directed.binary_search(&(b, a)).is_ok(), "edge ({a},{b}) has its twin");
+        assert!(
+            directed.binary_search(&(b, a)).is_ok(),
+            "edge ({a},{b}) has its twin"
+        );
     }
     let mut verts: Vec<usize> = f.boundary.iter().flatten().copied().collect();
     verts.sort_unstable();
     verts.dedup();
-    let (v, e, fc) = (verts.len() as i64, directed.len() as i64 / 2, f.boundary.len() as i64);
+    let (v, e, fc) = (
+        verts.len() as i64,
+        directed.len() as i64 / 2,
+        f.boundary.len() as i64,
+    );
     assert_eq!(v - e + fc, 2, "Euler characteristic of the surface");
     // Boundary faces: 2 per boundary cell face; interior faces satisfy 4T = 2I + B.
     let cell_faces = 2 * (nx * ny + ny * nz + nx * nz);
@@ -51,12 +76,19 @@ fn check_grid(grid: &BoxGrid) {
     let flux: f64 = f
         .boundary
         .iter()
-        .map(|t| (p[t[0]] + p[t[1]] + p[t[2]]).dot(&(p[t[1]] - p[t[0]]).cross(&(p[t[2]] - p[t[0]]))) / 18.0)
+        .map(|t| {
+            (p[t[0]] + p[t[1]] + p[t[2]]).dot(&(p[t[1]] - p[t[0]]).cross(&(p[t[2]] - p[t[0]])))
+                / 18.0
+        })
         .sum();
     assert_relative_eq!(flux, volume, max_relative = 1e-10);
     // Euler characteristic of the solid: V - E + F - T = 1.
     let interior_and_boundary = (f.interior.len() + f.boundary.len()) as i64;
-    assert_eq!(mesh.num_vertices() as i64 - edges(&mesh).len() as i64 + interior_and_boundary - mesh.num_tets() as i64, 1);
+    assert_eq!(
+        mesh.num_vertices() as i64 - edges(&mesh).len() as i64 + interior_and_boundary
+            - mesh.num_tets() as i64,
+        1
+    );
 }
 
 #[test]
@@ -64,21 +96,64 @@ fn benchmark_beams_match_the_published_counts() {
     for (n, tets, vertices) in [(1, 24, 20), (2, 192, 81), (4, 1536, 425)] {
         let mesh = BoxGrid::beam(n).build().unwrap();
         assert_eq!((mesh.num_tets(), mesh.num_vertices()), (tets, vertices));
-        assert_eq!(mesh.rest_positions()[mesh.num_vertices() - 1], Vector3::new(1.0, 0.25, 0.25));
+        assert_eq!(
+            mesh.rest_positions()[mesh.num_vertices() - 1],
+            Vector3::new(1.0, 0.25, 0.25)
+        );
         // Vertex (i, j, k) at (i h, j h, k h) with index (i (ny+1) + j)(nz+1) + k.
         let h = 1.0 / (4 * n) as f64;
         let idx = (n * (n + 1) + 1) * (n + 1) + 1;
-        assert_relative_eq!(mesh.rest_positions()[idx], Vector3::new(n as f64 * h, h, h), epsilon = 1e-15);
+        assert_relative_eq!(
+            mesh.rest_positions()[idx],
+            Vector3::new(n as f64 * h, h, h),
+            epsilon = 1e-15
+        );
         check_grid(&BoxGrid::beam(n));
     }
 }
 
 #[test]
 fn invalid_grids_are_rejected() {
-    assert!(BoxGrid { cells: [0, 1, 1], size: [1.0; 3], origin: [0.0; 3], split: Split::Six }.build().is_err());
-    assert!(BoxGrid { cells: [1, 1, 1], size: [1.0, -1.0, 1.0], origin: [0.0; 3], split: Split::Six }.build().is_err());
-    assert!(BoxGrid { cells: [1, 1, 1], size: [1.0; 3], origin: [f64::NAN, 0.0, 0.0], split: Split::Five }.build().is_err());
-    assert!(BoxGrid { cells: [100_000, 100_000, 1000], size: [1.0; 3], origin: [0.0; 3], split: Split::Six }.build().is_err());
+    assert!(
+        BoxGrid {
+            cells: [0, 1, 1],
+            size: [1.0; 3],
+            origin: [0.0; 3],
+            split: Split::Six
+        }
+        .build()
+        .is_err()
+    );
+    assert!(
+        BoxGrid {
+            cells: [1, 1, 1],
+            size: [1.0, -1.0, 1.0],
+            origin: [0.0; 3],
+            split: Split::Six
+        }
+        .build()
+        .is_err()
+    );
+    assert!(
+        BoxGrid {
+            cells: [1, 1, 1],
+            size: [1.0; 3],
+            origin: [f64::NAN, 0.0, 0.0],
+            split: Split::Five
+        }
+        .build()
+        .is_err()
+    );
+    assert!(
+        BoxGrid {
+            cells: [100_000, 100_000, 1000],
+            size: [1.0; 3],
+            origin: [0.0; 3],
+            split: Split::Six
+        }
+        .build()
+        .is_err()
+    );
 }
 
 proptest! {

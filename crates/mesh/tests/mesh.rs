@@ -18,20 +18,34 @@ fn unit_tet() -> (Vec<Vector3<f64>>, Vec<[usize; 4]>) {
 #[test]
 fn validation_errors_name_the_culprit() {
     let (p, _) = unit_tet();
-    assert_eq!(TetMesh::try_new(p.clone(), vec![]), Err(MeshError::NoElements));
+    assert_eq!(
+        TetMesh::try_new(p.clone(), vec![]),
+        Err(MeshError::NoElements)
+    );
     assert_eq!(
         TetMesh::try_new(p.clone(), vec![[0, 1, 2, 3], [0, 1, 2, 9]]),
-        Err(MeshError::IndexOutOfRange { element: 1, index: 9, num_vertices: 4 })
+        Err(MeshError::IndexOutOfRange {
+            element: 1,
+            index: 9,
+            num_vertices: 4
+        })
     );
     assert_eq!(
         TetMesh::try_new(p.clone(), vec![[0, 1, 1, 3]]),
-        Err(MeshError::RepeatedVertex { element: 0, vertex: 1 })
+        Err(MeshError::RepeatedVertex {
+            element: 0,
+            vertex: 1
+        })
     );
     let mut nan = p.clone();
     nan[2].y = f64::NAN;
     assert!(matches!(
         TetMesh::try_new(nan, vec![[0, 1, 2, 3]]),
-        Err(MeshError::NonFiniteCoordinate { vertex: 2, axis: 1, .. })
+        Err(MeshError::NonFiniteCoordinate {
+            vertex: 2,
+            axis: 1,
+            ..
+        })
     ));
     let mut flat = p.clone();
     flat[3] = Vector3::new(0.3, 0.3, 1e-14);
@@ -54,13 +68,22 @@ fn negative_tets_are_reoriented_and_counted() {
 fn unreferenced_vertices_are_dropped_or_reported() {
     let (mut p, t) = unit_tet();
     p.insert(1, Vector3::new(5.0, 5.0, 5.0));
-    let t: Vec<[usize; 4]> = t.iter().map(|t| t.map(|i| if i >= 1 { i + 1 } else { i })).collect();
+    let t: Vec<[usize; 4]> = t
+        .iter()
+        .map(|t| t.map(|i| if i >= 1 { i + 1 } else { i }))
+        .collect();
     let mesh = TetMesh::try_new(p.clone(), t.clone()).unwrap();
     assert_eq!(mesh.num_vertices(), 4);
     assert_eq!(mesh.build_report().dropped_vertices, 1);
-    assert_eq!(mesh.build_report().kept_vertices.as_deref(), Some(&[0, 2, 3, 4][..]));
+    assert_eq!(
+        mesh.build_report().kept_vertices.as_deref(),
+        Some(&[0, 2, 3, 4][..])
+    );
     assert_eq!(mesh.rest_positions()[1], Vector3::x());
-    let strict = MeshOptions { unreferenced: Unreferenced::Error, ..Default::default() };
+    let strict = MeshOptions {
+        unreferenced: Unreferenced::Error,
+        ..Default::default()
+    };
     assert_eq!(
         TetMesh::try_with_options(p, t, None, &strict),
         Err(MeshError::UnreferencedVertices { count: 1, first: 1 })
@@ -69,12 +92,21 @@ fn unreferenced_vertices_are_dropped_or_reported() {
 
 #[test]
 fn deformation_gradient_of_an_affine_map_is_its_matrix() {
-    let mesh = BoxGrid { cells: [2, 3, 2], size: [1.0, 2.0, 0.5], origin: [0.1, -0.2, 0.3], split: Split::Five }
-        .build()
-        .unwrap();
+    let mesh = BoxGrid {
+        cells: [2, 3, 2],
+        size: [1.0, 2.0, 0.5],
+        origin: [0.1, -0.2, 0.3],
+        split: Split::Five,
+    }
+    .build()
+    .unwrap();
     let a = Matrix3::new(1.1, 0.2, -0.3, 0.05, 0.9, 0.1, -0.2, 0.3, 1.3);
     let b = Vector3::new(0.3, -1.0, 2.0);
-    let x: Vec<f64> = mesh.rest_positions().iter().flat_map(|p| (a * p + b).iter().copied().collect::<Vec<_>>()).collect();
+    let x: Vec<f64> = mesh
+        .rest_positions()
+        .iter()
+        .flat_map(|p| (a * p + b).iter().copied().collect::<Vec<_>>())
+        .collect();
     for e in 0..mesh.num_tets() {
         let f = mesh.deformation_gradient(e, &x);
         assert_relative_eq!(f, a, epsilon = 1e-12);
@@ -105,7 +137,9 @@ fn lumped_and_consistent_mass_agree_on_rigid_motion() {
         assert_relative_eq!(a, b, max_relative = 1e-12);
     }
     // u^T M u for a unit translation is the total mass; M is symmetric.
-    let u: Vec<f64> = (0..mesh.num_vertices()).flat_map(|_| [1.0, 0.0, 0.0]).collect();
+    let u: Vec<f64> = (0..mesh.num_vertices())
+        .flat_map(|_| [1.0, 0.0, 0.0])
+        .collect();
     let mut mu = vec![0.0; u.len()];
     m.apply(&pattern, &u, &mut mu);
     let uu: f64 = u.iter().zip(&mu).map(|(a, b)| a * b).sum();
@@ -120,12 +154,22 @@ fn lumped_and_consistent_mass_agree_on_rigid_motion() {
 
 #[test]
 fn block_pattern_is_symmetric_and_covers_every_element_pair() {
-    let mesh = BoxGrid { cells: [3, 2, 2], size: [1.0; 3], origin: [0.0; 3], split: Split::Five }.build().unwrap();
+    let mesh = BoxGrid {
+        cells: [3, 2, 2],
+        size: [1.0; 3],
+        origin: [0.0; 3],
+        split: Split::Five,
+    }
+    .build()
+    .unwrap();
     let p = BlockPattern::new(&mesh);
     assert_eq!(p.num_blocks(), mesh.num_vertices() + 2 * edges(&mesh).len());
     for i in 0..p.num_rows() {
         let row = &p.columns()[p.offsets()[i]..p.offsets()[i + 1]];
-        assert!(row.windows(2).all(|w| w[0] < w[1]), "row {i} sorted and unique");
+        assert!(
+            row.windows(2).all(|w| w[0] < w[1]),
+            "row {i} sorted and unique"
+        );
         assert!(row.contains(&i));
         for &j in row {
             assert!(p.find(j, i).is_some(), "({j}, {i}) mirrors ({i}, {j})");
@@ -174,29 +218,56 @@ fn vertex_elements_lists_every_use_once() {
 #[test]
 fn selectors_pick_the_expected_vertices() {
     let mesh = BoxGrid::beam(2).build().unwrap();
-    let clamp = Selector::Plane { point: [0.0; 3], normal: [-1.0, 0.0, 0.0] }.select(&mesh).unwrap();
+    let clamp = Selector::Plane {
+        point: [0.0; 3],
+        normal: [-1.0, 0.0, 0.0],
+    }
+    .select(&mesh)
+    .unwrap();
     let by_pred = select_by(&mesh, |_, p| p.x == 0.0);
     assert_eq!(clamp, by_pred);
     assert_eq!(clamp.len(), 3 * 3);
-    let tip = Selector::Box { min: [1.0, -1.0, -1.0], max: [2.0, 1.0, 1.0] }.select(&mesh).unwrap();
+    let tip = Selector::Box {
+        min: [1.0, -1.0, -1.0],
+        max: [2.0, 1.0, 1.0],
+    }
+    .select(&mesh)
+    .unwrap();
     assert_eq!(tip, select_by(&mesh, |_, p| p.x == 1.0));
     let surface = Selector::Surface.select(&mesh).unwrap();
     // 9 x 3 x 3 grid: all but the (9-2) x 1 x 1 interior vertices.
     assert_eq!(surface.len(), mesh.num_vertices() - 7);
     assert_eq!(surface, surface_vertices(&mesh));
     let both = Selector::Or(vec![
-        Selector::Plane { point: [0.0; 3], normal: [-1.0, 0.0, 0.0] },
+        Selector::Plane {
+            point: [0.0; 3],
+            normal: [-1.0, 0.0, 0.0],
+        },
         Selector::Indices(vec![5]),
     ])
     .select(&mesh)
     .unwrap();
     assert_eq!(both.len(), 9);
-    let interior = Selector::Not(Box::new(Selector::Surface)).select(&mesh).unwrap();
+    let interior = Selector::Not(Box::new(Selector::Surface))
+        .select(&mesh)
+        .unwrap();
     assert_eq!(interior.len(), 7);
-    let none = Selector::And(vec![Selector::Surface, Selector::Not(Box::new(Selector::Surface))]).select(&mesh).unwrap();
+    let none = Selector::And(vec![
+        Selector::Surface,
+        Selector::Not(Box::new(Selector::Surface)),
+    ])
+    .select(&mesh)
+    .unwrap();
     assert!(none.is_empty());
     assert!(Selector::Indices(vec![10_000]).select(&mesh).is_err());
-    assert!(Selector::Plane { point: [0.0; 3], normal: [0.0; 3] }.select(&mesh).is_err());
+    assert!(
+        Selector::Plane {
+            point: [0.0; 3],
+            normal: [0.0; 3]
+        }
+        .select(&mesh)
+        .is_err()
+    );
 }
 
 #[test]

@@ -76,6 +76,12 @@ impl<'a> Cursor<'a> {
         self.pos
     }
 
+    /// Offset of the next token (skips blanks and comments); for text formats only.
+    pub fn here(&mut self) -> usize {
+        self.skip_space();
+        self.pos
+    }
+
     pub fn remaining(&self) -> usize {
         self.data.len() - self.pos
     }
@@ -161,7 +167,11 @@ impl<'a> Cursor<'a> {
                 self.pos += 1;
                 Ok(())
             }
-            _ => Err(ParseError::expected(self.pos, "end of line", show(&self.data[self.pos..]))),
+            _ => Err(ParseError::expected(
+                self.pos,
+                "end of line",
+                show(&self.data[self.pos..]),
+            )),
         }
     }
 
@@ -176,7 +186,11 @@ impl<'a> Cursor<'a> {
             }
             k += 1;
         }
-        Err(ParseError::expected(self.pos, format!("`{keyword}`"), "end of file"))
+        Err(ParseError::expected(
+            self.pos,
+            format!("`{keyword}`"),
+            "end of file",
+        ))
     }
 
     /// `n` raw bytes.
@@ -212,7 +226,8 @@ impl<'a> Cursor<'a> {
     /// An unsigned integer of `size` bytes (4 or 8), Gmsh's `size_t`.
     pub fn unsigned(&mut self, size: usize, what: &str) -> Parse<u64> {
         if size == 4 {
-            self.array::<4>(what).map(|a| u64::from(u32::from_le_bytes(a)))
+            self.array::<4>(what)
+                .map(|a| u64::from(u32::from_le_bytes(a)))
         } else {
             self.array::<8>(what).map(u64::from_le_bytes)
         }
@@ -221,5 +236,8 @@ impl<'a> Cursor<'a> {
 
 /// 1-based line number of byte `offset` in `data`.
 pub(crate) fn line_of(data: &[u8], offset: usize) -> usize {
-    1 + data[..offset.min(data.len())].iter().filter(|&&b| b == b'\n').count()
+    1 + data[..offset.min(data.len())]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
 }

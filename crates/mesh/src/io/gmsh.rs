@@ -99,7 +99,11 @@ struct Builder {
 impl Builder {
     fn node(&mut self, tag: u64, p: Vector3<f64>, at: usize) -> Parse<()> {
         if self.node_index.insert(tag, self.positions.len()).is_some() {
-            return Err(ParseError::expected(at, "a unique node tag", format!("node {tag} defined twice")));
+            return Err(ParseError::expected(
+                at,
+                "a unique node tag",
+                format!("node {tag} defined twice"),
+            ));
         }
         self.positions.push(p);
         self.node_tags.push(tag);
@@ -110,7 +114,11 @@ impl Builder {
         let mut t = [0usize; 4];
         for (slot, node) in t.iter_mut().zip(nodes) {
             *slot = *self.node_index.get(node).ok_or_else(|| {
-                ParseError::expected(at, "a node tag defined in $Nodes", format!("element {tag} uses undefined node {node}"))
+                ParseError::expected(
+                    at,
+                    "a node tag defined in $Nodes",
+                    format!("element {tag} uses undefined node {node}"),
+                )
             })?;
         }
         self.tets.push(t);
@@ -119,20 +127,25 @@ impl Builder {
         Ok(())
     }
 
+    /// Orders the tets by their element tag (4.1 files group them by entity), so that
+    /// the same mesh reads the same from every variant.
     fn finish(self) -> RawMesh {
+        let mut order: Vec<usize> = (0..self.tets.len()).collect();
+        order.sort_by_key(|&k| self.element_tags[k]);
         RawMesh {
             positions: self.positions,
-            tets: self.tets,
-            regions: self.regions,
+            tets: order.iter().map(|&k| self.tets[k]).collect(),
+            regions: order.iter().map(|&k| self.regions[k]).collect(),
             region_names: self.names,
             node_tags: self.node_tags,
-            element_tags: self.element_tags,
+            element_tags: order.iter().map(|&k| self.element_tags[k]).collect(),
         }
     }
 }
 
 fn region(tag: i64, at: usize) -> Parse<u32> {
-    u32::try_from(tag).map_err(|_| ParseError::expected(at, "a physical tag in 0..2^32", tag.to_string()))
+    u32::try_from(tag)
+        .map_err(|_| ParseError::expected(at, "a physical tag in 0..2^32", tag.to_string()))
 }
 
 /// Parses a whole `.msh` file.
@@ -142,7 +155,7 @@ pub(crate) fn parse(data: &[u8]) -> Parse<RawMesh> {
     let mut b = Builder::default();
     let mut seen_nodes = false;
     while let Some(tok) = c.peek_token() {
-        let at = c.offset();
+        let at = c.here();
         let name = tok.to_vec();
         c.token("section")?;
         match name.as_slice() {
@@ -167,7 +180,11 @@ pub(crate) fn parse(data: &[u8]) -> Parse<RawMesh> {
             }
             b"$Elements" => {
                 if !seen_nodes {
-                    return Err(ParseError::expected(at, "$Nodes before $Elements", "$Elements"));
+                    return Err(ParseError::expected(
+                        at,
+                        "$Nodes before $Elements",
+                        "$Elements",
+                    ));
                 }
                 if header.binary && header.version == MshVersion::V4_1 {
                     c.end_of_line()?;
@@ -186,14 +203,18 @@ pub(crate) fn parse(data: &[u8]) -> Parse<RawMesh> {
         }
     }
     if !seen_nodes {
-        return Err(ParseError::expected(data.len(), "a $Nodes section", "end of file"));
+        return Err(ParseError::expected(
+            data.len(),
+            "a $Nodes section",
+            "end of file",
+        ));
     }
     Ok(b.finish())
 }
 
 fn parse_header(c: &mut Cursor) -> Parse<Header> {
     c.keyword("$MeshFormat")?;
-    let at = c.offset();
+    let at = c.here();
     let v: String = c.parse("format version")?;
     let version = match v.as_str() {
         "2" | "2.0" | "2.1" | "2.2" => MshVersion::V2_2,
@@ -201,15 +222,21 @@ fn parse_header(c: &mut Cursor) -> Parse<Header> {
         other => {
             return Err(ParseError::unsupported(
                 at,
-                format!("MSH version {other} (deform reads 2.2 and 4.1; re-export with gmsh -format msh41)"),
+                format!(
+                    "MSH version {other} (deform reads 2.2 and 4.1; re-export with gmsh -format msh41)"
+                ),
             ));
         }
     };
     let file_type: u8 = c.parse("file-type 0 (ASCII) or 1 (binary)")?;
-    let at = c.offset();
+    let at = c.here();
     let size_t: usize = c.parse("data-size")?;
     if file_type > 1 {
-        return Err(ParseError::expected(at, "file-type 0 or 1", file_type.to_string()));
+        return Err(ParseError::expected(
+            at,
+            "file-type 0 or 1",
+            file_type.to_string(),
+        ));
     }
     let binary = file_type == 1;
     if !(size_t == 8 || (size_t == 4 && version == MshVersion::V4_1)) {
@@ -222,7 +249,13 @@ fn parse_header(c: &mut Cursor) -> Parse<Header> {
         c.swap = match one {
             [1, 0, 0, 0] => false,
             [0, 0, 0, 1] => true,
-            _ => return Err(ParseError::expected(at, "the binary integer 1", format!("{one:?}"))),
+            _ => {
+                return Err(ParseError::expected(
+                    at,
+                    "the binary integer 1",
+                    format!("{one:?}"),
+                ));
+            }
         };
     }
     c.keyword("$EndMeshFormat")?;
@@ -237,7 +270,7 @@ fn parse_names(c: &mut Cursor, b: &mut Builder) -> Parse<()> {
     let n: usize = c.parse("number of physical names")?;
     c.line();
     for _ in 0..n {
-        let at = c.offset();
+        let at = c.here();
         let dim: u8 = c.parse("physical dimension")?;
         let tag: i64 = c.parse("physical tag")?;
         let rest = String::from_utf8_lossy(c.line()).trim().to_owned();
@@ -254,11 +287,19 @@ fn parse_names(c: &mut Cursor, b: &mut Builder) -> Parse<()> {
 
 /// Reads a count, either an ASCII token or a binary `size_t`.
 fn count(c: &mut Cursor, h: &Header, what: &str) -> Parse<u64> {
-    if h.binary { c.unsigned(h.size_t, what) } else { c.parse(what) }
+    if h.binary {
+        c.unsigned(h.size_t, what)
+    } else {
+        c.parse(what)
+    }
 }
 
 fn int(c: &mut Cursor, h: &Header, what: &str) -> Parse<i64> {
-    if h.binary { c.i32(what).map(i64::from) } else { c.parse(what) }
+    if h.binary {
+        c.i32(what).map(i64::from)
+    } else {
+        c.parse(what)
+    }
 }
 
 fn real(c: &mut Cursor, h: &Header, what: &str) -> Parse<f64> {
@@ -327,7 +368,8 @@ fn parse_nodes_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
         let at = c.offset();
         let tag = if h.binary {
             let t = c.i32("node tag")?;
-            u64::try_from(t).map_err(|_| ParseError::expected(at, "a positive node tag", t.to_string()))?
+            u64::try_from(t)
+                .map_err(|_| ParseError::expected(at, "a positive node tag", t.to_string()))?
         } else {
             c.parse("node tag")?
         };
@@ -353,7 +395,13 @@ fn parse_nodes_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
         let extra = match parametric {
             0 => 0,
             1 => usize::try_from(dim).unwrap_or(0).min(3),
-            other => return Err(ParseError::expected(at, "parametric flag 0 or 1", other.to_string())),
+            other => {
+                return Err(ParseError::expected(
+                    at,
+                    "parametric flag 0 or 1",
+                    other.to_string(),
+                ));
+            }
         };
         let m = count(c, h, "nodes in block")?;
         let m = plausible(c, m, 8, "nodes in block")?;
@@ -380,7 +428,7 @@ fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
     if !h.binary {
         let mut nodes = Vec::new();
         for _ in 0..n {
-            let at = c.offset();
+            let at = c.here();
             let tag: u64 = c.parse("element tag")?;
             let kind: i64 = c.parse("element type")?;
             let ntags: usize = c.parse("number of element tags")?;
@@ -415,12 +463,20 @@ fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
         let follow = c.i32("number of elements following")?;
         let ntags = c.i32("number of tags")?;
         let (Ok(follow), Ok(ntags)) = (usize::try_from(follow), usize::try_from(ntags)) else {
-            return Err(ParseError::expected(at, "non-negative element block counts", format!("{follow}, {ntags}")));
+            return Err(ParseError::expected(
+                at,
+                "non-negative element block counts",
+                format!("{follow}, {ntags}"),
+            ));
         };
         let np = nodes_per_element(kind)
             .ok_or_else(|| ParseError::unsupported(at, format!("binary element type {kind}")))?;
         if follow == 0 || follow > n - read {
-            return Err(ParseError::expected(at, format!("between 1 and {} elements in the block", n - read), follow.to_string()));
+            return Err(ParseError::expected(
+                at,
+                format!("between 1 and {} elements in the block", n - read),
+                follow.to_string(),
+            ));
         }
         plausible(c, follow as u64, 4 * (1 + ntags + np), "elements in block")?;
         for _ in 0..follow {
@@ -485,7 +541,12 @@ fn parse_elements_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
                     c.line();
                 }
             }
-            None => return Err(ParseError::unsupported(at, format!("binary element type {kind}"))),
+            None => {
+                return Err(ParseError::unsupported(
+                    at,
+                    format!("binary element type {kind}"),
+                ));
+            }
         }
     }
     Ok(())
@@ -520,7 +581,11 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
     let nv = mesh.num_vertices();
     let ne = mesh.num_tets();
     let sz = |v: usize, w: &mut dyn Write| -> std::io::Result<()> {
-        if bin { w.write_all(&(v as u64).to_le_bytes()) } else { write!(w, "{v} ") }
+        if bin {
+            w.write_all(&(v as u64).to_le_bytes())
+        } else {
+            write!(w, "{v} ")
+        }
     };
     match format.version {
         MshVersion::V2_2 => {
@@ -551,7 +616,17 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
                         w.write_all(&v.to_le_bytes())?;
                     }
                 } else {
-                    writeln!(w, "{} 4 2 {} {} {} {} {} {}", e + 1, r, entity(*r), t[0] + 1, t[1] + 1, t[2] + 1, t[3] + 1)?;
+                    writeln!(
+                        w,
+                        "{} 4 2 {} {} {} {} {} {}",
+                        e + 1,
+                        r,
+                        entity(*r),
+                        t[0] + 1,
+                        t[1] + 1,
+                        t[2] + 1,
+                        t[3] + 1
+                    )?;
                 }
             }
             if bin {
@@ -561,9 +636,15 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
         }
         MshVersion::V4_1 => {
             let int = |v: i32, w: &mut dyn Write| -> std::io::Result<()> {
-                if bin { w.write_all(&v.to_le_bytes()) } else { write!(w, "{v} ") }
+                if bin {
+                    w.write_all(&v.to_le_bytes())
+                } else {
+                    write!(w, "{v} ")
+                }
             };
-            let end = |w: &mut dyn Write| -> std::io::Result<()> { if bin { Ok(()) } else { writeln!(w) } };
+            let end = |w: &mut dyn Write| -> std::io::Result<()> {
+                if bin { Ok(()) } else { writeln!(w) }
+            };
             writeln!(w, "$Entities")?;
             for v in [0, 0, 0, regions.len()] {
                 sz(v, w)?;
@@ -573,7 +654,11 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
             for &r in &regions {
                 int(entity(r), w)?;
                 for c in lo.iter().chain(hi.iter()) {
-                    if bin { w.write_all(&c.to_le_bytes())? } else { write!(w, "{c:?} ")? }
+                    if bin {
+                        w.write_all(&c.to_le_bytes())?
+                    } else {
+                        write!(w, "{c:?} ")?
+                    }
                 }
                 sz(usize::from(r > 0), w)?;
                 if r > 0 {
@@ -602,7 +687,11 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
             }
             for p in mesh.rest_positions() {
                 for c in p.iter() {
-                    if bin { w.write_all(&c.to_le_bytes())? } else { write!(w, "{c:?} ")? }
+                    if bin {
+                        w.write_all(&c.to_le_bytes())?
+                    } else {
+                        write!(w, "{c:?} ")?
+                    }
                 }
                 end(w)?;
             }

@@ -37,12 +37,12 @@ use cursor::{ParseError, ParseErrorKind, line_of};
 #[non_exhaustive]
 pub enum ReadError {
     /// The file could not be opened or read.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (shown in the message, so not chained as a source).
+        error: std::io::Error,
     },
     /// The file is malformed.
     #[error("{}:{line}: expected {expected}, found {found} (byte {offset})", path.display())]
@@ -69,14 +69,14 @@ pub enum ReadError {
         what: String,
     },
     /// The file parsed but does not describe a valid mesh.
-    #[error("{}: {}invalid mesh: {source}", path.display(), context.as_deref().map(|c| format!("{c}: ")).unwrap_or_default())]
+    #[error("{}: {}invalid mesh: {error}", path.display(), context.as_deref().map(|c| format!("{c}: ")).unwrap_or_default())]
     Invalid {
         /// The file.
         path: PathBuf,
         /// The file's own tag of the offending element or node, when there is one.
         context: Option<String>,
         /// The validation failure (indices in deform's numbering).
-        source: MeshError,
+        error: MeshError,
     },
     /// The extension names no mesh format deform reads.
     #[error("{}: unknown mesh format (expected .msh, .node or .ele)", path.display())]
@@ -91,12 +91,12 @@ pub enum ReadError {
 #[non_exhaustive]
 pub enum WriteError {
     /// Writing, syncing or renaming failed.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The target file.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (shown in the message, so not chained as a source).
+        error: std::io::Error,
     },
     /// The extension names no format deform writes.
     #[error("{}: unknown output format (expected .msh, .vtu, .obj, .node or .ele)", path.display())]
@@ -139,13 +139,13 @@ impl RawMesh {
         } = self;
         TetMesh::try_with_options(positions, tets, Some(regions), options)
             .map(|m| m.with_region_names(region_names))
-            .map_err(|source| {
-                let context = match &source {
+            .map_err(|error| {
+                let context = match &error {
                     MeshError::IndexOutOfRange { element, .. }
                     | MeshError::RepeatedVertex { element, .. }
-                    | MeshError::DegenerateElement { element, .. } => {
-                        element_tags.get(*element).map(|t| format!("file element {t}"))
-                    }
+                    | MeshError::DegenerateElement { element, .. } => element_tags
+                        .get(*element)
+                        .map(|t| format!("file element {t}")),
                     MeshError::NonFiniteCoordinate { vertex, .. } => {
                         node_tags.get(*vertex).map(|t| format!("file node {t}"))
                     }
@@ -154,7 +154,7 @@ impl RawMesh {
                 ReadError::Invalid {
                     path: path.to_owned(),
                     context,
-                    source,
+                    error,
                 }
             })
     }
@@ -179,9 +179,9 @@ fn parse_failure(path: &Path, data: &[u8], e: ParseError) -> ReadError {
 }
 
 fn read_bytes(path: &Path) -> Result<Vec<u8>, ReadError> {
-    fs::read(path).map_err(|source| ReadError::Io {
+    fs::read(path).map_err(|error| ReadError::Io {
         path: path.to_owned(),
-        source,
+        error,
     })
 }
 
@@ -197,7 +197,12 @@ pub fn parse_msh(data: &[u8], path: &Path) -> Result<RawMesh, ReadError> {
 ///
 /// # Errors
 /// [`ReadError::Parse`] naming whichever file is malformed.
-pub fn parse_tetgen(node: &[u8], ele: &[u8], node_path: &Path, ele_path: &Path) -> Result<RawMesh, ReadError> {
+pub fn parse_tetgen(
+    node: &[u8],
+    ele: &[u8],
+    node_path: &Path,
+    ele_path: &Path,
+) -> Result<RawMesh, ReadError> {
     tetgen::parse(node, ele).map_err(|(in_node, e)| {
         if in_node {
             parse_failure(node_path, node, e)
@@ -241,7 +246,9 @@ pub fn read(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
     match path.extension().and_then(|e| e.to_str()) {
         Some("msh") => read_msh(path, options),
         Some("node" | "ele") => read_tetgen(path, options),
-        _ => Err(ReadError::UnknownFormat { path: path.to_owned() }),
+        _ => Err(ReadError::UnknownFormat {
+            path: path.to_owned(),
+        }),
     }
 }
 
@@ -254,15 +261,18 @@ pub fn write_atomic(
     path: &Path,
     body: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<(), WriteError> {
-    let fail = |source| WriteError::Io {
+    let fail = |error| WriteError::Io {
         path: path.to_owned(),
-        source,
+        error,
     };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
     let result = (|| {
         let file = fs::File::create(&tmp)?;
@@ -295,7 +305,9 @@ pub fn write_tetgen(stem: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
         Some("node" | "ele") => stem.with_extension(""),
         _ => stem.to_owned(),
     };
-    write_atomic(&stem.with_extension("node"), |w| tetgen::write_node(w, mesh))?;
+    write_atomic(&stem.with_extension("node"), |w| {
+        tetgen::write_node(w, mesh)
+    })?;
     write_atomic(&stem.with_extension("ele"), |w| tetgen::write_ele(w, mesh))
 }
 
@@ -307,8 +319,15 @@ pub fn write_tetgen(stem: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
 /// # Panics
 /// If `positions` has fewer entries than the mesh has vertices.
 #[track_caller]
-pub fn write_obj(path: &Path, mesh: &TetMesh, positions: &[Vector3<f64>]) -> Result<(), WriteError> {
-    assert!(positions.len() >= mesh.num_vertices(), "one position per vertex");
+pub fn write_obj(
+    path: &Path,
+    mesh: &TetMesh,
+    positions: &[Vector3<f64>],
+) -> Result<(), WriteError> {
+    assert!(
+        positions.len() >= mesh.num_vertices(),
+        "one position per vertex"
+    );
     write_atomic(path, |w| obj::write(w, mesh, positions))
 }
 
@@ -323,6 +342,8 @@ pub fn write(path: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
         Some("vtu") => Vtu::new(mesh).write(path),
         Some("obj") => write_obj(path, mesh, mesh.rest_positions()),
         Some("node" | "ele") => write_tetgen(path, mesh),
-        _ => Err(WriteError::UnknownFormat { path: path.to_owned() }),
+        _ => Err(WriteError::UnknownFormat {
+            path: path.to_owned(),
+        }),
     }
 }

@@ -19,34 +19,52 @@ use crate::TetMesh;
 pub(crate) fn parse_node(data: &[u8]) -> Parse<(Vec<Vector3<f64>>, u64)> {
     let mut c = Cursor::new(data, Some(b'#'));
     let n: u64 = c.parse("number of points")?;
-    let at = c.offset();
+    let at = c.here();
     let dim: u32 = c.parse("dimension")?;
     if dim != 3 {
         return Err(ParseError::expected(at, "dimension 3", dim.to_string()));
     }
     let attributes: usize = c.parse("number of point attributes")?;
-    let at = c.offset();
+    let at = c.here();
     let markers: u8 = c.parse("boundary marker flag")?;
     if markers > 1 {
-        return Err(ParseError::expected(at, "boundary marker flag 0 or 1", markers.to_string()));
+        return Err(ParseError::expected(
+            at,
+            "boundary marker flag 0 or 1",
+            markers.to_string(),
+        ));
     }
-    let per_line = 4usize.saturating_add(attributes).saturating_add(usize::from(markers));
+    let per_line = 4usize
+        .saturating_add(attributes)
+        .saturating_add(usize::from(markers));
     let n = usize::try_from(n).unwrap_or(usize::MAX);
-    if n.saturating_mul(2 * per_line) > c.remaining() {
-        return Err(ParseError::expected(c.offset(), format!("{n} points"), "a shorter file"));
+    if n.saturating_mul(per_line) > c.remaining() {
+        return Err(ParseError::expected(
+            c.offset(),
+            format!("{n} points"),
+            "a shorter file",
+        ));
     }
     let mut positions = Vec::with_capacity(n);
     let mut base = 0;
     for i in 0..n {
-        let at = c.offset();
+        let at = c.here();
         let index: u64 = c.parse("point index")?;
         if i == 0 {
             if index > 1 {
-                return Err(ParseError::expected(at, "first point index 0 or 1", index.to_string()));
+                return Err(ParseError::expected(
+                    at,
+                    "first point index 0 or 1",
+                    index.to_string(),
+                ));
             }
             base = index;
         } else if index != base + i as u64 {
-            return Err(ParseError::expected(at, format!("point index {}", base + i as u64), index.to_string()));
+            return Err(ParseError::expected(
+                at,
+                format!("point index {}", base + i as u64),
+                index.to_string(),
+            ));
         }
         positions.push(Vector3::new(c.parse("x")?, c.parse("y")?, c.parse("z")?));
         for _ in 0..attributes + usize::from(markers) {
@@ -58,40 +76,59 @@ pub(crate) fn parse_node(data: &[u8]) -> Parse<(Vec<Vector3<f64>>, u64)> {
 
 /// Parses an `.ele` file against a point numbering starting at `base`.
 /// Returns tets (0-based), regions and file element indices.
-pub(crate) fn parse_ele(data: &[u8], base: u64) -> Parse<(Vec<[usize; 4]>, Vec<u32>, Vec<u64>)> {
+/// Tets (0-based), region per tet, and the file's element index per tet.
+type Elements = (Vec<[usize; 4]>, Vec<u32>, Vec<u64>);
+
+pub(crate) fn parse_ele(data: &[u8], base: u64) -> Parse<Elements> {
     let mut c = Cursor::new(data, Some(b'#'));
     let n: u64 = c.parse("number of tetrahedra")?;
-    let at = c.offset();
+    let at = c.here();
     let per: usize = c.parse("nodes per tetrahedron")?;
     if per != 4 && per != 10 {
-        return Err(ParseError::expected(at, "4 or 10 nodes per tetrahedron", per.to_string()));
+        return Err(ParseError::expected(
+            at,
+            "4 or 10 nodes per tetrahedron",
+            per.to_string(),
+        ));
     }
     let attributes: usize = c.parse("number of element attributes")?;
     let n = usize::try_from(n).unwrap_or(usize::MAX);
     if n.saturating_mul(2 * (1 + per + attributes.min(1 << 20))) > c.remaining() {
-        return Err(ParseError::expected(c.offset(), format!("{n} tetrahedra"), "a shorter file"));
+        return Err(ParseError::expected(
+            c.offset(),
+            format!("{n} tetrahedra"),
+            "a shorter file",
+        ));
     }
-    let (mut tets, mut regions, mut ids) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    let (mut tets, mut regions, mut ids) = (
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+    );
     for _ in 0..n {
         let id: u64 = c.parse("tetrahedron index")?;
         let mut t = [0usize; 4];
         for k in 0..per {
-            let at = c.offset();
+            let at = c.here();
             let v: u64 = c.parse("node index")?;
-            let v0 = v
-                .checked_sub(base)
-                .ok_or_else(|| ParseError::expected(at, format!("a node index >= {base}"), v.to_string()))?;
+            let v0 = v.checked_sub(base).ok_or_else(|| {
+                ParseError::expected(at, format!("a node index >= {base}"), v.to_string())
+            })?;
             if k < 4 {
                 t[k] = usize::try_from(v0).unwrap_or(usize::MAX);
             }
         }
         let mut region = 0;
         for k in 0..attributes {
-            let at = c.offset();
+            let at = c.here();
             let a: f64 = c.parse("element attribute")?;
             if k == 0 {
                 if !(a >= 0.0 && a <= f64::from(u32::MAX) && a.fract() == 0.0) {
-                    return Err(ParseError::expected(at, "a non-negative integer region attribute", a.to_string()));
+                    return Err(ParseError::expected(
+                        at,
+                        "a non-negative integer region attribute",
+                        a.to_string(),
+                    ));
                 }
                 region = a as u32;
             }

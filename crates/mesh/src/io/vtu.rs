@@ -36,7 +36,11 @@ pub struct Vtu<'a> {
 impl<'a> Vtu<'a> {
     /// The mesh at rest.
     pub fn new(mesh: &'a TetMesh) -> Self {
-        let region = mesh.regions().iter().map(|&r| i32::try_from(r).unwrap_or(i32::MAX)).collect();
+        let region = mesh
+            .regions()
+            .iter()
+            .map(|&r| i32::try_from(r).unwrap_or(i32::MAX))
+            .collect();
         Self {
             mesh,
             positions: mesh.rest_positions_flat(),
@@ -51,14 +55,22 @@ impl<'a> Vtu<'a> {
     /// If `x.len() != 3N`.
     #[track_caller]
     pub fn deformed(mesh: &'a TetMesh, x: &[f64]) -> Self {
-        assert_eq!(x.len(), 3 * mesh.num_vertices(), "positions must have 3N entries");
+        assert_eq!(
+            x.len(),
+            3 * mesh.num_vertices(),
+            "positions must have 3N entries"
+        );
         let rest = mesh.rest_positions_flat();
         let u: Vec<f64> = x.iter().zip(&rest).map(|(a, b)| a - b).collect();
-        let j: Vec<f64> = (0..mesh.num_tets()).map(|e| mesh.deformation_gradient(e, x).determinant()).collect();
+        let j: Vec<f64> = (0..mesh.num_tets())
+            .map(|e| mesh.deformation_gradient(e, x).determinant())
+            .collect();
         let mut out = Self::new(mesh);
         out.positions = x.to_vec();
-        out.point_data.push(("displacement".to_owned(), Field::Vectors(u)));
-        out.cell_data.push(("volume_ratio".to_owned(), Field::Scalars(j)));
+        out.point_data
+            .push(("displacement".to_owned(), Field::Vectors(u)));
+        out.cell_data
+            .push(("volume_ratio".to_owned(), Field::Scalars(j)));
         out
     }
 
@@ -68,8 +80,13 @@ impl<'a> Vtu<'a> {
     /// If `values.len() != N`.
     #[track_caller]
     pub fn point_scalars(mut self, name: &str, values: &[f64]) -> Self {
-        assert_eq!(values.len(), self.mesh.num_vertices(), "one value per vertex");
-        self.point_data.push((name.to_owned(), Field::Scalars(values.to_vec())));
+        assert_eq!(
+            values.len(),
+            self.mesh.num_vertices(),
+            "one value per vertex"
+        );
+        self.point_data
+            .push((name.to_owned(), Field::Scalars(values.to_vec())));
         self
     }
 
@@ -79,8 +96,13 @@ impl<'a> Vtu<'a> {
     /// If `values.len() != 3N`.
     #[track_caller]
     pub fn point_vectors(mut self, name: &str, values: &[f64]) -> Self {
-        assert_eq!(values.len(), 3 * self.mesh.num_vertices(), "three values per vertex");
-        self.point_data.push((name.to_owned(), Field::Vectors(values.to_vec())));
+        assert_eq!(
+            values.len(),
+            3 * self.mesh.num_vertices(),
+            "three values per vertex"
+        );
+        self.point_data
+            .push((name.to_owned(), Field::Vectors(values.to_vec())));
         self
     }
 
@@ -91,7 +113,8 @@ impl<'a> Vtu<'a> {
     #[track_caller]
     pub fn cell_scalars(mut self, name: &str, values: &[f64]) -> Self {
         assert_eq!(values.len(), self.mesh.num_tets(), "one value per element");
-        self.cell_data.push((name.to_owned(), Field::Scalars(values.to_vec())));
+        self.cell_data
+            .push((name.to_owned(), Field::Scalars(values.to_vec())));
         self
     }
 
@@ -114,7 +137,10 @@ impl<'a> Vtu<'a> {
             w,
             r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">"#
         )?;
-        writeln!(w, "<UnstructuredGrid>\n<Piece NumberOfPoints=\"{nv}\" NumberOfCells=\"{ne}\">")?;
+        writeln!(
+            w,
+            "<UnstructuredGrid>\n<Piece NumberOfPoints=\"{nv}\" NumberOfCells=\"{ne}\">"
+        )?;
         writeln!(w, "<PointData>")?;
         for (name, f) in &self.point_data {
             array(w, name, f)?;
@@ -126,10 +152,28 @@ impl<'a> Vtu<'a> {
         writeln!(w, "</CellData>\n<Points>")?;
         array(w, "Points", &Field::Vectors(self.positions.clone()))?;
         writeln!(w, "</Points>\n<Cells>")?;
-        let conn: Vec<i64> = self.mesh.tets().iter().flatten().map(|&i| i as i64).collect();
+        let conn: Vec<i64> = self
+            .mesh
+            .tets()
+            .iter()
+            .flatten()
+            .map(|&i| i as i64)
+            .collect();
         let offsets: Vec<i64> = (1..=ne as i64).map(|k| 4 * k).collect();
-        raw(w, "connectivity", "Int64", 1, &bytes_of(&conn, |v| v.to_le_bytes()))?;
-        raw(w, "offsets", "Int64", 1, &bytes_of(&offsets, |v| v.to_le_bytes()))?;
+        raw(
+            w,
+            "connectivity",
+            "Int64",
+            1,
+            &bytes_of(&conn, |v| v.to_le_bytes()),
+        )?;
+        raw(
+            w,
+            "offsets",
+            "Int64",
+            1,
+            &bytes_of(&offsets, |v| v.to_le_bytes()),
+        )?;
         raw(w, "types", "UInt8", 1, &vec![VTK_TETRA; ne])?;
         writeln!(w, "</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>")
     }
@@ -147,7 +191,13 @@ fn array(w: &mut dyn Write, name: &str, f: &Field) -> std::io::Result<()> {
     }
 }
 
-fn raw(w: &mut dyn Write, name: &str, kind: &str, components: usize, data: &[u8]) -> std::io::Result<()> {
+fn raw(
+    w: &mut dyn Write,
+    name: &str,
+    kind: &str,
+    components: usize,
+    data: &[u8],
+) -> std::io::Result<()> {
     let mut block = (data.len() as u64).to_le_bytes().to_vec();
     block.extend_from_slice(data);
     let name = xml_escape(name);
@@ -155,12 +205,19 @@ fn raw(w: &mut dyn Write, name: &str, kind: &str, components: usize, data: &[u8]
         w,
         r#"<DataArray type="{kind}" Name="{name}" NumberOfComponents="{components}" format="binary">"#
     )?;
-    writeln!(w, "{}", base64::engine::general_purpose::STANDARD.encode(&block))?;
+    writeln!(
+        w,
+        "{}",
+        base64::engine::general_purpose::STANDARD.encode(&block)
+    )?;
     writeln!(w, "</DataArray>")
 }
 
 fn xml_escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
 }
 
 /// A ParaView `.pvd` collection: a list of `(time, file)` datasets, rewritten atomically
@@ -188,13 +245,21 @@ impl Pvd {
     pub fn push(&mut self, time: f64, file: &Path) -> Result<(), WriteError> {
         let dir = self.path.parent().unwrap_or(Path::new(""));
         let rel = file.strip_prefix(dir).unwrap_or(file);
-        self.entries.push((time, rel.to_string_lossy().into_owned()));
+        self.entries
+            .push((time, rel.to_string_lossy().into_owned()));
         write_atomic(&self.path, |w| {
             writeln!(w, r#"<?xml version="1.0"?>"#)?;
-            writeln!(w, r#"<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">"#)?;
+            writeln!(
+                w,
+                r#"<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">"#
+            )?;
             writeln!(w, "<Collection>")?;
             for (t, f) in &self.entries {
-                writeln!(w, r#"<DataSet timestep="{t:?}" group="" part="0" file="{}"/>"#, xml_escape(f))?;
+                writeln!(
+                    w,
+                    r#"<DataSet timestep="{t:?}" group="" part="0" file="{}"/>"#,
+                    xml_escape(f)
+                )?;
             }
             writeln!(w, "</Collection>\n</VTKFile>")
         })

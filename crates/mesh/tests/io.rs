@@ -1,0 +1,403 @@
+//! Readers and writers: real files from gmsh and TetGen, round trips, and bad files.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use approx::assert_relative_eq;
+use base64::Engine;
+use deform_mesh::generate::{BoxGrid, Split};
+use deform_mesh::io::{self, MshFormat, MshVersion, Pvd, ReadError, Vtu};
+use deform_mesh::{MeshError, MeshOptions, TetMesh};
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+fn asset(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/meshes")
+        .join(name)
+}
+
+fn read(path: &Path) -> TetMesh {
+    io::read(path, &MeshOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn total_volume(mesh: &TetMesh) -> f64 {
+    mesh.volumes().iter().sum()
+}
+
+fn region_set(mesh: &TetMesh) -> Vec<u32> {
+    let mut r = mesh.regions().to_vec();
+    r.sort_unstable();
+    r.dedup();
+    r
+}
+
+#[test]
+fn gmsh_files_in_all_four_variants_read_identically() {
+    let variants = [
+        "two_boxes_22_ascii.msh",
+        "two_boxes_22_binary.msh",
+        "two_boxes_41_ascii.msh",
+        "two_boxes_41_binary.msh",
+    ];
+    let meshes: Vec<TetMesh> = variants.iter().map(|v| read(&data(v))).collect();
+    for (m, v) in meshes.iter().zip(variants) {
+        // Counts and volume as reported by meshio for the files gmsh wrote (scripts/make_meshes.py).
+        assert_eq!((m.num_vertices(), m.num_tets()), (428, 1455), "{v}");
+        assert_relative_eq!(total_volume(m), 2.0, max_relative = 1e-12);
+        assert_eq!(region_set(m), vec![7, 9], "{v}");
+        // Every tet of region 7 lies in the left box x <= 1.
+        for (t, r) in m.tets().iter().zip(m.regions()) {
+            let cx: f64 = t.iter().map(|&i| m.rest_positions()[i].x).sum::<f64>() / 4.0;
+            assert_eq!(*r == 7, cx < 1.0, "{v}");
+        }
+    }
+    let names: BTreeMap<u32, String> = [(7, "left".to_owned()), (9, "right".to_owned())].into();
+    assert_eq!(meshes[0].region_names(), &names);
+    assert_eq!(meshes[3].region_names(), &names);
+    for m in &meshes[1..] {
+        // gmsh prints ASCII coordinates with 16 significant digits, binary ones exactly.
+        for (a, b) in m.rest_positions().iter().zip(meshes[0].rest_positions()) {
+            assert_relative_eq!(a, b, max_relative = 1e-15, epsilon = 1e-15);
+        }
+        assert_eq!(m.tets(), meshes[0].tets());
+        assert_eq!(m.regions(), meshes[0].regions());
+    }
+}
+
+#[test]
+fn bundled_meshes_read_with_expected_counts_and_volumes() {
+    // (file, vertices, tets, volume from meshio, regions)
+    let cases: [(&str, usize, usize, f64, Vec<u32>); 3] = [
+        ("beam.msh", 558, 1854, 0.0625, vec![1]),
+        ("bracket.msh", 588, 1700, 0.00626298309606, vec![1, 2]),
+        ("block.node", 445, 1365, 0.1875, vec![5]),
+    ];
+    for (file, nv, nt, vol, regions) in cases {
+        let m = read(&asset(file));
+        assert_eq!((m.num_vertices(), m.num_tets()), (nv, nt), "{file}");
+        assert_relative_eq!(total_volume(&m), vol, max_relative = 1e-11);
+        assert_eq!(region_set(&m), regions, "{file}");
+        assert_eq!(m.build_report().dropped_vertices, 0, "{file}");
+    }
+    assert_eq!(
+        read(&asset("bracket.msh"))
+            .region_names()
+            .get(&2)
+            .map(String::as_str),
+        Some("wall")
+    );
+    // The .ele path and the stem read the same pair.
+    assert_eq!(read(&asset("block.ele")), read(&asset("block.node")));
+}
+
+fn sample_mesh() -> TetMesh {
+    let mesh = BoxGrid {
+        cells: [3, 2, 2],
+        size: [1.5, 1.0, 0.7],
+        origin: [0.1, 0.2, -0.3],
+        split: Split::Five,
+    }
+    .build()
+    .unwrap();
+    // Two regions so that tags round-trip too.
+    let regions: Vec<u32> = (0..mesh.num_tets())
+        .map(|e| if e % 3 == 0 { 4 } else { 2 })
+        .collect();
+    TetMesh::try_with_options(
+        mesh.rest_positions().to_vec(),
+        mesh.tets().to_vec(),
+        Some(regions),
+        &MeshOptions::default(),
+    )
+    .unwrap()
+    .with_region_names(
+        [
+            (2, "soft".to_owned()),
+            (4, "hard \"core\"".replace('"', "'")),
+        ]
+        .into(),
+    )
+}
+
+#[test]
+fn round_trips_preserve_topology_coordinates_and_regions() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = sample_mesh();
+    for version in [MshVersion::V2_2, MshVersion::V4_1] {
+        for binary in [false, true] {
+            let path = dir.path().join(format!("m_{version:?}_{binary}.msh"));
+            io::write_msh(&path, &mesh, MshFormat { version, binary }).unwrap();
+            let back = read(&path);
+            assert!(
+                back == mesh,
+                "{version:?} binary={binary}: {}",
+                std::fs::read_to_string(&path)
+                    .unwrap_or_default()
+                    .lines()
+                    .take(12)
+                    .collect::<Vec<_>>()
+                    .join("\n")
+            );
+        }
+    }
+    let stem = dir.path().join("m.node");
+    io::write(&stem, &mesh).unwrap();
+    let back = read(&stem);
+    assert_eq!(back.rest_positions(), mesh.rest_positions());
+    assert_eq!(back.tets(), mesh.tets());
+    assert_eq!(back.regions(), mesh.regions());
+}
+
+/// Decodes one `format="binary"` DataArray of our VTU by name (UInt64 header + values).
+fn vtu_array(xml: &str, name: &str) -> Vec<u8> {
+    let start = xml
+        .find(&format!("Name=\"{name}\""))
+        .unwrap_or_else(|| panic!("array {name}"));
+    let body_start = xml[start..].find('>').unwrap() + start + 1;
+    let body_end = xml[body_start..].find("</DataArray>").unwrap() + body_start;
+    let raw = base64::engine::general_purpose::STANDARD
+        .decode(xml[body_start..body_end].trim())
+        .unwrap();
+    let len = u64::from_le_bytes(raw[..8].try_into().unwrap()) as usize;
+    assert_eq!(len, raw.len() - 8, "header byte count of {name}");
+    raw[8..].to_vec()
+}
+
+fn f64s(b: &[u8]) -> Vec<f64> {
+    b.chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+#[test]
+fn vtu_frames_carry_positions_connectivity_and_fields() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = sample_mesh();
+    let mut x = mesh.rest_positions_flat();
+    for (k, v) in x.iter_mut().enumerate() {
+        *v *= if k % 3 == 2 { 1.2 } else { 1.0 };
+    }
+    let path = dir.path().join("frame_0001.vtu");
+    let vel = vec![0.5; x.len()];
+    Vtu::deformed(&mesh, &x)
+        .point_vectors("velocity", &vel)
+        .write(&path)
+        .unwrap();
+    let xml = std::fs::read_to_string(&path).unwrap();
+    assert_eq!(f64s(&vtu_array(&xml, "Points")), x);
+    assert_eq!(f64s(&vtu_array(&xml, "velocity")), vel);
+    let j = f64s(&vtu_array(&xml, "volume_ratio"));
+    assert!(
+        j.iter().all(|j| (j - 1.2).abs() < 1e-12),
+        "uniform stretch of 1.2 in z"
+    );
+    let conn: Vec<i64> = vtu_array(&xml, "connectivity")
+        .chunks_exact(8)
+        .map(|c| i64::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    let expected: Vec<i64> = mesh.tets().iter().flatten().map(|&i| i as i64).collect();
+    assert_eq!(conn, expected);
+    assert_eq!(vtu_array(&xml, "types"), vec![10u8; mesh.num_tets()]);
+
+    let mut pvd = Pvd::new(dir.path().join("series.pvd"));
+    pvd.push(0.0, &path).unwrap();
+    pvd.push(0.01, &dir.path().join("frame_0002.vtu")).unwrap();
+    let text = std::fs::read_to_string(dir.path().join("series.pvd")).unwrap();
+    assert!(
+        text.contains(r#"timestep="0.01" group="" part="0" file="frame_0002.vtu""#),
+        "{text}"
+    );
+    // No temporary files are left behind.
+    let names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(names.iter().all(|n| !n.contains(".tmp")), "{names:?}");
+}
+
+#[test]
+fn obj_surface_is_closed_and_outward() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let path = dir.path().join("s.obj");
+    io::write(&path, &mesh).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let v: Vec<[f64; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let c: Vec<f64> = l.split_whitespace().map(|s| s.parse().unwrap()).collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    let f: Vec<[usize; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("f "))
+        .map(|l| {
+            let c: Vec<usize> = l
+                .split_whitespace()
+                .map(|s| s.parse::<usize>().unwrap() - 1)
+                .collect();
+            [c[0], c[1], c[2]]
+        })
+        .collect();
+    assert_eq!(v.len(), 20); // all vertices of a 4 x 1 x 1 grid are on the surface
+    assert_eq!(f.len(), 2 * 2 * (4 + 1 + 4));
+    let p = |i: usize| nalgebra::Vector3::from(v[i]);
+    let vol: f64 = f
+        .iter()
+        .map(|t| p(t[0]).dot(&p(t[1]).cross(&p(t[2]))) / 6.0)
+        .sum();
+    assert_relative_eq!(vol, 0.0625, max_relative = 1e-12);
+}
+
+fn parse_err(text: &str) -> ReadError {
+    io::parse_msh(text.as_bytes(), Path::new("bad.msh"))
+        .and_then(|raw| raw.into_mesh(Path::new("bad.msh"), &MeshOptions::default()))
+        .expect_err("the file is bad")
+}
+
+const GOOD_22: &str = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n4\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n$EndNodes\n$Elements\n2\n1 15 2 0 1 1\n2 4 2 3 1 1 2 3 4\n$EndElements\n";
+
+#[test]
+fn bad_files_give_typed_errors_with_lines() {
+    let ok = io::parse_msh(GOOD_22.as_bytes(), Path::new("good.msh")).unwrap();
+    assert_eq!(ok.tets, vec![[0, 1, 2, 3]]);
+    assert_eq!(ok.regions, vec![3]);
+
+    // Truncated in the middle of the nodes: the announced count cannot fit.
+    let cut = &GOOD_22[..GOOD_22.find("3 0 1 0").unwrap()];
+    match parse_err(cut) {
+        ReadError::Parse { line, found, .. } => {
+            assert_eq!(line, 5);
+            assert!(found.contains("bytes left"), "{found}");
+        }
+        e => panic!("{e}"),
+    }
+    // Truncated inside the last element.
+    let cut = &GOOD_22[..GOOD_22.find("1 2 3 4\n").unwrap() + 5];
+    match parse_err(cut) {
+        ReadError::Parse {
+            line,
+            expected,
+            found,
+            ..
+        } => {
+            assert_eq!(line, 14);
+            assert_eq!(expected, "node tag of the element");
+            assert_eq!(found, "end of file");
+        }
+        e => panic!("{e}"),
+    }
+    // Wrong count: three elements announced, two present.
+    match parse_err(&GOOD_22.replace("$Elements\n2", "$Elements\n3")) {
+        ReadError::Parse { line, found, .. } => {
+            assert_eq!(line, 15);
+            assert!(found.contains("$EndElements"), "{found}");
+        }
+        e => panic!("{e}"),
+    }
+    // A tet refers to a node that does not exist.
+    match parse_err(&GOOD_22.replace("1 2 3 4\n", "1 2 3 44\n")) {
+        ReadError::Parse { line, found, .. } => {
+            assert_eq!(line, 14);
+            assert!(found.contains("undefined node 44"), "{found}");
+        }
+        e => panic!("{e}"),
+    }
+    // NaN coordinate: parsed, then rejected naming the file's node tag.
+    match parse_err(&GOOD_22.replace("3 0 1 0", "3 0 nan 0")) {
+        ReadError::Invalid {
+            context,
+            error: MeshError::NonFiniteCoordinate { vertex: 2, .. },
+            ..
+        } => {
+            assert_eq!(context.as_deref(), Some("file node 3"));
+        }
+        e => panic!("{e}"),
+    }
+    // Degenerate tet (all four nodes in a plane).
+    let e = parse_err(&GOOD_22.replace("4 0 0 1", "4 1 1 0"));
+    assert!(
+        matches!(
+            e,
+            ReadError::Invalid {
+                error: MeshError::DegenerateElement { element: 0, .. },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("file element 2"), "{e}");
+    assert!(e.to_string().starts_with("bad.msh:"), "{e}");
+    // Repeated vertex.
+    let e = parse_err(&GOOD_22.replace("1 2 3 4\n", "1 2 2 4\n"));
+    assert!(
+        matches!(
+            e,
+            ReadError::Invalid {
+                error: MeshError::RepeatedVertex { .. },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    // Unsupported version and bad header.
+    assert!(matches!(
+        parse_err(&GOOD_22.replace("2.2 0 8", "3.0 0 8")),
+        ReadError::Unsupported { line: 2, .. }
+    ));
+    assert!(matches!(
+        parse_err("hello"),
+        ReadError::Parse { line: 1, .. }
+    ));
+    // A hostile count does not allocate: it is rejected against the file size.
+    let e = parse_err(&GOOD_22.replace("$Nodes\n4", "$Nodes\n4000000000000"));
+    assert!(matches!(e, ReadError::Parse { line: 5, .. }), "{e}");
+}
+
+#[test]
+fn bad_tetgen_files_name_the_file_and_line() {
+    let node = b"4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0 # comment\n4 0 0 1\n";
+    let ele = b"# tets\n1 4 0\n1 1 2 3 4\n";
+    let (np, ep) = (Path::new("a.node"), Path::new("a.ele"));
+    let raw = io::parse_tetgen(node, ele, np, ep).unwrap();
+    assert_eq!(raw.tets, vec![[0, 1, 2, 3]]);
+    let e = io::parse_tetgen(node, b"1 4 0\n1 1 2 3 0\n", np, ep).unwrap_err();
+    assert!(
+        matches!(&e, ReadError::Parse { path, line: 2, .. } if path == ep),
+        "{e}"
+    );
+    let e = io::parse_tetgen(b"4 2 0 0\n", ele, np, ep).unwrap_err();
+    assert!(
+        matches!(&e, ReadError::Parse { path, line: 1, .. } if path == np),
+        "{e}"
+    );
+    let e = io::parse_tetgen(b"4 3 0 0\n1 0 0 0\n2 1 0 0\n4 0 1 0\n", ele, np, ep).unwrap_err();
+    assert!(matches!(&e, ReadError::Parse { line: 4, .. }), "{e}");
+    // Out-of-range node index: caught by validation, naming the file's element index.
+    let raw = io::parse_tetgen(node, b"1 4 0\n7 1 2 3 9\n", np, ep).unwrap();
+    let e = raw.into_mesh(ep, &MeshOptions::default()).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            ReadError::Invalid {
+                error: MeshError::IndexOutOfRange { index: 8, .. },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("file element 7"), "{e}");
+    let missing = io::read(Path::new("/nonexistent/x.msh"), &MeshOptions::default()).unwrap_err();
+    assert!(matches!(missing, ReadError::Io { .. }));
+    assert!(matches!(
+        io::read(Path::new("x.stl"), &MeshOptions::default()),
+        Err(ReadError::UnknownFormat { .. })
+    ));
+}

@@ -1,0 +1,232 @@
+//! `cargo xtask mesh info | convert | generate`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand, ValueEnum};
+use deform_mesh::generate::{BoxGrid, Split};
+use deform_mesh::io::{self, MshFormat, MshVersion};
+use deform_mesh::quality::rest_quality;
+use deform_mesh::topology::{edges, faces};
+use deform_mesh::{MeshOptions, TetMesh};
+
+#[derive(Debug, Subcommand)]
+pub enum MeshTask {
+    /// Counts, volume, bounding box, quality and surface statistics of a mesh file.
+    Info {
+        /// A .msh, .node or .ele file.
+        file: PathBuf,
+    },
+    /// Converts between formats, chosen by extension (.msh, .node/.ele, .vtu, .obj).
+    Convert {
+        /// Input mesh (.msh, .node, .ele).
+        input: PathBuf,
+        /// Output file.
+        output: PathBuf,
+        #[command(flatten)]
+        msh: MshArgs,
+    },
+    /// Writes a structured mesh.
+    Generate {
+        /// What to generate.
+        #[arg(value_enum)]
+        shape: Shape,
+        /// Cells along x, y, z, e.g. 20x4x4.
+        #[arg(long, value_parser = parse_triple::<usize>)]
+        cells: Option<[usize; 3]>,
+        /// Edge lengths, e.g. 1x0.25x0.25 (beam: cubic cells along a unit length; box: 1x1x1).
+        #[arg(long, value_parser = parse_triple::<f64>)]
+        size: Option<[f64; 3]>,
+        /// Tets per cube: 5 or 6.
+        #[arg(long, default_value_t = 6)]
+        split: u8,
+        /// Output file (.msh, .node/.ele, .vtu, .obj).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        msh: MshArgs,
+    },
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum Shape {
+    /// A cantilever beam (default 16x4x4 cells of cubes with total length 1).
+    Beam,
+    /// A box (default 4x4x4 cells on the unit cube).
+    Box,
+}
+
+#[derive(Debug, Args)]
+pub struct MshArgs {
+    /// Gmsh format version for .msh output: 2.2 or 4.1.
+    #[arg(long, default_value = "4.1")]
+    msh_version: String,
+    /// Write .msh as binary.
+    #[arg(long)]
+    binary: bool,
+}
+
+impl MshArgs {
+    fn format(&self) -> Result<MshFormat> {
+        let version = match self.msh_version.as_str() {
+            "2.2" => MshVersion::V2_2,
+            "4.1" => MshVersion::V4_1,
+            v => bail!("--msh-version must be 2.2 or 4.1, got {v}"),
+        };
+        Ok(MshFormat {
+            version,
+            binary: self.binary,
+        })
+    }
+}
+
+fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
+    let parts: Vec<&str> = s.split('x').collect();
+    let [a, b, c] = parts.as_slice() else {
+        return Err(format!("expected AxBxC, got {s:?}"));
+    };
+    let p = |v: &str| {
+        v.trim()
+            .parse::<T>()
+            .map_err(|_| format!("{v:?} is not a number"))
+    };
+    Ok([p(a)?, p(b)?, p(c)?])
+}
+
+pub fn run(task: MeshTask) -> Result<()> {
+    match task {
+        MeshTask::Info { file } => {
+            let mesh = io::read(&file, &MeshOptions::default())?;
+            print!("{}", info(&file, &mesh));
+            Ok(())
+        }
+        MeshTask::Convert { input, output, msh } => {
+            let mesh = io::read(&input, &MeshOptions::default())?;
+            write(&output, &mesh, &msh)?;
+            println!(
+                "wrote {} ({} vertices, {} tets)",
+                output.display(),
+                mesh.num_vertices(),
+                mesh.num_tets()
+            );
+            Ok(())
+        }
+        MeshTask::Generate {
+            shape,
+            cells,
+            size,
+            split,
+            out,
+            msh,
+        } => {
+            let split = match split {
+                5 => Split::Five,
+                6 => Split::Six,
+                s => bail!("--split must be 5 or 6, got {s}"),
+            };
+            let cells = cells.unwrap_or(match shape {
+                Shape::Beam => [16, 4, 4],
+                Shape::Box => [4, 4, 4],
+            });
+            let size = size.unwrap_or(match shape {
+                Shape::Beam => [
+                    1.0,
+                    cells[1] as f64 / cells[0] as f64,
+                    cells[2] as f64 / cells[0] as f64,
+                ],
+                Shape::Box => [1.0; 3],
+            });
+            let mesh = BoxGrid {
+                cells,
+                size,
+                origin: [0.0; 3],
+                split,
+            }
+            .build()
+            .context("invalid grid")?;
+            write(&out, &mesh, &msh)?;
+            println!(
+                "wrote {} ({} vertices, {} tets)",
+                out.display(),
+                mesh.num_vertices(),
+                mesh.num_tets()
+            );
+            Ok(())
+        }
+    }
+}
+
+fn write(path: &Path, mesh: &TetMesh, msh: &MshArgs) -> Result<()> {
+    if path.extension().and_then(|e| e.to_str()) == Some("msh") {
+        io::write_msh(path, mesh, msh.format()?)?;
+    } else {
+        io::write(path, mesh)?;
+    }
+    Ok(())
+}
+
+/// The report of `mesh info`.
+pub fn info(file: &Path, mesh: &TetMesh) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let q = rest_quality(mesh);
+    let f = faces(mesh);
+    let (lo, hi) = mesh.bounding_box();
+    let report = mesh.build_report();
+    let _ = writeln!(s, "file            {}", file.display());
+    let _ = writeln!(s, "vertices        {}", mesh.num_vertices());
+    let _ = writeln!(s, "tets            {}", mesh.num_tets());
+    let _ = writeln!(s, "edges           {}", edges(mesh).len());
+    let _ = writeln!(
+        s,
+        "surface         {} triangles, {} interior faces, {} non-manifold faces",
+        f.boundary.len(),
+        f.interior.len(),
+        f.nonmanifold.len()
+    );
+    let _ = writeln!(s, "volume          {:.9e}", q.total_volume);
+    let _ = writeln!(
+        s,
+        "bounding box    [{:.6}, {:.6}, {:.6}] - [{:.6}, {:.6}, {:.6}]",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
+    let _ = writeln!(
+        s,
+        "element volume  {:.3e} .. {:.3e}",
+        q.min_volume, q.max_volume
+    );
+    let _ = writeln!(
+        s,
+        "dihedral angle  {:.2} .. {:.2} deg",
+        q.min_dihedral_deg, q.max_dihedral_deg
+    );
+    let _ = writeln!(
+        s,
+        "aspect ratio    max {:.3}, mean {:.3} (1 = regular)",
+        q.max_aspect_ratio, q.mean_aspect_ratio
+    );
+    let _ = writeln!(s, "inverted        {}", q.inverted);
+    let _ = writeln!(
+        s,
+        "reoriented      {} (negatively oriented in the file)",
+        report.reoriented
+    );
+    let _ = writeln!(
+        s,
+        "dropped         {} unreferenced vertices",
+        report.dropped_vertices
+    );
+    let mut regions: Vec<u32> = mesh.regions().to_vec();
+    regions.sort_unstable();
+    regions.dedup();
+    for r in regions {
+        let count = mesh.regions().iter().filter(|&&x| x == r).count();
+        let name = mesh
+            .region_names()
+            .get(&r)
+            .map(|n| format!(" \"{n}\""))
+            .unwrap_or_default();
+        let _ = writeln!(s, "region {r}{name:<10} {count} tets");
+    }
+    s
+}
