@@ -21,11 +21,19 @@ fn benches(c: &mut Criterion) {
         g.bench_function(format!("generate+validate/beam{n} ({tets} tets)"), |b| {
             b.iter(|| BoxGrid::beam(black_box(n)).build().unwrap())
         });
-        g.bench_function(format!("faces/beam{n}"), |b| b.iter(|| faces(black_box(&mesh))));
-        g.bench_function(format!("block_pattern/beam{n}"), |b| b.iter(|| BlockPattern::new(black_box(&mesh))));
+        g.bench_function(format!("faces/beam{n}"), |b| {
+            b.iter(|| faces(black_box(&mesh)))
+        });
+        g.bench_function(format!("block_pattern/beam{n}"), |b| {
+            b.iter(|| BlockPattern::new(black_box(&mesh)))
+        });
         let pattern = BlockPattern::new(&mesh);
-        g.bench_function(format!("scalar_csr/beam{n}"), |b| b.iter(|| pattern.scalar_csr()));
-        g.bench_function(format!("element_blocks/beam{n}"), |b| b.iter(|| pattern.element_blocks(&mesh)));
+        g.bench_function(format!("scalar_csr/beam{n}"), |b| {
+            b.iter(|| pattern.scalar_csr())
+        });
+        g.bench_function(format!("element_blocks/beam{n}"), |b| {
+            b.iter(|| pattern.element_blocks(&mesh))
+        });
         let x = mesh.rest_positions_flat();
         g.bench_function(format!("vtu_to_memory/beam{n}"), |b| {
             b.iter(|| {
@@ -37,13 +45,27 @@ fn benches(c: &mut Criterion) {
         for binary in [false, true] {
             let dir = tempfile::tempdir().unwrap();
             let path = dir.path().join("m.msh");
-            deform_mesh::io::write_msh(&path, &mesh, MshFormat { binary, ..Default::default() }).unwrap();
+            deform_mesh::io::write_msh(
+                &path,
+                &mesh,
+                MshFormat {
+                    binary,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
             let bytes = std::fs::read(&path).unwrap();
             let label = if binary { "binary" } else { "ascii" };
             g.bench_function(format!("read_msh41_{label}/beam{n}"), |b| {
                 b.iter(|| {
                     let raw = parse_msh(black_box(&bytes), Path::new("m.msh")).unwrap();
-                    TetMesh::try_with_options(raw.positions, raw.tets, Some(raw.regions), &MeshOptions::default()).unwrap()
+                    TetMesh::try_with_options(
+                        raw.positions,
+                        raw.tets,
+                        Some(raw.regions),
+                        &MeshOptions::default(),
+                    )
+                    .unwrap()
                 })
             });
         }

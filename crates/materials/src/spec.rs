@@ -1,0 +1,95 @@
+//! `MaterialSpec`: the serde (RON) description of any model, validated into a [`Model`].
+
+use serde::{Deserialize, Serialize};
+
+use crate::MaterialError;
+use crate::lame::Moduli;
+use crate::model::{Ensemble, Model, prefix};
+use crate::models::{
+    CorotatedLinear, FixedCorotated, LinearElastic, NeoHookean, StVenantKirchhoff, StableNeoHookean,
+};
+
+/// A material as a configuration file states it. Unknown fields are rejected.
+///
+/// ```
+/// use deform_materials::{MaterialSpec, Material};
+/// let spec: MaterialSpec = ron::from_str("NeoHookean(Young(e: 1e6, nu: 0.4))").unwrap();
+/// let model = spec.build().unwrap();
+/// assert_eq!(model.psi(&nalgebra::Matrix3::identity()), 0.0);
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum MaterialSpec {
+    /// Linear isotropic elasticity.
+    LinearElastic(Moduli),
+    /// Corotated linear elasticity, optionally with the lagged-rotation tangent.
+    CorotatedLinear {
+        /// Elastic moduli.
+        moduli: Moduli,
+        /// Hold the rotation fixed in the tangent ("warped stiffness").
+        #[serde(default)]
+        lagged_rotation: bool,
+    },
+    /// Fixed corotated (Stomakhin et al. 2012).
+    FixedCorotated(Moduli),
+    /// St. Venant-Kirchhoff.
+    StVenantKirchhoff(Moduli),
+    /// Neo-Hookean.
+    NeoHookean(Moduli),
+    /// Stable Neo-Hookean (Smith et al. 2018), with moduli of its small-strain limit.
+    StableNeoHookean(Moduli),
+    /// A weighted sum of single models.
+    Ensemble(Vec<EnsembleMember>),
+}
+
+/// One member of an ensemble.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnsembleMember {
+    /// Its weight (`>= 0`).
+    pub weight: f64,
+    /// Its model (not itself an ensemble).
+    pub model: MaterialSpec,
+}
+
+impl MaterialSpec {
+    /// Validates and builds the model.
+    ///
+    /// # Errors
+    /// [`MaterialError`] naming the invalid field (`members[1].nu`, `weights[0]`, ...).
+    pub fn build(&self) -> Result<Model, MaterialError> {
+        Ok(match self {
+            MaterialSpec::LinearElastic(m) => Model::Linear(LinearElastic { lame: m.to_lame()? }),
+            MaterialSpec::CorotatedLinear {
+                moduli,
+                lagged_rotation,
+            } => Model::Corotated(CorotatedLinear {
+                lame: moduli.to_lame()?,
+                lagged_rotation: *lagged_rotation,
+            }),
+            MaterialSpec::FixedCorotated(m) => {
+                Model::FixedCorotated(FixedCorotated { lame: m.to_lame()? })
+            }
+            MaterialSpec::StVenantKirchhoff(m) => {
+                Model::StVenantKirchhoff(StVenantKirchhoff { lame: m.to_lame()? })
+            }
+            MaterialSpec::NeoHookean(m) => Model::NeoHookean(NeoHookean { lame: m.to_lame()? }),
+            MaterialSpec::StableNeoHookean(m) => {
+                Model::StableNeoHookean(StableNeoHookean { lame: m.to_lame()? })
+            }
+            MaterialSpec::Ensemble(members) => {
+                let built = members
+                    .iter()
+                    .enumerate()
+                    .map(|(k, m)| {
+                        m.model
+                            .build()
+                            .map(|model| (m.weight, model))
+                            .map_err(|e| prefix(e, &format!("members[{k}].")))
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                Model::Ensemble(Ensemble::try_new(built)?)
+            }
+        })
+    }
+}
