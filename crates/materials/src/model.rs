@@ -88,27 +88,34 @@ impl Model {
 }
 
 impl Material for Model {
+    #[inline]
     fn name(&self) -> &'static str {
         dispatch!(self, m => m.name())
     }
+    #[inline]
     fn psi(&self, f: &Matrix3<f64>) -> f64 {
         dispatch!(self, m => m.psi(f))
     }
+    #[inline]
     fn first_piola(&self, f: &Matrix3<f64>) -> Matrix3<f64> {
         dispatch!(self, m => m.first_piola(f))
     }
+    #[inline]
     fn dp_df(&self, f: &Matrix3<f64>) -> Matrix9 {
         dispatch!(self, m => m.dp_df(f))
     }
+    #[inline]
     fn dp(&self, f: &Matrix3<f64>, df: &Matrix3<f64>) -> Matrix3<f64> {
         dispatch!(self, m => m.dp(f, df))
     }
     fn dp_df_projected(&self, f: &Matrix3<f64>) -> Matrix9 {
         dispatch!(self, m => m.dp_df_projected(f))
     }
+    #[inline]
     fn first_piola_and_tangent(&self, f: &Matrix3<f64>, project: bool) -> (Matrix3<f64>, Matrix9) {
         dispatch!(self, m => m.first_piola_and_tangent(f, project))
     }
+    #[inline]
     fn admissible(&self, f: &Matrix3<f64>) -> bool {
         dispatch!(self, m => m.admissible(f))
     }

@@ -461,6 +461,29 @@ impl NeoHookean {
     fn inv_t(f: &Matrix3<f64>) -> Matrix3<f64> {
         f.try_inverse().unwrap_or_else(Matrix3::zeros).transpose()
     }
+
+    /// `mu Id + lambda vec(F^-T) vec(F^-T)^T + (mu - lambda log J) T`, with
+    /// `T[(ij), (kl)] = (F^-T)_il (F^-T)_kj`, written in one pass.
+    #[inline]
+    fn tangent_with(&self, fit: &Matrix3<f64>, log_j: f64) -> Matrix9 {
+        let Lame { mu, lambda } = self.lame;
+        let c = mu - lambda * log_j;
+        let mut out = Matrix9::zeros();
+        for l in 0..3 {
+            for k in 0..3 {
+                let col = 3 * l + k;
+                let lv = lambda * fit[(k, l)];
+                for j in 0..3 {
+                    let cj = c * fit[(k, j)];
+                    for i in 0..3 {
+                        out[(3 * j + i, col)] = lv * fit[(i, j)] + cj * fit[(i, l)];
+                    }
+                }
+                out[(col, col)] += mu;
+            }
+        }
+        out
+    }
 }
 
 impl Material for NeoHookean {
@@ -491,23 +514,16 @@ impl Material for NeoHookean {
         df * mu + fit * df.transpose() * fit * c + fit * (lambda * fit.dot(df))
     }
     fn dp_df(&self, f: &Matrix3<f64>) -> Matrix9 {
-        let Lame { mu, lambda } = self.lame;
-        let fit = Self::inv_t(f);
-        let c = mu - lambda * f.determinant().ln();
-        let fv = vec9(&fit);
-        let mut out = identity9(mu);
-        out.ger(lambda, &fv, &fv, 1.0);
-        // c (F^-T)_il (F^-T)_kj at (ij, kl)
-        for j in 0..3 {
-            for i in 0..3 {
-                for l in 0..3 {
-                    for k in 0..3 {
-                        out[(3 * j + i, 3 * l + k)] += c * fit[(i, l)] * fit[(k, j)];
-                    }
-                }
-            }
+        self.tangent_with(&Self::inv_t(f), f.determinant().ln())
+    }
+    fn first_piola_and_tangent(&self, f: &Matrix3<f64>, project: bool) -> (Matrix3<f64>, Matrix9) {
+        if project {
+            let svd = SignedSvd::new(f);
+            return (isotropic::first_piola(self, &svd), isotropic::tangent(self, &svd, true));
         }
-        out
+        let Lame { mu, lambda } = self.lame;
+        let (fit, lj) = (Self::inv_t(f), f.determinant().ln());
+        ((f - fit) * mu + fit * (lambda * lj), self.tangent_with(&fit, lj))
     }
     fn dp_df_projected(&self, f: &Matrix3<f64>) -> Matrix9 {
         isotropic::tangent(self, &SignedSvd::new(f), true)
