@@ -15,7 +15,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "NeoHookean(Young(e: 1e6, nu: 0.4))",
         "StableNeoHookean(Young(e: 1e6, nu: 0.4))",
     ];
-    println!("{:<56} {:>8} {:>14} {:>14} {:>14}", "model", "stretch", "P_xx [Pa]", "min eig", "min eig proj");
+    println!(
+        "{:<56} {:>8} {:>14} {:>14} {:>14}",
+        "model", "stretch", "P_xx [Pa]", "min eig", "min eig proj"
+    );
     for text in specs {
         let model = ron::from_str::<MaterialSpec>(text)?.build()?;
         for s in [0.5, 0.9, 1.0, 1.1, 2.0] {

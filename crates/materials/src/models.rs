@@ -519,11 +519,17 @@ impl Material for NeoHookean {
     fn first_piola_and_tangent(&self, f: &Matrix3<f64>, project: bool) -> (Matrix3<f64>, Matrix9) {
         if project {
             let svd = SignedSvd::new(f);
-            return (isotropic::first_piola(self, &svd), isotropic::tangent(self, &svd, true));
+            return (
+                isotropic::first_piola(self, &svd),
+                isotropic::tangent(self, &svd, true),
+            );
         }
         let Lame { mu, lambda } = self.lame;
         let (fit, lj) = (Self::inv_t(f), f.determinant().ln());
-        ((f - fit) * mu + fit * (lambda * lj), self.tangent_with(&fit, lj))
+        (
+            (f - fit) * mu + fit * (lambda * lj),
+            self.tangent_with(&fit, lj),
+        )
     }
     fn dp_df_projected(&self, f: &Matrix3<f64>) -> Matrix9 {
         isotropic::tangent(self, &SignedSvd::new(f), true)

@@ -17,10 +17,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         None => BoxGrid::beam(4).build()?,
     };
     let q = rest_quality(&mesh);
-    println!("{} vertices, {} tets, volume {:.6e}", mesh.num_vertices(), mesh.num_tets(), q.total_volume);
-    println!("dihedral angles {:.1}..{:.1} deg, max aspect ratio {:.2}", q.min_dihedral_deg, q.max_dihedral_deg, q.max_aspect_ratio);
+    println!(
+        "{} vertices, {} tets, volume {:.6e}",
+        mesh.num_vertices(),
+        mesh.num_tets(),
+        q.total_volume
+    );
+    println!(
+        "dihedral angles {:.1}..{:.1} deg, max aspect ratio {:.2}",
+        q.min_dihedral_deg, q.max_dihedral_deg, q.max_aspect_ratio
+    );
     let (lo, _) = mesh.bounding_box();
-    let clamp = Selector::Plane { point: lo.into(), normal: [-1.0, 0.0, 0.0] }.select(&mesh)?;
+    let clamp = Selector::Plane {
+        point: lo.into(),
+        normal: [-1.0, 0.0, 0.0],
+    }
+    .select(&mesh)?;
     println!("{} vertices on the side x = {:.3}", clamp.len(), lo.x);
     // A made-up sag u_z = -0.1 (x - x0)^2, written with its displacement and volume ratio.
     let x: Vec<f64> = mesh

@@ -1,0 +1,324 @@
+//! Weighted Jacobi iteration and (preconditioned) conjugate gradients.
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::check_vector;
+use crate::operator::{LinearOperator, dot, norm};
+use crate::precond::{Preconditioner, PreconditionerSpec};
+use crate::stats::{SolveStats, Termination};
+use crate::{LinearSolver, SolverError};
+
+/// Stopping rule: converged when `||b - A x|| <= max(abs, rel ||b||)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Tolerance {
+    /// Relative tolerance on the residual norm.
+    pub rel: f64,
+    /// Absolute tolerance on the residual norm.
+    pub abs: f64,
+    /// Iteration cap.
+    pub max_iterations: usize,
+}
+
+impl Default for Tolerance {
+    fn default() -> Self {
+        Self {
+            rel: 1e-8,
+            abs: 0.0,
+            max_iterations: 10_000,
+        }
+    }
+}
+
+impl Tolerance {
+    /// Validates the fields.
+    ///
+    /// # Errors
+    /// [`SolverError::InvalidParameter`] naming `rel`, `abs` or `max_iterations`.
+    pub fn validate(&self) -> Result<(), SolverError> {
+        if !(self.rel.is_finite() && self.rel >= 0.0) {
+            return Err(SolverError::InvalidParameter {
+                field: "rel",
+                value: self.rel,
+                reason: "must be finite and >= 0",
+            });
+        }
+        if !(self.abs.is_finite() && self.abs >= 0.0) {
+            return Err(SolverError::InvalidParameter {
+                field: "abs",
+                value: self.abs,
+                reason: "must be finite and >= 0",
+            });
+        }
+        if self.rel == 0.0 && self.abs == 0.0 {
+            return Err(SolverError::InvalidParameter {
+                field: "rel",
+                value: 0.0,
+                reason: "rel and abs cannot both be 0",
+            });
+        }
+        if self.max_iterations == 0 {
+            return Err(SolverError::InvalidParameter {
+                field: "max_iterations",
+                value: 0.0,
+                reason: "must be at least 1",
+            });
+        }
+        Ok(())
+    }
+
+    fn threshold(&self, rhs_norm: f64) -> f64 {
+        self.abs.max(self.rel * rhs_norm)
+    }
+}
+
+/// Which iteration an [`Iterative`] solver runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Method {
+    /// `x += omega D^-1 (b - A x)`.
+    Jacobi {
+        /// Relaxation factor in (0, 2); 2/3 is the classic smoother choice.
+        omega: f64,
+    },
+    /// Conjugate gradients with a preconditioner (`Identity` gives plain CG).
+    Pcg(PreconditionerSpec),
+}
+
+/// An iterative solver: weighted Jacobi, CG or PCG.
+#[derive(Debug, Clone)]
+pub struct Iterative {
+    method: Method,
+    tolerance: Tolerance,
+    precond: Option<Preconditioner>,
+    /// Jacobi's inverse diagonal, set by `factorize`.
+    inv_diag: Vec<f64>,
+}
+
+impl Iterative {
+    /// A validated solver.
+    ///
+    /// # Errors
+    /// [`SolverError::InvalidParameter`] for a bad tolerance or relaxation factor.
+    pub fn try_new(method: Method, tolerance: Tolerance) -> Result<Self, SolverError> {
+        tolerance.validate()?;
+        let omega = match method {
+            Method::Jacobi { omega } | Method::Pcg(PreconditionerSpec::Ssor { omega }) => {
+                Some(omega)
+            }
+            Method::Pcg(_) => None,
+        };
+        if let Some(omega) = omega
+            && !(omega > 0.0 && omega < 2.0)
+        {
+            return Err(SolverError::InvalidParameter {
+                field: "omega",
+                value: omega,
+                reason: "must be in (0, 2)",
+            });
+        }
+        Ok(Self {
+            method,
+            tolerance,
+            precond: None,
+            inv_diag: Vec::new(),
+        })
+    }
+
+    /// The stopping rule.
+    pub fn tolerance(&self) -> Tolerance {
+        self.tolerance
+    }
+
+    /// Replaces the stopping rule (e.g. an adaptive forcing term per Newton iteration).
+    ///
+    /// # Errors
+    /// As [`Tolerance::validate`].
+    pub fn set_tolerance(&mut self, tolerance: Tolerance) -> Result<(), SolverError> {
+        tolerance.validate()?;
+        self.tolerance = tolerance;
+        Ok(())
+    }
+
+    /// The diagonal shift IC(0) needed to stay positive (0 for other preconditioners).
+    pub fn preconditioner_shift(&self) -> f64 {
+        self.precond.as_ref().map_or(0.0, Preconditioner::shift)
+    }
+
+    fn jacobi(
+        &self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+        omega: f64,
+        stats: &mut SolveStats,
+    ) {
+        let n = b.len();
+        let mut r = vec![0.0; n];
+        let threshold = self.tolerance.threshold(stats.rhs_norm);
+        loop {
+            a.apply(x, &mut r);
+            stats.matvecs += 1;
+            stats.flops += a.apply_flops() + 2 * n as u64;
+            for (ri, bi) in r.iter_mut().zip(b) {
+                *ri = bi - *ri;
+            }
+            let rn = norm(&r);
+            stats.residuals.push(rn);
+            if !rn.is_finite() {
+                stats.termination = Termination::Diverged;
+                return;
+            }
+            if rn <= threshold {
+                stats.termination = Termination::Converged;
+                return;
+            }
+            if stats.iterations == self.tolerance.max_iterations {
+                stats.termination = Termination::MaxIterations;
+                return;
+            }
+            for ((xi, ri), d) in x.iter_mut().zip(&r).zip(&self.inv_diag) {
+                *xi += omega * d * ri;
+            }
+            stats.flops += 3 * n as u64;
+            stats.iterations += 1;
+        }
+    }
+
+    /// Returns the curvature `p^T A p` when it broke down.
+    fn pcg(
+        &self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+        m: &Preconditioner,
+        stats: &mut SolveStats,
+    ) -> Option<f64> {
+        let n = b.len();
+        let threshold = self.tolerance.threshold(stats.rhs_norm);
+        let (mut r, mut z, mut ap) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        a.apply(x, &mut r);
+        stats.matvecs += 1;
+        stats.flops += a.apply_flops() + n as u64;
+        for (ri, bi) in r.iter_mut().zip(b) {
+            *ri = bi - *ri;
+        }
+        let mut rn = norm(&r);
+        stats.residuals.push(rn);
+        if rn <= threshold {
+            stats.termination = Termination::Converged;
+            return None;
+        }
+        m.apply(&r, &mut z);
+        let mut p = z.clone();
+        let mut rz = dot(&r, &z);
+        let per_iteration = a.apply_flops() + m.flops(n) + 12 * n as u64;
+        while stats.iterations < self.tolerance.max_iterations {
+            a.apply(&p, &mut ap);
+            stats.matvecs += 1;
+            stats.flops += per_iteration;
+            let curvature = dot(&p, &ap);
+            if !(curvature > 0.0) {
+                stats.termination = if curvature.is_nan() {
+                    Termination::Diverged
+                } else {
+                    Termination::Breakdown
+                };
+                return Some(curvature);
+            }
+            let alpha = rz / curvature;
+            for i in 0..n {
+                x[i] += alpha * p[i];
+                r[i] -= alpha * ap[i];
+            }
+            stats.iterations += 1;
+            rn = norm(&r);
+            stats.residuals.push(rn);
+            if !rn.is_finite() {
+                stats.termination = Termination::Diverged;
+                return None;
+            }
+            if rn <= threshold {
+                stats.termination = Termination::Converged;
+                return None;
+            }
+            m.apply(&r, &mut z);
+            let rz_new = dot(&r, &z);
+            let beta = rz_new / rz;
+            rz = rz_new;
+            for i in 0..n {
+                p[i] = z[i] + beta * p[i];
+            }
+        }
+        stats.termination = Termination::MaxIterations;
+        None
+    }
+}
+
+impl LinearSolver for Iterative {
+    fn name(&self) -> String {
+        match self.method {
+            Method::Jacobi { omega } => format!("jacobi(omega={omega})"),
+            Method::Pcg(PreconditionerSpec::Identity) => "cg".to_owned(),
+            Method::Pcg(p) => format!("pcg({p:?})"),
+        }
+    }
+
+    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<(), SolverError> {
+        match self.method {
+            Method::Jacobi { .. } => {
+                let mut d = vec![0.0; a.nrows()];
+                a.diagonal(&mut d);
+                if let Some(i) = d.iter().position(|&x| !(x > 0.0)) {
+                    return Err(SolverError::NotPositiveDefinite {
+                        pivot: i,
+                        value: d[i],
+                    });
+                }
+                self.inv_diag = d.iter().map(|x| 1.0 / x).collect();
+            }
+            Method::Pcg(spec) => self.precond = Some(Preconditioner::setup(&spec, a)?),
+        }
+        Ok(())
+    }
+
+    fn solve(
+        &mut self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+    ) -> Result<SolveStats, SolverError> {
+        let n = a.nrows();
+        check_vector("b", b, n)?;
+        check_vector("x", x, n)?;
+        let start = Instant::now();
+        let mut stats = SolveStats::new(self.name(), norm(b));
+        let mut curvature = f64::NAN;
+        match self.method {
+            Method::Jacobi { omega } => {
+                if self.inv_diag.len() != n {
+                    return Err(SolverError::NotFactorized);
+                }
+                self.jacobi(a, b, x, omega, &mut stats);
+            }
+            Method::Pcg(_) => {
+                let m = self.precond.as_ref().ok_or(SolverError::NotFactorized)?;
+                if let Some(c) = self.pcg(a, b, x, m, &mut stats) {
+                    curvature = c;
+                }
+            }
+        }
+        stats.seconds = start.elapsed().as_secs_f64();
+        match stats.termination {
+            Termination::Converged => Ok(stats),
+            Termination::Breakdown => Err(SolverError::Breakdown {
+                curvature,
+                stats: Box::new(stats),
+            }),
+            _ => Err(SolverError::NotConverged {
+                stats: Box::new(stats),
+            }),
+        }
+    }
+}

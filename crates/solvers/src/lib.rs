@@ -1,0 +1,82 @@
+//! Linear solvers for deform's Newton systems, behind one trait with a symbolic / numeric
+//! split: [`LinearSolver::analyze`] once per sparsity pattern, [`LinearSolver::factorize`]
+//! (or preconditioner set-up) per matrix, [`LinearSolver::solve`] per right-hand side with
+//! the initial guess in `x`. Every solve returns [`SolveStats`] (iterations, residual
+//! history, termination, wall time and a deterministic flop count); failures keep them.
+//!
+//! Operators are anything implementing [`LinearOperator`]: the assembled CSR matrix
+//! (`sprs::CsMat<f64>`, full symmetric storage) or a matrix-free operator.
+//!
+//! Built so far: weighted Jacobi, CG, and PCG with Jacobi, 3x3 block-Jacobi, SSOR and
+//! IC(0) preconditioners. (The direct Cholesky via faer and the stale-factor preconditioner
+//! are the next step.)
+//!
+//! ```
+//! use deform_solvers::{LinearSolver, SolverSpec};
+//! use sprs::TriMat;
+//!
+//! // A 1D Laplacian plus identity: SPD.
+//! let n = 50;
+//! let mut t = TriMat::new((n, n));
+//! for i in 0..n {
+//!     t.add_triplet(i, i, 3.0);
+//!     if i + 1 < n {
+//!         t.add_triplet(i, i + 1, -1.0);
+//!         t.add_triplet(i + 1, i, -1.0);
+//!     }
+//! }
+//! let a: sprs::CsMat<f64> = t.to_csr();
+//! let b = vec![1.0; n];
+//! let mut x = vec![0.0; n];
+//! let mut solver = ron::from_str::<SolverSpec>("Pcg(preconditioner: Jacobi)").unwrap().build().unwrap();
+//! solver.analyze(&a).unwrap();
+//! solver.factorize(&a).unwrap();
+//! let stats = solver.solve(&a, &b, &mut x).unwrap();
+//! assert!(stats.relative_residual() <= 1e-8);
+//! ```
+
+mod error;
+mod iterative;
+mod operator;
+mod precond;
+mod spec;
+mod stats;
+
+pub use error::SolverError;
+pub use iterative::{Iterative, Method, Tolerance};
+pub use operator::LinearOperator;
+pub use precond::PreconditionerSpec;
+pub use spec::SolverSpec;
+pub use stats::{SolveStats, Termination};
+
+/// A linear solver for symmetric systems `A x = b`.
+pub trait LinearSolver: Send {
+    /// A short description, e.g. `pcg(Ic0)`.
+    fn name(&self) -> String;
+
+    /// Symbolic work for `a`'s sparsity pattern (orderings, symbolic factorisation); a no-op
+    /// for iterative solvers.
+    ///
+    /// # Errors
+    /// When the pattern is unusable.
+    fn analyze(&mut self, _a: &dyn LinearOperator) -> Result<(), SolverError> {
+        Ok(())
+    }
+
+    /// Numeric set-up for `a`'s current values (factorisation or preconditioner).
+    ///
+    /// # Errors
+    /// [`SolverError::NotPositiveDefinite`] and the like.
+    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<(), SolverError>;
+
+    /// Solves `a x = b`; `x` holds the initial guess on entry and the solution on exit.
+    ///
+    /// # Errors
+    /// Dimension mismatch, non-finite input, breakdown or non-convergence (with stats).
+    fn solve(
+        &mut self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+    ) -> Result<SolveStats, SolverError>;
+}

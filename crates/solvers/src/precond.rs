@@ -1,0 +1,292 @@
+//! Preconditioners for PCG: diagonal (Jacobi), 3x3 block Jacobi, SSOR and IC(0).
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::SolverError;
+use crate::operator::LinearOperator;
+
+/// Which preconditioner PCG uses.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum PreconditionerSpec {
+    /// None (plain CG).
+    Identity,
+    /// `diag(A)^-1`.
+    Jacobi,
+    /// The inverse of each vertex's 3x3 diagonal block.
+    BlockJacobi,
+    /// Symmetric successive over-relaxation with relaxation `omega` in (0, 2). Needs CSR.
+    Ssor {
+        /// Relaxation factor.
+        omega: f64,
+    },
+    /// Incomplete Cholesky with zero fill on the pattern of `A`. Needs CSR. A non-positive
+    /// pivot is handled by retrying with a diagonal shift `A + s diag(A)`, `s = 1e-3, 1e-2, ...`.
+    Ic0,
+}
+
+/// A set-up preconditioner: `z = M^-1 r`.
+#[derive(Debug, Clone)]
+pub(crate) enum Preconditioner {
+    Identity,
+    Jacobi(Vec<f64>),
+    BlockJacobi(Vec<Matrix3<f64>>),
+    Ssor {
+        omega: f64,
+        indptr: Vec<usize>,
+        indices: Vec<usize>,
+        data: Vec<f64>,
+        diag: Vec<f64>,
+    },
+    Ic0 {
+        l: LowerCsr,
+        shift: f64,
+    },
+}
+
+/// Lower-triangular CSR factor, diagonal last in each row.
+#[derive(Debug, Clone)]
+pub(crate) struct LowerCsr {
+    indptr: Vec<usize>,
+    indices: Vec<usize>,
+    data: Vec<f64>,
+}
+
+impl Preconditioner {
+    pub fn setup(spec: &PreconditionerSpec, a: &dyn LinearOperator) -> Result<Self, SolverError> {
+        let n = a.nrows();
+        Ok(match *spec {
+            PreconditionerSpec::Identity => Preconditioner::Identity,
+            PreconditionerSpec::Jacobi => {
+                let mut d = vec![0.0; n];
+                a.diagonal(&mut d);
+                let inv = d
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &x)| {
+                        if x > 0.0 {
+                            Ok(1.0 / x)
+                        } else {
+                            Err(SolverError::NotPositiveDefinite { pivot: i, value: x })
+                        }
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                Preconditioner::Jacobi(inv)
+            }
+            PreconditionerSpec::BlockJacobi => {
+                if !n.is_multiple_of(3) {
+                    return Err(SolverError::Unsupported(
+                        "block Jacobi needs a multiple of 3 rows",
+                    ));
+                }
+                let mut blocks = vec![Matrix3::zeros(); n / 3];
+                a.block_diagonal(&mut blocks)?;
+                for (v, b) in blocks.iter_mut().enumerate() {
+                    let chol = b.cholesky().ok_or(SolverError::NotPositiveDefinite {
+                        pivot: 3 * v,
+                        value: b[(0, 0)],
+                    })?;
+                    *b = chol.inverse();
+                }
+                Preconditioner::BlockJacobi(blocks)
+            }
+            PreconditionerSpec::Ssor { omega } => {
+                let csr = a.csr().ok_or(SolverError::Unsupported(
+                    "SSOR needs an assembled CSR matrix",
+                ))?;
+                let mut diag = vec![0.0; n];
+                a.diagonal(&mut diag);
+                if let Some(i) = diag.iter().position(|&d| !(d > 0.0)) {
+                    return Err(SolverError::NotPositiveDefinite {
+                        pivot: i,
+                        value: diag[i],
+                    });
+                }
+                Preconditioner::Ssor {
+                    omega,
+                    indptr: csr.indptr().raw_storage().to_vec(),
+                    indices: csr.indices().to_vec(),
+                    data: csr.data().to_vec(),
+                    diag,
+                }
+            }
+            PreconditionerSpec::Ic0 => {
+                let csr = a.csr().ok_or(SolverError::Unsupported(
+                    "IC(0) needs an assembled CSR matrix",
+                ))?;
+                let (indptr, indices, data) = (
+                    csr.indptr().raw_storage().to_vec(),
+                    csr.indices(),
+                    csr.data(),
+                );
+                let mut shift = 0.0;
+                loop {
+                    match ic0(n, &indptr, indices, data, shift) {
+                        Ok(l) => break Preconditioner::Ic0 { l, shift },
+                        Err(e) if shift >= 1e3 => return Err(e),
+                        Err(_) => shift = if shift == 0.0 { 1e-3 } else { shift * 10.0 },
+                    }
+                }
+            }
+        })
+    }
+
+    /// `z = M^-1 r`.
+    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+        match self {
+            Preconditioner::Identity => z.copy_from_slice(r),
+            Preconditioner::Jacobi(inv) => {
+                for ((zi, ri), d) in z.iter_mut().zip(r).zip(inv) {
+                    *zi = ri * d;
+                }
+            }
+            Preconditioner::BlockJacobi(blocks) => {
+                for (v, b) in blocks.iter().enumerate() {
+                    let y = b * Vector3::new(r[3 * v], r[3 * v + 1], r[3 * v + 2]);
+                    z[3 * v..3 * v + 3].copy_from_slice(y.as_slice());
+                }
+            }
+            Preconditioner::Ssor {
+                omega,
+                indptr,
+                indices,
+                data,
+                diag,
+            } => {
+                // M = (D + wL) D^-1 (D + wU) / (w (2 - w)): solve (D + wL) y = r forward,
+                // scale by D, solve (D + wU) z = D y backward, scale by w (2 - w).
+                let n = diag.len();
+                for i in 0..n {
+                    let mut acc = r[i];
+                    for k in indptr[i]..indptr[i + 1] {
+                        let j = indices[k];
+                        if j < i {
+                            acc -= omega * data[k] * z[j];
+                        }
+                    }
+                    z[i] = acc / diag[i];
+                }
+                for i in 0..n {
+                    z[i] *= diag[i];
+                }
+                for i in (0..n).rev() {
+                    let mut acc = z[i];
+                    for k in indptr[i]..indptr[i + 1] {
+                        let j = indices[k];
+                        if j > i {
+                            acc -= omega * data[k] * z[j];
+                        }
+                    }
+                    z[i] = acc / diag[i];
+                }
+                let scale = omega * (2.0 - omega);
+                for zi in z.iter_mut() {
+                    *zi *= scale;
+                }
+            }
+            Preconditioner::Ic0 { l, .. } => {
+                // L y = r (forward), then L^T z = y (backward, column sweep over L's rows).
+                let n = l.indptr.len() - 1;
+                for i in 0..n {
+                    let (start, end) = (l.indptr[i], l.indptr[i + 1]);
+                    let mut acc = r[i];
+                    for k in start..end - 1 {
+                        acc -= l.data[k] * z[l.indices[k]];
+                    }
+                    z[i] = acc / l.data[end - 1];
+                }
+                for i in (0..n).rev() {
+                    let (start, end) = (l.indptr[i], l.indptr[i + 1]);
+                    z[i] /= l.data[end - 1];
+                    let zi = z[i];
+                    for k in start..end - 1 {
+                        z[l.indices[k]] -= l.data[k] * zi;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Floating-point operations of one `apply`.
+    pub fn flops(&self, n: usize) -> u64 {
+        match self {
+            Preconditioner::Identity => 0,
+            Preconditioner::Jacobi(_) => n as u64,
+            Preconditioner::BlockJacobi(_) => 5 * n as u64,
+            Preconditioner::Ssor { indices, .. } => 2 * indices.len() as u64 + 4 * n as u64,
+            Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
+        }
+    }
+
+    /// The diagonal shift IC(0) needed (0 otherwise).
+    pub fn shift(&self) -> f64 {
+        match self {
+            Preconditioner::Ic0 { shift, .. } => *shift,
+            _ => 0.0,
+        }
+    }
+}
+
+/// Zero-fill incomplete Cholesky of the lower triangle of a symmetric CSR matrix
+/// (full storage, sorted columns), of `A + shift diag(A)`.
+fn ic0(
+    n: usize,
+    indptr: &[usize],
+    indices: &[usize],
+    data: &[f64],
+    shift: f64,
+) -> Result<LowerCsr, SolverError> {
+    let mut lp = Vec::with_capacity(n + 1);
+    let mut li = Vec::new();
+    let mut lv: Vec<f64> = Vec::new();
+    lp.push(0);
+    for i in 0..n {
+        let row_start = li.len();
+        let mut diag = None;
+        for k in indptr[i]..indptr[i + 1] {
+            let j = indices[k];
+            if j < i {
+                li.push(j);
+                lv.push(data[k]);
+            } else if j == i {
+                diag = Some(data[k] * (1.0 + shift));
+            }
+        }
+        let mut d = diag.ok_or(SolverError::NotPositiveDefinite {
+            pivot: i,
+            value: 0.0,
+        })?;
+        // L_ij = (A_ij - sum_{m<j} L_im L_jm) / L_jj for j in the pattern, in column order.
+        for a in row_start..li.len() {
+            let j = li[a];
+            let (js, je) = (lp[j], lp[j + 1]);
+            let mut s = lv[a];
+            let (mut p, mut q) = (row_start, js);
+            while p < a && q < je - 1 {
+                match li[p].cmp(&li[q]) {
+                    std::cmp::Ordering::Less => p += 1,
+                    std::cmp::Ordering::Greater => q += 1,
+                    std::cmp::Ordering::Equal => {
+                        s -= lv[p] * lv[q];
+                        p += 1;
+                        q += 1;
+                    }
+                }
+            }
+            lv[a] = s / lv[je - 1];
+            d -= lv[a] * lv[a];
+        }
+        if !(d > 0.0) {
+            return Err(SolverError::NotPositiveDefinite { pivot: i, value: d });
+        }
+        li.push(i);
+        lv.push(d.sqrt());
+        lp.push(li.len());
+    }
+    Ok(LowerCsr {
+        indptr: lp,
+        indices: li,
+        data: lv,
+    })
+}

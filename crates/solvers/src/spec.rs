@@ -1,0 +1,69 @@
+//! `SolverSpec`: the serde (RON) description of any solver.
+
+use serde::{Deserialize, Serialize};
+
+use crate::iterative::{Iterative, Method, Tolerance};
+use crate::precond::PreconditionerSpec;
+use crate::{LinearSolver, SolverError};
+
+/// A linear solver as a configuration states it. Unknown fields are rejected.
+///
+/// ```
+/// use deform_solvers::SolverSpec;
+/// let spec: SolverSpec = ron::from_str("Pcg(preconditioner: Ic0, tolerance: (rel: 1e-6))").unwrap();
+/// let solver = spec.build().unwrap();
+/// assert!(solver.name().contains("Ic0"));
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum SolverSpec {
+    /// Weighted Jacobi iteration.
+    Jacobi {
+        /// Relaxation factor in (0, 2).
+        #[serde(default = "default_omega")]
+        omega: f64,
+        /// Stopping rule.
+        #[serde(default)]
+        tolerance: Tolerance,
+    },
+    /// Conjugate gradients.
+    Cg {
+        /// Stopping rule.
+        #[serde(default)]
+        tolerance: Tolerance,
+    },
+    /// Preconditioned conjugate gradients.
+    Pcg {
+        /// The preconditioner.
+        preconditioner: PreconditionerSpec,
+        /// Stopping rule.
+        #[serde(default)]
+        tolerance: Tolerance,
+    },
+}
+
+fn default_omega() -> f64 {
+    2.0 / 3.0
+}
+
+impl SolverSpec {
+    /// Validates and builds the solver.
+    ///
+    /// # Errors
+    /// [`SolverError::InvalidParameter`] naming the field.
+    pub fn build(&self) -> Result<Box<dyn LinearSolver>, SolverError> {
+        Ok(match *self {
+            SolverSpec::Jacobi { omega, tolerance } => {
+                Box::new(Iterative::try_new(Method::Jacobi { omega }, tolerance)?)
+            }
+            SolverSpec::Cg { tolerance } => Box::new(Iterative::try_new(
+                Method::Pcg(PreconditionerSpec::Identity),
+                tolerance,
+            )?),
+            SolverSpec::Pcg {
+                preconditioner,
+                tolerance,
+            } => Box::new(Iterative::try_new(Method::Pcg(preconditioner), tolerance)?),
+        })
+    }
+}

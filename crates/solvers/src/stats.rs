@@ -1,0 +1,70 @@
+//! Statistics every solve returns, on success and on failure.
+
+use serde::{Deserialize, Serialize};
+
+/// How a solve ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Termination {
+    /// The residual met the tolerance.
+    Converged,
+    /// The iteration cap was reached first.
+    MaxIterations,
+    /// Non-positive curvature (CG on a matrix that is not SPD).
+    Breakdown,
+    /// The residual became non-finite.
+    Diverged,
+    /// A direct solve (no iterations).
+    Direct,
+}
+
+/// What a solve did and what it cost.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolveStats {
+    /// The solver's name.
+    pub solver: String,
+    /// Iterations performed (0 for a warm start at the solution, and for direct solves).
+    pub iterations: usize,
+    /// Euclidean norm of the residual `b - A x` before the first and after each iteration.
+    pub residuals: Vec<f64>,
+    /// `||b||`, the scale of the relative tolerance.
+    pub rhs_norm: f64,
+    /// How it ended.
+    pub termination: Termination,
+    /// Wall time in seconds (noisy; learn on `flops`).
+    pub seconds: f64,
+    /// Operator applications (matrix-vector products).
+    pub matvecs: usize,
+    /// Deterministic work estimate in floating-point operations (operator, preconditioner
+    /// and vector updates), identical on every machine and thread count.
+    pub flops: u64,
+}
+
+impl SolveStats {
+    pub(crate) fn new(solver: String, rhs_norm: f64) -> Self {
+        Self {
+            solver,
+            iterations: 0,
+            residuals: Vec::new(),
+            rhs_norm,
+            termination: Termination::MaxIterations,
+            seconds: 0.0,
+            matvecs: 0,
+            flops: 0,
+        }
+    }
+
+    /// The last residual norm (`NaN` if none was computed).
+    pub fn final_residual(&self) -> f64 {
+        self.residuals.last().copied().unwrap_or(f64::NAN)
+    }
+
+    /// The last residual relative to `||b||` (absolute when `b = 0`).
+    pub fn relative_residual(&self) -> f64 {
+        let r = self.final_residual();
+        if self.rhs_norm > 0.0 {
+            r / self.rhs_norm
+        } else {
+            r
+        }
+    }
+}
