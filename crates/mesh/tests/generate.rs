@@ -113,47 +113,52 @@ fn benchmark_beams_match_the_published_counts() {
 }
 
 #[test]
-fn invalid_grids_are_rejected() {
-    assert!(
-        BoxGrid {
-            cells: [0, 1, 1],
-            size: [1.0; 3],
-            origin: [0.0; 3],
-            split: Split::Six
+fn invalid_grids_are_rejected_naming_the_field() {
+    let ok = BoxGrid {
+        cells: [1, 1, 1],
+        size: [1.0; 3],
+        origin: [0.0; 3],
+        split: Split::Six,
+    };
+    let cases = [
+        (
+            BoxGrid {
+                cells: [0, 1, 1],
+                ..ok
+            },
+            "cells",
+        ),
+        (
+            BoxGrid {
+                size: [1.0, -1.0, 1.0],
+                ..ok
+            },
+            "size",
+        ),
+        (
+            BoxGrid {
+                origin: [f64::NAN, 0.0, 0.0],
+                split: Split::Five,
+                ..ok
+            },
+            "origin",
+        ),
+        (
+            BoxGrid {
+                cells: [100_000, 100_000, 1000],
+                ..ok
+            },
+            "cells",
+        ),
+    ];
+    for (grid, expected) in cases {
+        match grid.build() {
+            Err(deform_mesh::MeshError::InvalidParameter { field, .. }) => {
+                assert_eq!(field, expected)
+            }
+            other => panic!("{grid:?}: expected an error naming {expected}, got {other:?}"),
         }
-        .build()
-        .is_err()
-    );
-    assert!(
-        BoxGrid {
-            cells: [1, 1, 1],
-            size: [1.0, -1.0, 1.0],
-            origin: [0.0; 3],
-            split: Split::Six
-        }
-        .build()
-        .is_err()
-    );
-    assert!(
-        BoxGrid {
-            cells: [1, 1, 1],
-            size: [1.0; 3],
-            origin: [f64::NAN, 0.0, 0.0],
-            split: Split::Five
-        }
-        .build()
-        .is_err()
-    );
-    assert!(
-        BoxGrid {
-            cells: [100_000, 100_000, 1000],
-            size: [1.0; 3],
-            origin: [0.0; 3],
-            split: Split::Six
-        }
-        .build()
-        .is_err()
-    );
+    }
 }
 
 proptest! {
