@@ -323,7 +323,8 @@ pub(crate) fn edge_matrix(points: &[Vector3<f64>], t: &[usize; 4]) -> Matrix3<f6
 /// The six edges of a tetrahedron as local index pairs.
 pub(crate) const TET_EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
 
-fn longest_edge(points: &[Vector3<f64>], t: &[usize; 4]) -> f64 {
+/// Length of the longest edge of element `t`.
+pub(crate) fn longest_edge(points: &[Vector3<f64>], t: &[usize; 4]) -> f64 {
     TET_EDGES
         .iter()
         .map(|[a, b]| (points[t[*a]] - points[t[*b]]).norm())

@@ -76,10 +76,7 @@ pub fn quality(mesh: &TetMesh, positions: &[Vector3<f64>]) -> Quality {
                 }
             }
         }
-        let longest = crate::mesh::TET_EDGES
-            .iter()
-            .map(|[a, b]| (p[*a] - p[*b]).norm())
-            .fold(0.0, f64::max);
+        let longest = crate::mesh::longest_edge(positions, t);
         let inradius = 3.0 * volume.abs() / area_sum;
         let aspect = longest / (2.0 * 6f64.sqrt() * inradius);
         let aspect = if aspect.is_finite() {

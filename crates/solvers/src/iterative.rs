@@ -210,10 +210,10 @@ impl Iterative {
             stats.termination = Termination::Converged;
             return None;
         }
-        m.apply(&r, &mut z);
+        m.apply(a, &r, &mut z);
         let mut p = z.clone();
         let mut rz = dot(&r, &z);
-        let per_iteration = a.apply_flops() + m.flops(n) + 12 * n as u64;
+        let per_iteration = a.apply_flops() + m.flops(a, n) + 12 * n as u64;
         while stats.iterations < self.tolerance.max_iterations {
             a.apply(&p, &mut ap);
             stats.matvecs += 1;
@@ -243,7 +243,7 @@ impl Iterative {
                 stats.termination = Termination::Converged;
                 return None;
             }
-            m.apply(&r, &mut z);
+            m.apply(a, &r, &mut z);
             let rz_new = dot(&r, &z);
             let beta = rz_new / rz;
             rz = rz_new;
@@ -304,6 +304,11 @@ impl LinearSolver for Iterative {
             }
             Method::Pcg(_) => {
                 let m = self.precond.as_ref().ok_or(SolverError::NotFactorized)?;
+                if m.needs_csr() && a.csr().is_none() {
+                    return Err(SolverError::Unsupported(
+                        "this preconditioner needs an assembled CSR matrix",
+                    ));
+                }
                 if let Some(c) = self.pcg(a, b, x, m, &mut stats) {
                     curvature = c;
                 }

@@ -32,11 +32,9 @@ pub(crate) enum Preconditioner {
     Identity,
     Jacobi(Vec<f64>),
     BlockJacobi(Vec<Matrix3<f64>>),
+    /// Sweeps read the operator's own CSR arrays at apply time: no copy of the matrix.
     Ssor {
         omega: f64,
-        indptr: Vec<usize>,
-        indices: Vec<usize>,
-        data: Vec<f64>,
         diag: Vec<f64>,
     },
     Ic0 {
@@ -92,7 +90,7 @@ impl Preconditioner {
                 Preconditioner::BlockJacobi(blocks)
             }
             PreconditionerSpec::Ssor { omega } => {
-                let csr = a.csr().ok_or(SolverError::Unsupported(
+                a.csr().ok_or(SolverError::Unsupported(
                     "SSOR needs an assembled CSR matrix",
                 ))?;
                 let mut diag = vec![0.0; n];
@@ -103,13 +101,7 @@ impl Preconditioner {
                         value: diag[i],
                     });
                 }
-                Preconditioner::Ssor {
-                    omega,
-                    indptr: csr.indptr().raw_storage().to_vec(),
-                    indices: csr.indices().to_vec(),
-                    data: csr.data().to_vec(),
-                    diag,
-                }
+                Preconditioner::Ssor { omega, diag }
             }
             PreconditionerSpec::Ic0 => {
                 let csr = a.csr().ok_or(SolverError::Unsupported(
@@ -133,7 +125,12 @@ impl Preconditioner {
     }
 
     /// `z = M^-1 r`.
-    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+    ///
+    /// `a` is the operator being solved; SSOR sweeps its CSR arrays.
+    ///
+    /// # Panics
+    /// For SSOR, if `a` has no CSR matrix (the solver checks this before iterating).
+    pub fn apply(&self, a: &dyn LinearOperator, r: &[f64], z: &mut [f64]) {
         match self {
             Preconditioner::Identity => z.copy_from_slice(r),
             Preconditioner::Jacobi(inv) => {
@@ -147,13 +144,10 @@ impl Preconditioner {
                     z[3 * v..3 * v + 3].copy_from_slice(y.as_slice());
                 }
             }
-            Preconditioner::Ssor {
-                omega,
-                indptr,
-                indices,
-                data,
-                diag,
-            } => {
+            Preconditioner::Ssor { omega, diag } => {
+                let csr = a.csr().expect("SSOR is applied to a CSR operator");
+                let (indptr, indices, data) = (csr.indptr(), csr.indices(), csr.data());
+                let indptr = indptr.raw_storage();
                 // M = (D + wL) D^-1 (D + wU) / (w (2 - w)): solve (D + wL) y = r forward,
                 // scale by D, solve (D + wU) z = D y backward, scale by w (2 - w).
                 let n = diag.len();
@@ -209,14 +203,19 @@ impl Preconditioner {
     }
 
     /// Floating-point operations of one `apply`.
-    pub fn flops(&self, n: usize) -> u64 {
+    pub fn flops(&self, a: &dyn LinearOperator, n: usize) -> u64 {
         match self {
             Preconditioner::Identity => 0,
             Preconditioner::Jacobi(_) => n as u64,
             Preconditioner::BlockJacobi(_) => 5 * n as u64,
-            Preconditioner::Ssor { indices, .. } => 2 * indices.len() as u64 + 4 * n as u64,
+            Preconditioner::Ssor { .. } => a.apply_flops() + 4 * n as u64,
             Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
         }
+    }
+
+    /// Whether `apply` reads the operator's CSR arrays.
+    pub fn needs_csr(&self) -> bool {
+        matches!(self, Preconditioner::Ssor { .. })
     }
 
     /// The diagonal shift IC(0) needed (0 otherwise).
