@@ -51,6 +51,9 @@ pub enum SolverError {
     /// The operator cannot provide what this solver or preconditioner needs.
     #[error("unsupported: {0}")]
     Unsupported(&'static str),
+    /// Memory for a factorisation could not be allocated.
+    #[error("out of memory in the factorisation")]
+    OutOfMemory,
     /// `solve` was called before `factorize`.
     #[error("solve called before factorize")]
     NotFactorized,

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::check_vector;
 use crate::operator::{LinearOperator, dot, norm};
 use crate::precond::{Preconditioner, PreconditionerSpec};
-use crate::stats::{SolveStats, Termination};
+use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::{LinearSolver, SolverError};
 
 /// Stopping rule: converged when `||b - A x|| <= max(abs, rel ||b||)`.
@@ -87,11 +87,13 @@ pub enum Method {
 }
 
 /// An iterative solver: weighted Jacobi, CG or PCG.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct Iterative {
     method: Method,
     tolerance: Tolerance,
     precond: Option<Preconditioner>,
+    /// The next `factorize` recomputes a stale preconditioner whatever its age.
+    refresh: bool,
     /// Jacobi's inverse diagonal, set by `factorize`.
     inv_diag: Vec<f64>,
 }
@@ -122,6 +124,7 @@ impl Iterative {
             method,
             tolerance,
             precond: None,
+            refresh: false,
             inv_diag: Vec::new(),
         })
     }
@@ -139,6 +142,21 @@ impl Iterative {
         tolerance.validate()?;
         self.tolerance = tolerance;
         Ok(())
+    }
+
+    /// Makes the next `factorize` recompute a stale-Cholesky preconditioner (e.g. when PCG
+    /// iterations grow); other preconditioners are recomputed every time anyway.
+    pub fn refresh_preconditioner(&mut self) {
+        self.refresh = true;
+    }
+
+    /// How many `factorize` calls the current stale-Cholesky factor has been reused for
+    /// (`None` for other preconditioners or before the first factorisation).
+    pub fn preconditioner_age(&self) -> Option<usize> {
+        match self.precond {
+            Some(Preconditioner::Cholesky { age, .. }) => Some(age),
+            _ => None,
+        }
     }
 
     /// The diagonal shift IC(0) needed to stay positive (0 for other preconditioners).
@@ -265,7 +283,9 @@ impl LinearSolver for Iterative {
         }
     }
 
-    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<(), SolverError> {
+    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError> {
+        let start = Instant::now();
+        let mut setup = SetupStats::default();
         match self.method {
             Method::Jacobi { .. } => {
                 let mut d = vec![0.0; a.nrows()];
@@ -277,10 +297,31 @@ impl LinearSolver for Iterative {
                     });
                 }
                 self.inv_diag = d.iter().map(|x| 1.0 / x).collect();
+                setup.flops = a.nrows() as u64;
             }
-            Method::Pcg(spec) => self.precond = Some(Preconditioner::setup(&spec, a)?),
+            Method::Pcg(spec) => {
+                let refresh = std::mem::take(&mut self.refresh);
+                if let (PreconditionerSpec::StaleCholesky { max_age, .. }, false) = (spec, refresh)
+                    && let Some(Preconditioner::Cholesky { factor, age }) = &mut self.precond
+                    && *age < max_age
+                    && factor.nrows() == Some(a.nrows())
+                {
+                    *age += 1;
+                    setup.reused = true;
+                } else {
+                    // Drop the old set-up first: a stale factor can be large.
+                    self.precond = None;
+                    let (m, flops) = Preconditioner::setup(&spec, a)?;
+                    setup.flops = flops;
+                    if let Preconditioner::Cholesky { factor, .. } = &m {
+                        setup.factor_nnz = factor.factor_nnz();
+                    }
+                    self.precond = Some(m);
+                }
+            }
         }
-        Ok(())
+        setup.seconds = start.elapsed().as_secs_f64();
+        Ok(setup)
     }
 
     fn solve(

@@ -7,9 +7,10 @@
 //! Operators are anything implementing [`LinearOperator`]: the assembled CSR matrix
 //! (`sprs::CsMat<f64>`, full symmetric storage) or a matrix-free operator.
 //!
-//! Built so far: weighted Jacobi, CG, and PCG with Jacobi, 3x3 block-Jacobi, SSOR and
-//! IC(0) preconditioners. (The direct Cholesky via faer and the stale-factor preconditioner
-//! are the next step.)
+//! Solvers: weighted Jacobi, CG, PCG with Jacobi, 3x3 block-Jacobi, SSOR, IC(0) and
+//! stale-Cholesky preconditioners, and a sparse direct Cholesky ([`Cholesky`], faer's
+//! supernodal/simplicial factorisation behind a nested-dissection ordering of the vertex
+//! graph, LDLT on request for indefinite matrices).
 //!
 //! ```
 //! use deform_solvers::{LinearSolver, SolverSpec};
@@ -35,19 +36,23 @@
 //! assert!(stats.relative_residual() <= 1e-8);
 //! ```
 
+mod direct;
 mod error;
 mod iterative;
 mod operator;
+mod ordering;
 mod precond;
 mod spec;
 mod stats;
 
+pub use direct::{Cholesky, Indefinite};
 pub use error::SolverError;
 pub use iterative::{Iterative, Method, Tolerance};
 pub use operator::LinearOperator;
+pub use ordering::Ordering;
 pub use precond::PreconditionerSpec;
 pub use spec::SolverSpec;
-pub use stats::{SolveStats, Termination};
+pub use stats::{SetupStats, SolveStats, Termination};
 
 /// A linear solver for symmetric systems `A x = b`.
 pub trait LinearSolver: Send {
@@ -63,11 +68,12 @@ pub trait LinearSolver: Send {
         Ok(())
     }
 
-    /// Numeric set-up for `a`'s current values (factorisation or preconditioner).
+    /// Numeric set-up for `a`'s current values (factorisation or preconditioner); says what
+    /// it did and what it cost.
     ///
     /// # Errors
     /// [`SolverError::NotPositiveDefinite`] and the like.
-    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<(), SolverError>;
+    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError>;
 
     /// Solves `a x = b`; `x` holds the initial guess on entry and the solution on exit.
     ///

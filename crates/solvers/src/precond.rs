@@ -1,10 +1,13 @@
-//! Preconditioners for PCG: diagonal (Jacobi), 3x3 block Jacobi, SSOR and IC(0).
+//! Preconditioners for PCG: diagonal (Jacobi), 3x3 block Jacobi, SSOR, IC(0) and a stale
+//! sparse Cholesky factor.
 
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::SolverError;
+use crate::direct::{Cholesky, Indefinite};
 use crate::operator::LinearOperator;
+use crate::ordering::Ordering;
+use crate::{LinearSolver, SolverError};
 
 /// Which preconditioner PCG uses.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -24,10 +27,20 @@ pub enum PreconditionerSpec {
     /// Incomplete Cholesky with zero fill on the pattern of `A`. Needs CSR. A non-positive
     /// pivot is handled by retrying with a diagonal shift `A + s diag(A)`, `s = 1e-3, 1e-2, ...`.
     Ic0,
+    /// The exact Cholesky factor of an earlier matrix (an earlier Newton iteration or time
+    /// step), kept for up to `max_age` further `factorize` calls before it is recomputed.
+    /// `max_age: 0` refactorises every time (PCG then converges in one iteration). Needs CSR.
+    StaleCholesky {
+        /// How many `factorize` calls may reuse one factor.
+        max_age: usize,
+        /// Fill-reducing ordering of the factorisation.
+        #[serde(default)]
+        ordering: Ordering,
+    },
 }
 
 /// A set-up preconditioner: `z = M^-1 r`.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub(crate) enum Preconditioner {
     Identity,
     Jacobi(Vec<f64>),
@@ -41,6 +54,11 @@ pub(crate) enum Preconditioner {
         l: LowerCsr,
         shift: f64,
     },
+    /// A Cholesky factor and how many `factorize` calls have reused it.
+    Cholesky {
+        factor: Box<Cholesky>,
+        age: usize,
+    },
 }
 
 /// Lower-triangular CSR factor, diagonal last in each row.
@@ -52,10 +70,15 @@ pub(crate) struct LowerCsr {
 }
 
 impl Preconditioner {
-    pub fn setup(spec: &PreconditionerSpec, a: &dyn LinearOperator) -> Result<Self, SolverError> {
+    /// Sets up the preconditioner for `a`; returns it with the set-up flops.
+    pub fn setup(
+        spec: &PreconditionerSpec,
+        a: &dyn LinearOperator,
+    ) -> Result<(Self, u64), SolverError> {
         let n = a.nrows();
+        let nu = n as u64;
         Ok(match *spec {
-            PreconditionerSpec::Identity => Preconditioner::Identity,
+            PreconditionerSpec::Identity => (Preconditioner::Identity, 0),
             PreconditionerSpec::Jacobi => {
                 let mut d = vec![0.0; n];
                 a.diagonal(&mut d);
@@ -70,7 +93,7 @@ impl Preconditioner {
                         }
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                Preconditioner::Jacobi(inv)
+                (Preconditioner::Jacobi(inv), nu)
             }
             PreconditionerSpec::BlockJacobi => {
                 if !n.is_multiple_of(3) {
@@ -87,7 +110,8 @@ impl Preconditioner {
                     })?;
                     *b = chol.inverse();
                 }
-                Preconditioner::BlockJacobi(blocks)
+                // Cholesky and inverse of each 3x3 block: about 40 flops a row.
+                (Preconditioner::BlockJacobi(blocks), 40 * nu)
             }
             PreconditionerSpec::Ssor { omega } => {
                 a.csr().ok_or(SolverError::Unsupported(
@@ -101,7 +125,7 @@ impl Preconditioner {
                         value: diag[i],
                     });
                 }
-                Preconditioner::Ssor { omega, diag }
+                (Preconditioner::Ssor { omega, diag }, nu)
             }
             PreconditionerSpec::Ic0 => {
                 let csr = a.csr().ok_or(SolverError::Unsupported(
@@ -113,13 +137,20 @@ impl Preconditioner {
                     csr.data(),
                 );
                 let mut shift = 0.0;
+                let mut flops = 0;
                 loop {
+                    flops += ic0_flops(&indptr, indices);
                     match ic0(n, &indptr, indices, data, shift) {
-                        Ok(l) => break Preconditioner::Ic0 { l, shift },
+                        Ok(l) => break (Preconditioner::Ic0 { l, shift }, flops),
                         Err(e) if shift >= 1e3 => return Err(e),
                         Err(_) => shift = if shift == 0.0 { 1e-3 } else { shift * 10.0 },
                     }
                 }
+            }
+            PreconditionerSpec::StaleCholesky { ordering, .. } => {
+                let mut factor = Box::new(Cholesky::new(ordering, Indefinite::Error));
+                let stats = factor.factorize(a)?;
+                (Preconditioner::Cholesky { factor, age: 0 }, stats.flops)
             }
         })
     }
@@ -179,6 +210,12 @@ impl Preconditioner {
                     *zi *= scale;
                 }
             }
+            Preconditioner::Cholesky { factor, .. } => {
+                z.copy_from_slice(r);
+                factor
+                    .solve_in_place(z)
+                    .expect("a held factor solves vectors of its size");
+            }
             Preconditioner::Ic0 { l, .. } => {
                 // L y = r (forward), then L^T z = y (backward, column sweep over L's rows).
                 let n = l.indptr.len() - 1;
@@ -210,6 +247,7 @@ impl Preconditioner {
             Preconditioner::BlockJacobi(_) => 5 * n as u64,
             Preconditioner::Ssor { .. } => a.apply_flops() + 4 * n as u64,
             Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
+            Preconditioner::Cholesky { factor, .. } => factor.solve_flops(),
         }
     }
 
@@ -225,6 +263,20 @@ impl Preconditioner {
             _ => 0.0,
         }
     }
+}
+
+/// Flops of one IC(0) factorisation: each row's sparse dot products, bounded by the square
+/// of its lower length.
+fn ic0_flops(indptr: &[usize], indices: &[usize]) -> u64 {
+    (0..indptr.len() - 1)
+        .map(|i| {
+            let lower = indices[indptr[i]..indptr[i + 1]]
+                .iter()
+                .filter(|&&j| j < i)
+                .count() as u64;
+            lower * lower + 2 * lower + 1
+        })
+        .sum()
 }
 
 /// Zero-fill incomplete Cholesky of the lower triangle of a symmetric CSR matrix

@@ -2,7 +2,9 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::direct::{Cholesky, Indefinite};
 use crate::iterative::{Iterative, Method, Tolerance};
+use crate::ordering::Ordering;
 use crate::precond::PreconditionerSpec;
 use crate::{LinearSolver, SolverError};
 
@@ -40,6 +42,15 @@ pub enum SolverSpec {
         #[serde(default)]
         tolerance: Tolerance,
     },
+    /// Sparse direct Cholesky (faer).
+    Direct {
+        /// Fill-reducing ordering.
+        #[serde(default)]
+        ordering: Ordering,
+        /// What to do with a matrix that is not positive definite.
+        #[serde(default)]
+        indefinite: Indefinite,
+    },
 }
 
 fn default_omega() -> f64 {
@@ -64,6 +75,10 @@ impl SolverSpec {
                 preconditioner,
                 tolerance,
             } => Box::new(Iterative::try_new(Method::Pcg(preconditioner), tolerance)?),
+            SolverSpec::Direct {
+                ordering,
+                indefinite,
+            } => Box::new(Cholesky::new(ordering, indefinite)),
         })
     }
 }

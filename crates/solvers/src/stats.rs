@@ -68,3 +68,19 @@ impl SolveStats {
         }
     }
 }
+
+/// What a `factorize` call did and what it cost.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct SetupStats {
+    /// The symbolic analysis was (re)done, because the pattern was new.
+    pub analyzed: bool,
+    /// An earlier factor or preconditioner was kept instead of computing a new one (stale
+    /// Cholesky preconditioning).
+    pub reused: bool,
+    /// Deterministic work estimate of the set-up in floating-point operations.
+    pub flops: u64,
+    /// Nonzeros of a Cholesky factor computed by this call (0 otherwise).
+    pub factor_nnz: usize,
+    /// Wall time in seconds.
+    pub seconds: f64,
+}

@@ -85,6 +85,23 @@ proptest! {
             prop_assert_eq!(stats.residuals.len(), stats.iterations + 1);
             prop_assert!(stats.flops > 0 && stats.matvecs == stats.iterations + 1);
         }
+        // Every ordering of the direct solver, and PCG with an exact (fresh) Cholesky factor.
+        for spec in [
+            "Direct(ordering: Auto)",
+            "Direct(ordering: Amd)",
+            "Direct(ordering: NestedDissection)",
+            "Direct(ordering: Natural, indefinite: Ldlt)",
+        ] {
+            let mut x = vec![1.0; n];
+            let stats = run(spec, &a, &b, &mut x).unwrap_or_else(|e| panic!("{spec}: {e}"));
+            prop_assert_eq!(stats.termination, Termination::Direct);
+            let xr = DVector::from_column_slice(&x);
+            let err = (xr - &reference).norm();
+            prop_assert!(err <= 1e-12 * cond_bound * reference.norm().max(1e-12), "{}: {} vs {} cond {}", spec, err, reference.norm(), cond_bound);
+        }
+        let mut x = vec![0.0; n];
+        let stats = run("Pcg(preconditioner: StaleCholesky(max_age: 0), tolerance: (rel: 1e-10))", &a, &b, &mut x).unwrap();
+        prop_assert!(stats.iterations <= 2, "{}", stats.iterations);
         // Jacobi iteration converges when A is strongly diagonally dominant; test it on A + 10 nI.
         let (ad, dd) = spd(n, &entries, c + 10.0 * n as f64);
         let mut x = vec![0.0; n];
@@ -139,17 +156,17 @@ fn indefinite_input_is_reported() {
         other => panic!("expected a breakdown, got {other:?}"),
     }
     for spec in [
+        "Direct()",
+        "Pcg(preconditioner: StaleCholesky(max_age: 2))",
         "Pcg(preconditioner: Jacobi)",
         "Jacobi()",
         "Pcg(preconditioner: Ic0)",
         "Pcg(preconditioner: Ssor(omega: 1.0))",
     ] {
+        let got = run(spec, &a, &b, &mut x);
         assert!(
-            matches!(
-                run(spec, &a, &b, &mut x),
-                Err(SolverError::NotPositiveDefinite { pivot: 1, .. })
-            ),
-            "{spec}"
+            matches!(got, Err(SolverError::NotPositiveDefinite { pivot: 1, .. })),
+            "{spec}: {got:?}"
         );
     }
     // Block Jacobi names the first row of the failing 3x3 block.

@@ -1,0 +1,378 @@
+//! Sparse direct Cholesky through faer, with the symbolic analysis kept across
+//! refactorisations of the same pattern.
+
+use std::time::Instant;
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::perm::PermRef;
+use faer::sparse::linalg::cholesky::{
+    CholeskySymbolicParams, LdltRef, LltRef, SymbolicCholesky, SymbolicCholeskyRaw,
+    SymmetricOrdering, factorize_symbolic_cholesky,
+};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+use faer::{Conj, MatMut, Par, Side};
+use serde::{Deserialize, Serialize};
+
+use crate::error::check_vector;
+use crate::operator::{LinearOperator, norm};
+use crate::ordering::{Ordering, order_rows};
+use crate::stats::{SetupStats, SolveStats, Termination};
+use crate::{LinearSolver, SolverError};
+
+/// What the direct solver does with a matrix that is not positive definite.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum Indefinite {
+    /// Report [`SolverError::NotPositiveDefinite`].
+    #[default]
+    Error,
+    /// Factorise `L D L^T` instead (no pivoting: a zero pivot is still an error).
+    Ldlt,
+}
+
+/// Which factor is held.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Llt,
+    Ldlt,
+}
+
+/// Sparse Cholesky `A = L L^T` (or `L D L^T`) of a symmetric CSR matrix in full storage.
+///
+/// The CSR arrays are handed to faer as the CSC arrays of `A^T = A`, without copying.
+/// [`LinearSolver::analyze`] orders and factorises symbolically; `factorize` reuses that
+/// analysis while the pattern is unchanged (and redoes it, reported in [`SetupStats`], when
+/// the pattern changed). Factorisation runs on one thread: its results do not depend on the
+/// thread count.
+#[derive(Debug)]
+pub struct Cholesky {
+    ordering: Ordering,
+    indefinite: Indefinite,
+    /// The pattern the symbolic analysis belongs to.
+    pattern: Option<(Vec<usize>, Vec<usize>)>,
+    symbolic: Option<SymbolicCholesky<usize>>,
+    analyze_seconds: f64,
+    values: Vec<f64>,
+    kind: Option<Kind>,
+}
+
+impl Cholesky {
+    /// A solver with the given ordering and indefinite-matrix policy.
+    pub fn new(ordering: Ordering, indefinite: Indefinite) -> Self {
+        Self {
+            ordering,
+            indefinite,
+            pattern: None,
+            symbolic: None,
+            analyze_seconds: 0.0,
+            values: Vec::new(),
+            kind: None,
+        }
+    }
+
+    /// Nonzeros stored for the factor `L` (0 before `analyze`).
+    pub fn factor_nnz(&self) -> usize {
+        self.symbolic.as_ref().map_or(0, |s| factor_counts(s).0)
+    }
+
+    /// The order of the held analysis (`None` before `analyze`).
+    pub fn nrows(&self) -> Option<usize> {
+        self.symbolic.as_ref().map(SymbolicCholesky::nrows)
+    }
+
+    /// Whether a factor for the current values exists.
+    pub fn is_factorized(&self) -> bool {
+        self.kind.is_some()
+    }
+
+    /// Whether the held factor is `L D L^T` (the matrix was not positive definite).
+    pub fn is_ldlt(&self) -> bool {
+        self.kind == Some(Kind::Ldlt)
+    }
+
+    /// Wall time of the last symbolic analysis.
+    pub fn analyze_seconds(&self) -> f64 {
+        self.analyze_seconds
+    }
+
+    fn csr(a: &dyn LinearOperator) -> Result<&sprs::CsMat<f64>, SolverError> {
+        a.csr().ok_or(SolverError::Unsupported(
+            "the direct solver needs an assembled CSR matrix",
+        ))
+    }
+
+    fn same_pattern(&self, indptr: &[usize], indices: &[usize]) -> bool {
+        self.pattern
+            .as_ref()
+            .is_some_and(|(p, i)| p == indptr && i == indices)
+    }
+
+    /// Solves with the held factor, in place (`x` holds `b` on entry).
+    pub(crate) fn solve_in_place(&self, x: &mut [f64]) -> Result<(), SolverError> {
+        let (symbolic, kind) = match (&self.symbolic, self.kind) {
+            (Some(s), Some(k)) => (s, k),
+            _ => return Err(SolverError::NotFactorized),
+        };
+        let n = symbolic.nrows();
+        if x.len() != n {
+            return Err(SolverError::DimensionMismatch {
+                what: "x",
+                expected: n,
+                found: x.len(),
+            });
+        }
+        let par = Par::Seq;
+        let req = symbolic.solve_in_place_scratch::<f64>(1, par);
+        let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+        let stack = MemStack::new(&mut mem);
+        let rhs = MatMut::from_column_major_slice_mut(x, n, 1);
+        match kind {
+            Kind::Llt => LltRef::new(symbolic, &self.values).solve_in_place_with_conj(
+                Conj::No,
+                rhs,
+                par,
+                stack,
+            ),
+            Kind::Ldlt => LdltRef::new(symbolic, &self.values).solve_in_place_with_conj(
+                Conj::No,
+                rhs,
+                par,
+                stack,
+            ),
+        }
+        Ok(())
+    }
+
+    /// Flops of one solve with the factor (forward and backward substitution).
+    pub(crate) fn solve_flops(&self) -> u64 {
+        4 * self.factor_nnz() as u64
+    }
+}
+
+/// `(nnz(L), flops of the numeric factorisation)` from the symbolic structure.
+fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) {
+    match symbolic.raw() {
+        SymbolicCholeskyRaw::Simplicial(s) => {
+            let cp = s.col_ptr();
+            let mut flops = 0u64;
+            for j in 0..s.nrows() {
+                let c = (cp[j + 1] - cp[j]) as u64;
+                flops += c * c;
+            }
+            (s.len_val(), flops)
+        }
+        SymbolicCholeskyRaw::Supernodal(s) => {
+            let (begin, end, rp) = (
+                s.supernode_begin(),
+                s.supernode_end(),
+                s.col_ptr_for_row_idx(),
+            );
+            let (mut nnz, mut flops) = (0usize, 0u64);
+            for k in 0..s.n_supernodes() {
+                let w = end[k] - begin[k];
+                let below = rp[k + 1] - rp[k];
+                nnz += w * (w + 1) / 2 + w * below;
+                for c in 0..w {
+                    let rows = (w - c + below) as u64;
+                    flops += rows * rows;
+                }
+            }
+            (nnz, flops)
+        }
+    }
+}
+
+impl LinearSolver for Cholesky {
+    fn name(&self) -> String {
+        format!("cholesky({:?})", self.ordering)
+    }
+
+    fn analyze(&mut self, a: &dyn LinearOperator) -> Result<(), SolverError> {
+        let start = Instant::now();
+        let csr = Self::csr(a)?;
+        let indptr_view = csr.indptr();
+        let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
+        let symbolic = match self.ordering {
+            Ordering::Auto => {
+                let amd = symbolic_with(Ordering::Amd, indptr, indices)?;
+                let nd = symbolic_with(Ordering::NestedDissection, indptr, indices)?;
+                if factor_counts(&nd).1 < factor_counts(&amd).1 {
+                    nd
+                } else {
+                    amd
+                }
+            }
+            ordering => symbolic_with(ordering, indptr, indices)?,
+        };
+        self.symbolic = Some(symbolic);
+        self.pattern = Some((indptr.to_vec(), indices.to_vec()));
+        self.kind = None;
+        self.analyze_seconds = start.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError> {
+        let csr = Self::csr(a)?;
+        if csr.rows() != csr.cols() {
+            return Err(SolverError::DimensionMismatch {
+                what: "columns",
+                expected: csr.rows(),
+                found: csr.cols(),
+            });
+        }
+        check_vector("matrix values", csr.data(), csr.nnz())?;
+        let indptr_view = csr.indptr();
+        let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
+        let mut setup = SetupStats::default();
+        if !self.same_pattern(indptr, indices) {
+            self.analyze(a)?;
+            setup.analyzed = true;
+            setup.seconds += self.analyze_seconds;
+        }
+        let start = Instant::now();
+        let symbolic = self.symbolic.as_ref().expect("analyzed above");
+        let n = csr.rows();
+        let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
+        let matrix = SparseColMatRef::new(pattern, csr.data());
+        self.values.clear();
+        self.values.resize(symbolic.len_val(), 0.0);
+        self.kind = None;
+        let par = Par::Seq;
+        let llt = {
+            let req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default());
+            let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+            symbolic
+                .factorize_numeric_llt(
+                    &mut self.values,
+                    matrix,
+                    Side::Lower,
+                    LltRegularization::default(),
+                    par,
+                    MemStack::new(&mut mem),
+                    Default::default(),
+                )
+                .map(|_| ())
+        };
+        let kind = match llt {
+            Ok(()) => Kind::Llt,
+            Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) => {
+                if self.indefinite == Indefinite::Error {
+                    return Err(SolverError::NotPositiveDefinite {
+                        pivot: permuted_row(symbolic, index),
+                        value: f64::NAN,
+                    });
+                }
+                let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
+                let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+                symbolic
+                    .factorize_numeric_ldlt(
+                        &mut self.values,
+                        matrix,
+                        Side::Lower,
+                        LdltRegularization::default(),
+                        par,
+                        MemStack::new(&mut mem),
+                        Default::default(),
+                    )
+                    .map_err(|e| match e {
+                        faer::linalg::cholesky::ldlt::factor::LdltError::ZeroPivot { index } => {
+                            SolverError::NotPositiveDefinite {
+                                pivot: permuted_row(symbolic, index),
+                                value: 0.0,
+                            }
+                        }
+                    })?;
+                Kind::Ldlt
+            }
+        };
+        if let Some(i) = self.values.iter().position(|v| !v.is_finite()) {
+            return Err(SolverError::NonFinite {
+                what: "factor",
+                index: i,
+            });
+        }
+        self.kind = Some(kind);
+        let (nnz, flops) = factor_counts(symbolic);
+        setup.flops += flops;
+        setup.factor_nnz = nnz;
+        setup.seconds += start.elapsed().as_secs_f64();
+        Ok(setup)
+    }
+
+    fn solve(
+        &mut self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+    ) -> Result<SolveStats, SolverError> {
+        let n = a.nrows();
+        check_vector("b", b, n)?;
+        check_vector("x", x, n)?;
+        if self.symbolic.as_ref().is_none_or(|s| s.nrows() != n) || self.kind.is_none() {
+            return Err(SolverError::NotFactorized);
+        }
+        let start = Instant::now();
+        let mut stats = SolveStats::new(self.name(), norm(b));
+        x.copy_from_slice(b);
+        self.solve_in_place(x)?;
+        // One residual evaluation, so callers see the accuracy they got.
+        let mut r = vec![0.0; n];
+        a.apply(x, &mut r);
+        for (ri, bi) in r.iter_mut().zip(b) {
+            *ri = bi - *ri;
+        }
+        stats.residuals.push(norm(&r));
+        stats.matvecs = 1;
+        stats.flops = self.solve_flops() + a.apply_flops() + 3 * n as u64;
+        stats.seconds = start.elapsed().as_secs_f64();
+        stats.termination = if stats.final_residual().is_finite() {
+            Termination::Direct
+        } else {
+            Termination::Diverged
+        };
+        if stats.termination == Termination::Diverged {
+            return Err(SolverError::NotConverged {
+                stats: Box::new(stats),
+            });
+        }
+        Ok(stats)
+    }
+}
+
+/// Orders and factorises a pattern symbolically.
+fn symbolic_with(
+    ordering: Ordering,
+    indptr: &[usize],
+    indices: &[usize],
+) -> Result<SymbolicCholesky<usize>, SolverError> {
+    let n = indptr.len() - 1;
+    let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
+    // Always a custom permutation: faer's `Identity` ordering reads the pattern as given,
+    // while the permuting path extracts the requested triangle of full storage.
+    let fwd = order_rows(ordering, indptr, indices);
+    let mut inv = vec![0; n];
+    for (new, &old) in fwd.iter().enumerate() {
+        inv[old] = new;
+    }
+    let ordering = SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n));
+    factorize_symbolic_cholesky(
+        pattern,
+        Side::Lower,
+        ordering,
+        CholeskySymbolicParams::default(),
+    )
+    .map_err(|_| SolverError::OutOfMemory)
+}
+
+/// The original row of failing pivot `index` of the permuted matrix as faer reports it
+/// (its simplicial kernels count from 1, the supernodal ones from 0).
+fn permuted_row(symbolic: &SymbolicCholesky<usize>, index: usize) -> usize {
+    let index = match symbolic.raw() {
+        SymbolicCholeskyRaw::Simplicial(_) => index.saturating_sub(1),
+        SymbolicCholeskyRaw::Supernodal(_) => index,
+    };
+    symbolic
+        .perm()
+        .map_or(index, |p| p.arrays().0.get(index).copied().unwrap_or(index))
+}

@@ -1,0 +1,334 @@
+//! Solvers on real FEM matrices: the stiffness and Backward-Euler matrices of a generated
+//! beam (linear tetrahedra, Neo-Hookean, clamped at x = 0), assembled here with the mesh and
+//! materials crates so this crate keeps no dependency on the assembly crate.
+
+use deform_materials::{Material, MaterialSpec};
+use deform_mesh::TetMesh;
+use deform_mesh::generate::BoxGrid;
+use deform_mesh::topology::BlockPattern;
+use deform_solvers::{
+    Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, PreconditionerSpec,
+    SolverError, SolverSpec, Termination, Tolerance,
+};
+use sprs::CsMat;
+
+/// `K + m/dt^2 I` at deformation `x`, with the rows and columns of clamped vertices replaced
+/// by identity rows, so the matrix is SPD like a Newton matrix with Dirichlet conditions.
+fn newton_matrix(mesh: &TetMesh, x: &[f64], mass_over_dt2: f64) -> CsMat<f64> {
+    let material = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e5, nu: 0.4))")
+        .unwrap()
+        .build()
+        .unwrap();
+    let pattern = BlockPattern::new(mesh);
+    let (indptr, indices) = pattern.scalar_csr();
+    let mut data = vec![0.0; indices.len()];
+    let blocks = pattern.element_blocks(mesh);
+    for (e, tet) in mesh.tets().iter().enumerate() {
+        let g = mesh.shape_gradients(e);
+        let f = mesh.deformation_gradient(e, x);
+        let c = material.dp_df(&f);
+        let w = mesh.volumes()[e];
+        for a in 0..4 {
+            for b in 0..4 {
+                let k = blocks[e][4 * a + b];
+                for r in 0..3 {
+                    for s in 0..3 {
+                        // K_ab[r][s] = W sum_jl dP_rj/dF_sl g_a[j] g_b[l], vec index i + 3 j.
+                        let mut v = 0.0;
+                        for j in 0..3 {
+                            for l in 0..3 {
+                                v += c[(r + 3 * j, s + 3 * l)] * g[a][j] * g[b][l];
+                            }
+                        }
+                        data[pattern.scalar_index(tet[a], k, r, s)] += w * v;
+                    }
+                }
+            }
+        }
+    }
+    let n = 3 * mesh.num_vertices();
+    let clamped: Vec<bool> = mesh
+        .rest_positions()
+        .iter()
+        .map(|p| p.x < 1e-9)
+        .flat_map(|c| [c; 3])
+        .collect();
+    for i in 0..n {
+        for k in indptr[i]..indptr[i + 1] {
+            let j = indices[k];
+            if clamped[i] || clamped[j] {
+                data[k] = if i == j { 1.0 } else { 0.0 };
+            } else if i == j {
+                data[k] += mass_over_dt2;
+            }
+        }
+    }
+    CsMat::new((n, n), indptr, indices, data)
+}
+
+fn beam(cells: usize) -> TetMesh {
+    BoxGrid::beam(cells).build().unwrap()
+}
+
+/// A bent configuration: y displaced by a parabola in x.
+fn bent(mesh: &TetMesh, amount: f64) -> Vec<f64> {
+    mesh.rest_positions()
+        .iter()
+        .flat_map(|p| [p.x, p.y + amount * p.x * p.x, p.z])
+        .collect()
+}
+
+fn rhs(n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| ((i * 7919) % 13) as f64 / 13.0 - 0.5)
+        .collect()
+}
+
+fn residual(a: &CsMat<f64>, x: &[f64], b: &[f64]) -> f64 {
+    let mut r = vec![0.0; b.len()];
+    deform_solvers::LinearOperator::apply(a, x, &mut r);
+    let num: f64 = r.iter().zip(b).map(|(ri, bi)| (ri - bi).powi(2)).sum();
+    let den: f64 = b.iter().map(|v| v * v).sum();
+    (num / den).sqrt()
+}
+
+fn pcg(p: PreconditionerSpec) -> Iterative {
+    Iterative::try_new(
+        Method::Pcg(p),
+        Tolerance {
+            rel: 1e-8,
+            abs: 0.0,
+            max_iterations: 20_000,
+        },
+    )
+    .unwrap()
+}
+
+#[test]
+fn every_preconditioner_beats_plain_cg_and_all_solvers_agree() {
+    let mesh = beam(2);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.05), 10.0);
+    let n = a.rows();
+    let b = rhs(n);
+    let mut direct = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+    direct.analyze(&a).unwrap();
+    direct.factorize(&a).unwrap();
+    let mut reference = vec![0.0; n];
+    let stats = direct.solve(&a, &b, &mut reference).unwrap();
+    assert_eq!(stats.termination, Termination::Direct);
+    assert!(
+        stats.relative_residual() < 1e-10,
+        "{}",
+        stats.relative_residual()
+    );
+
+    let mut cg = pcg(PreconditionerSpec::Identity);
+    cg.factorize(&a).unwrap();
+    let mut x = vec![0.0; n];
+    let cg_iterations = cg.solve(&a, &b, &mut x).unwrap().iterations;
+    for p in [
+        PreconditionerSpec::Jacobi,
+        PreconditionerSpec::BlockJacobi,
+        PreconditionerSpec::Ssor { omega: 1.2 },
+        PreconditionerSpec::Ic0,
+        PreconditionerSpec::StaleCholesky {
+            max_age: 0,
+            ordering: Ordering::Amd,
+        },
+    ] {
+        let mut s = pcg(p);
+        s.factorize(&a).unwrap();
+        let mut x = vec![0.0; n];
+        let st = s.solve(&a, &b, &mut x).unwrap();
+        assert!(
+            st.iterations < cg_iterations,
+            "{p:?}: {} iterations, CG {cg_iterations}",
+            st.iterations
+        );
+        assert!(residual(&a, &x, &b) < 1e-8);
+        let err: f64 = x
+            .iter()
+            .zip(&reference)
+            .map(|(u, v)| (u - v).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let norm: f64 = reference.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!(err < 1e-5 * norm, "{p:?}: {err} vs {norm}");
+    }
+}
+
+#[test]
+fn orderings_agree_and_nested_dissection_reduces_fill() {
+    let mesh = beam(4);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.02), 100.0);
+    let n = a.rows();
+    let b = rhs(n);
+    let mut nnz = Vec::new();
+    let mut solutions = Vec::new();
+    for ordering in [
+        Ordering::Natural,
+        Ordering::Amd,
+        Ordering::NestedDissection,
+        Ordering::Auto,
+    ] {
+        let mut s = Cholesky::new(ordering, Indefinite::Error);
+        s.analyze(&a).unwrap();
+        let setup = s.factorize(&a).unwrap();
+        assert!(!setup.analyzed, "the pattern was analysed already");
+        assert_eq!(setup.factor_nnz, s.factor_nnz());
+        let mut x = vec![0.0; n];
+        s.solve(&a, &b, &mut x).unwrap();
+        assert!(residual(&a, &x, &b) < 1e-10, "{ordering:?}");
+        nnz.push(s.factor_nnz());
+        solutions.push(x);
+    }
+    for x in &solutions[1..] {
+        let diff = x
+            .iter()
+            .zip(&solutions[0])
+            .map(|(u, v)| (u - v).abs())
+            .fold(0.0, f64::max);
+        assert!(diff < 1e-8, "{diff}");
+    }
+    // On this small beam AMD beats the natural band, and Auto keeps the better of AMD and
+    // nested dissection.
+    assert!(nnz[1] < nnz[0], "{nnz:?}");
+    assert_eq!(nnz[3], nnz[1].min(nnz[2]), "{nnz:?}");
+}
+
+#[test]
+fn nested_dissection_beats_amd_on_the_55k_dof_beam() {
+    // Symbolic analysis only (the pattern of the BENCHMARKS.md beam n = 16): L's size.
+    let mesh = beam(16);
+    let (indptr, indices) = BlockPattern::new(&mesh).scalar_csr();
+    let n = indptr.len() - 1;
+    let data = vec![1.0; indices.len()];
+    let a = CsMat::new((n, n), indptr, indices, data);
+    let fill = |ordering| {
+        let mut s = Cholesky::new(ordering, Indefinite::Error);
+        s.analyze(&a).unwrap();
+        s.factor_nnz()
+    };
+    let (amd, nd) = (fill(Ordering::Amd), fill(Ordering::NestedDissection));
+    assert!(5 * nd < 4 * amd, "nested dissection {nd}, AMD {amd}");
+}
+
+#[test]
+fn symbolic_analysis_is_reused_and_redone_when_the_pattern_changes() {
+    let mesh = beam(2);
+    let a1 = newton_matrix(&mesh, &bent(&mesh, 0.0), 100.0);
+    let a2 = newton_matrix(&mesh, &bent(&mesh, 0.1), 100.0);
+    let mut s: Box<dyn LinearSolver> = ron::from_str::<SolverSpec>("Direct()")
+        .unwrap()
+        .build()
+        .unwrap();
+    let first = s.factorize(&a1).unwrap();
+    assert!(first.analyzed && first.flops > 0);
+    let second = s.factorize(&a2).unwrap();
+    assert!(!second.analyzed);
+    assert_eq!(second.flops, first.flops);
+    let b = rhs(a2.rows());
+    let mut x = vec![0.0; b.len()];
+    s.solve(&a2, &b, &mut x).unwrap();
+    assert!(residual(&a2, &x, &b) < 1e-10);
+    // A different mesh: new pattern, analysed again.
+    let other = beam(1);
+    let a3 = newton_matrix(&other, &bent(&other, 0.0), 100.0);
+    assert!(s.factorize(&a3).unwrap().analyzed);
+}
+
+#[test]
+fn stale_cholesky_preconditions_nearby_matrices_in_a_few_iterations() {
+    let mesh = beam(2);
+    let spec = PreconditionerSpec::StaleCholesky {
+        max_age: 3,
+        ordering: Ordering::NestedDissection,
+    };
+    let mut s = pcg(spec);
+    let b = rhs(3 * mesh.num_vertices());
+    let mut iterations = Vec::new();
+    let mut reused = Vec::new();
+    // A sequence of Newton matrices along a bending motion: the factor of the first serves
+    // the next three, then it is recomputed.
+    for step in 0..6 {
+        let a = newton_matrix(&mesh, &bent(&mesh, 0.01 * step as f64), 100.0);
+        let setup = s.factorize(&a).unwrap();
+        reused.push(setup.reused);
+        let mut x = vec![0.0; b.len()];
+        let st = s.solve(&a, &b, &mut x).unwrap();
+        assert!(residual(&a, &x, &b) < 1e-7);
+        iterations.push(st.iterations);
+    }
+    assert_eq!(reused, [false, true, true, true, false, true]);
+    assert_eq!(s.preconditioner_age(), Some(1));
+    assert!(iterations[0] <= 1, "{iterations:?}");
+    assert!(iterations.iter().all(|&k| k <= 12), "{iterations:?}");
+    // Forced refresh.
+    s.refresh_preconditioner();
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.05), 100.0);
+    assert!(!s.factorize(&a).unwrap().reused);
+    assert_eq!(s.preconditioner_age(), Some(0));
+}
+
+#[test]
+fn indefinite_matrices_fail_llt_and_solve_with_ldlt() {
+    let mesh = beam(1);
+    let mut a = newton_matrix(&mesh, &bent(&mesh, 0.0), 100.0);
+    // Make it indefinite: flip the sign of the whole diagonal block of the last vertex.
+    let n = a.rows();
+    let last = n - 3;
+    for i in last..n {
+        let row = a.outer_view(i).unwrap().indices().to_vec();
+        for j in row {
+            if j == i {
+                *a.get_mut(i, j).unwrap() = -1.0;
+            } else if j >= last || i >= last {
+                *a.get_mut(i, j).unwrap() = 0.0;
+                *a.get_mut(j, i).unwrap() = 0.0;
+            }
+        }
+    }
+    let mut llt = Cholesky::new(Ordering::Amd, Indefinite::Error);
+    assert!(matches!(
+        llt.factorize(&a),
+        Err(SolverError::NotPositiveDefinite { .. })
+    ));
+    let mut ldlt = Cholesky::new(Ordering::Amd, Indefinite::Ldlt);
+    ldlt.factorize(&a).unwrap();
+    assert!(ldlt.is_ldlt());
+    let b = rhs(n);
+    let mut x = vec![0.0; n];
+    ldlt.solve(&a, &b, &mut x).unwrap();
+    assert!(residual(&a, &x, &b) < 1e-10);
+    // CG breaks down on the same matrix.
+    let mut cg = pcg(PreconditionerSpec::Identity);
+    cg.factorize(&a).unwrap();
+    let mut x = vec![0.0; n];
+    assert!(matches!(
+        cg.solve(&a, &b, &mut x),
+        Err(SolverError::Breakdown { .. } | SolverError::NotConverged { .. })
+    ));
+}
+
+#[test]
+fn direct_solves_do_not_depend_on_the_thread_count() {
+    let mesh = beam(2);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.05), 100.0);
+    let b = rhs(a.rows());
+    let solve = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+                s.factorize(&a).unwrap();
+                let mut x = vec![0.0; b.len()];
+                s.solve(&a, &b, &mut x).unwrap();
+                x
+            })
+    };
+    let one = solve(1);
+    assert_eq!(one, solve(2));
+    assert_eq!(one, solve(4));
+}
