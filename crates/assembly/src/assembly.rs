@@ -1,0 +1,559 @@
+//! `Assembly`: energy, forces and the stiffness matrix of one mesh, in parallel and
+//! bit-for-bit independent of the thread count.
+//!
+//! Every evaluation runs in two phases. The element phase computes each element's energy,
+//! forces and ten upper 3x3 stiffness blocks into its own slot of a buffer, in parallel over
+//! elements. The gather phase sums those slots into the outputs through maps built once per
+//! mesh (vertex -> element slots, CSR block -> element blocks), in parallel over vertices,
+//! each sum in a fixed order. No output depends on how the work was split.
+
+use deform_materials::{Material, Matrix9};
+use deform_mesh::TetMesh;
+use deform_mesh::topology::{BlockPattern, VertexElements};
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+use sprs::CsMat;
+
+use crate::kernel::{element_forces, gradient, stiffness_blocks, upper_slot};
+use crate::{AssemblyError, MaterialField};
+
+/// Elements per parallel task.
+pub(crate) const CHUNK: usize = 512;
+/// Vertices per parallel task in the gathers.
+const VERTEX_CHUNK: usize = 256;
+
+/// Which tangent the stiffness matrix uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Tangent {
+    /// The exact `d2E/dx2` (indefinite where the energy is not convex).
+    #[default]
+    Exact,
+    /// Each element's `dP/dF` projected to positive semi-definite (eigenvalue clamp), so K is
+    /// positive semi-definite.
+    Projected,
+}
+
+/// What one [`Assembly::evaluate`] call computes; `None` fields are skipped.
+#[derive(Debug, Default)]
+pub struct Outputs<'a> {
+    /// Receives the total elastic energy `E(x)`.
+    pub energy: Option<&'a mut f64>,
+    /// Receives the elastic forces `f = -dE/dx` (length `3N`).
+    pub forces: Option<&'a mut [f64]>,
+    /// Refilled with `K = d2E/dx2` (a matrix from [`Assembly::stiffness_matrix`]).
+    pub stiffness: Option<&'a mut CsMat<f64>>,
+    /// The tangent used for `stiffness`.
+    pub tangent: Tangent,
+}
+
+/// Per-mesh geometry and scatter maps, immutable after construction.
+#[derive(Debug, Clone)]
+pub(crate) struct Geometry {
+    pub num_vertices: usize,
+    pub tets: Vec<[usize; 4]>,
+    pub grads: Vec<[Vector3<f64>; 4]>,
+    pub volumes: Vec<f64>,
+    pub regions: Vec<u32>,
+    pub pattern: BlockPattern,
+    pub indptr: Vec<usize>,
+    pub indices: Vec<usize>,
+    /// Vertex `v`'s element slots `4 e + a`, in element order.
+    pub vertex_ptr: Vec<usize>,
+    pub vertex_slots: Vec<u32>,
+    /// Block `k`'s contributions `2 (10 e + u) + transposed`, in element order.
+    pub block_ptr: Vec<usize>,
+    pub block_slots: Vec<u32>,
+}
+
+/// What the element phase writes for one element.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ElementOut {
+    pub energy: f64,
+    pub forces: [Vector3<f64>; 4],
+    pub blocks: [Matrix3<f64>; 10],
+}
+
+impl Default for ElementOut {
+    fn default() -> Self {
+        Self {
+            energy: 0.0,
+            forces: [Vector3::zeros(); 4],
+            blocks: [Matrix3::zeros(); 10],
+        }
+    }
+}
+
+/// Energy, forces and stiffness of one mesh with its materials.
+///
+/// ```
+/// use deform_assembly::{Assembly, MaterialField};
+/// use deform_materials::MaterialSpec;
+/// use deform_mesh::generate::BoxGrid;
+///
+/// let mesh = BoxGrid::beam(1).build().unwrap();
+/// let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))").unwrap().build().unwrap();
+/// let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model)).unwrap();
+/// let x = mesh.rest_positions_flat();
+/// assert_eq!(asm.energy(&x).unwrap(), 0.0);
+/// let mut k = asm.stiffness_matrix();
+/// asm.stiffness(&x, deform_assembly::Tangent::Exact, &mut k).unwrap();
+/// assert_eq!(k.rows(), 3 * mesh.num_vertices());
+/// ```
+#[derive(Debug, Clone)]
+pub struct Assembly {
+    pub(crate) geometry: Geometry,
+    pub(crate) materials: MaterialField,
+    work: Vec<ElementOut>,
+}
+
+impl Assembly {
+    /// Precomputes shape gradients, the stiffness pattern and the gather maps of `mesh`.
+    ///
+    /// # Errors
+    /// [`AssemblyError::MaterialField`] when the field does not fit the mesh,
+    /// [`AssemblyError::TooLarge`] beyond 200 million elements.
+    pub fn new(mesh: &TetMesh, materials: MaterialField) -> Result<Self, AssemblyError> {
+        let ne = mesh.num_tets();
+        if ne > 200_000_000 {
+            return Err(AssemblyError::TooLarge(ne));
+        }
+        materials.validate(ne)?;
+        let pattern = BlockPattern::new(mesh);
+        let (indptr, indices) = pattern.scalar_csr();
+        let adjacency = VertexElements::new(mesh);
+        let vertex_ptr = adjacency.offsets().to_vec();
+        let mut vertex_slots = Vec::with_capacity(4 * ne);
+        for v in 0..mesh.num_vertices() {
+            vertex_slots.extend(adjacency.of(v).iter().map(|&(e, a)| (4 * e + a) as u32));
+        }
+        let element_blocks = pattern.element_blocks(mesh);
+        let mut block_ptr = vec![0usize; pattern.num_blocks() + 1];
+        for eb in &element_blocks {
+            for &k in eb {
+                block_ptr[k + 1] += 1;
+            }
+        }
+        for k in 0..pattern.num_blocks() {
+            block_ptr[k + 1] += block_ptr[k];
+        }
+        let mut fill = block_ptr.clone();
+        let mut block_slots = vec![0u32; block_ptr[pattern.num_blocks()]];
+        for (e, eb) in element_blocks.iter().enumerate() {
+            for a in 0..4 {
+                for b in 0..4 {
+                    let k = eb[4 * a + b];
+                    let (u, t) = upper_slot(a, b);
+                    block_slots[fill[k]] = (2 * (10 * e + u) + usize::from(t)) as u32;
+                    fill[k] += 1;
+                }
+            }
+        }
+        let geometry = Geometry {
+            num_vertices: mesh.num_vertices(),
+            tets: mesh.tets().to_vec(),
+            grads: (0..ne).map(|e| mesh.shape_gradients(e)).collect(),
+            volumes: mesh.volumes().to_vec(),
+            regions: mesh.regions().to_vec(),
+            pattern,
+            indptr,
+            indices,
+            vertex_ptr,
+            vertex_slots,
+            block_ptr,
+            block_slots,
+        };
+        Ok(Self {
+            geometry,
+            materials,
+            work: Vec::new(),
+        })
+    }
+
+    /// Number of vertices.
+    pub fn num_vertices(&self) -> usize {
+        self.geometry.num_vertices
+    }
+
+    /// Number of elements.
+    pub fn num_elements(&self) -> usize {
+        self.geometry.tets.len()
+    }
+
+    /// Number of degrees of freedom, `3N`.
+    pub fn num_dofs(&self) -> usize {
+        3 * self.geometry.num_vertices
+    }
+
+    /// The materials.
+    pub fn materials(&self) -> &MaterialField {
+        &self.materials
+    }
+
+    /// Replaces the materials (e.g. new parameters while fitting), keeping the pattern.
+    ///
+    /// # Errors
+    /// [`AssemblyError::MaterialField`] when the field does not fit the mesh.
+    pub fn set_materials(&mut self, materials: MaterialField) -> Result<(), AssemblyError> {
+        materials.validate(self.num_elements())?;
+        self.materials = materials;
+        Ok(())
+    }
+
+    /// The block sparsity pattern of K.
+    pub fn pattern(&self) -> &BlockPattern {
+        &self.geometry.pattern
+    }
+
+    /// A `3N x 3N` CSR matrix with K's pattern (full symmetric storage) and zero values,
+    /// to be refilled by [`Assembly::stiffness`] as often as needed.
+    pub fn stiffness_matrix(&self) -> CsMat<f64> {
+        let n = self.num_dofs();
+        CsMat::new(
+            (n, n),
+            self.geometry.indptr.clone(),
+            self.geometry.indices.clone(),
+            vec![0.0; self.geometry.indices.len()],
+        )
+    }
+
+    /// Whether `k` has this mesh's pattern.
+    pub fn has_pattern(&self, k: &CsMat<f64>) -> bool {
+        k.is_csr()
+            && k.rows() == self.num_dofs()
+            && k.cols() == self.num_dofs()
+            && k.indptr().raw_storage() == self.geometry.indptr.as_slice()
+            && k.indices() == self.geometry.indices.as_slice()
+    }
+
+    /// Total elastic energy `E(x) = sum_e W_e Psi(F_e)`.
+    ///
+    /// # Errors
+    /// As [`Assembly::evaluate`].
+    pub fn energy(&mut self, x: &[f64]) -> Result<f64, AssemblyError> {
+        let mut e = 0.0;
+        self.evaluate(
+            x,
+            Outputs {
+                energy: Some(&mut e),
+                ..Outputs::default()
+            },
+        )?;
+        Ok(e)
+    }
+
+    /// Elastic forces `f = -dE/dx` into `f` (length `3N`).
+    ///
+    /// # Errors
+    /// As [`Assembly::evaluate`].
+    pub fn forces(&mut self, x: &[f64], f: &mut [f64]) -> Result<(), AssemblyError> {
+        self.evaluate(
+            x,
+            Outputs {
+                forces: Some(f),
+                ..Outputs::default()
+            },
+        )
+    }
+
+    /// Refills `k` with `K = d2E/dx2` at `x`.
+    ///
+    /// # Errors
+    /// As [`Assembly::evaluate`].
+    pub fn stiffness(
+        &mut self,
+        x: &[f64],
+        tangent: Tangent,
+        k: &mut CsMat<f64>,
+    ) -> Result<(), AssemblyError> {
+        self.evaluate(
+            x,
+            Outputs {
+                stiffness: Some(k),
+                tangent,
+                ..Outputs::default()
+            },
+        )
+    }
+
+    /// Computes any of energy, forces and stiffness in one pass over the elements.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`] or [`AssemblyError::PatternMismatch`] for bad
+    /// arguments, [`AssemblyError::NonFinite`] naming a vertex with a NaN coordinate,
+    /// [`AssemblyError::Inadmissible`] naming the first element (by index) outside its
+    /// model's domain, [`AssemblyError::NonFiniteElement`] naming the first element whose
+    /// result is not finite. On error the outputs are left unspecified.
+    pub fn evaluate(&mut self, x: &[f64], out: Outputs<'_>) -> Result<(), AssemblyError> {
+        check_positions("x", x, self.num_dofs())?;
+        if let Some(f) = &out.forces {
+            check_len("forces", f.len(), self.num_dofs())?;
+        }
+        if let Some(k) = &out.stiffness
+            && !self.has_pattern(k)
+        {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        let need = Need {
+            energy: out.energy.is_some(),
+            forces: out.forces.is_some(),
+            stiffness: out.stiffness.as_ref().map(|_| out.tangent),
+        };
+        self.work.resize(self.num_elements(), ElementOut::default());
+        element_phase(&self.geometry, &self.materials, x, need, &mut self.work)?;
+        if let Some(e) = out.energy {
+            *e = sum_energy(&self.work);
+        }
+        if let Some(f) = out.forces {
+            gather_forces(&self.geometry, &self.work, f);
+        }
+        if let Some(k) = out.stiffness {
+            gather_stiffness(&self.geometry, &self.work, k.data_mut());
+        }
+        Ok(())
+    }
+}
+
+/// What the element phase must produce.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Need {
+    pub energy: bool,
+    pub forces: bool,
+    pub stiffness: Option<Tangent>,
+}
+
+pub(crate) fn check_len(
+    what: &'static str,
+    found: usize,
+    expected: usize,
+) -> Result<(), AssemblyError> {
+    if found == expected {
+        Ok(())
+    } else {
+        Err(AssemblyError::DimensionMismatch {
+            what,
+            expected,
+            found,
+        })
+    }
+}
+
+/// Length and finiteness of a flat `3N` vector.
+pub(crate) fn check_positions(
+    what: &'static str,
+    x: &[f64],
+    expected: usize,
+) -> Result<(), AssemblyError> {
+    check_len(what, x.len(), expected)?;
+    match x.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(AssemblyError::NonFinite {
+            what,
+            vertex: i / 3,
+        }),
+        None => Ok(()),
+    }
+}
+
+/// The four corner vectors of element `t` in a flat vector.
+#[inline]
+pub(crate) fn corners(v: &[f64], t: &[usize; 4]) -> [Vector3<f64>; 4] {
+    t.map(|i| Vector3::new(v[3 * i], v[3 * i + 1], v[3 * i + 2]))
+}
+
+/// Runs `body` on every element in parallel chunks; returns the error of the lowest-indexed
+/// failing element, so the reported element does not depend on the thread count.
+pub(crate) fn for_each_element<T: Send>(
+    buffer: &mut [T],
+    body: impl Fn(usize, &mut T) -> Result<(), AssemblyError> + Sync,
+) -> Result<(), AssemblyError> {
+    let first_error = buffer
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            for (i, slot) in chunk.iter_mut().enumerate() {
+                body(c * CHUNK + i, slot)?;
+            }
+            Ok(())
+        })
+        .filter_map(Result::err)
+        .collect::<Vec<_>>();
+    // Chunks are collected in order; the first error of the first failing chunk is the
+    // lowest-indexed failing element.
+    first_error.into_iter().next().map_or(Ok(()), Err)
+}
+
+fn element_phase(
+    geo: &Geometry,
+    materials: &MaterialField,
+    x: &[f64],
+    need: Need,
+    work: &mut [ElementOut],
+) -> Result<(), AssemblyError> {
+    match materials {
+        MaterialField::Uniform(m) => element_phase_with(geo, |_| m, x, need, work),
+        MaterialField::PerElement { models, index } => {
+            element_phase_with(geo, |e| &models[index[e] as usize], x, need, work)
+        }
+    }
+}
+
+fn element_phase_with<'m, M: Material + 'm>(
+    geo: &Geometry,
+    material: impl Fn(usize) -> &'m M + Sync,
+    x: &[f64],
+    need: Need,
+    work: &mut [ElementOut],
+) -> Result<(), AssemblyError> {
+    for_each_element(work, |e, out| {
+        let t = &geo.tets[e];
+        let g = &geo.grads[e];
+        let w = geo.volumes[e];
+        let f = gradient(&corners(x, t), g);
+        let m = material(e);
+        if !m.admissible(&f) {
+            return Err(AssemblyError::Inadmissible {
+                element: e,
+                det: f.determinant(),
+                model: m.name(),
+            });
+        }
+        if need.energy {
+            out.energy = w * m.psi(&f);
+            if !out.energy.is_finite() {
+                return Err(AssemblyError::NonFiniteElement {
+                    element: e,
+                    what: "energy",
+                });
+            }
+        }
+        match need.stiffness {
+            Some(tangent) => {
+                let (p, c) = m.first_piola_and_tangent(&f, tangent == Tangent::Projected);
+                if !finite9(&c) {
+                    return Err(AssemblyError::NonFiniteElement {
+                        element: e,
+                        what: "tangent",
+                    });
+                }
+                stiffness_blocks(&c, g, w, &mut out.blocks);
+                if need.forces {
+                    out.forces = element_forces(&p, g, w);
+                }
+            }
+            None if need.forces => out.forces = element_forces(&m.first_piola(&f), g, w),
+            None => {}
+        }
+        if need.forces && !out.forces.iter().all(|v| v.iter().all(|c| c.is_finite())) {
+            return Err(AssemblyError::NonFiniteElement {
+                element: e,
+                what: "force",
+            });
+        }
+        Ok(())
+    })
+}
+
+fn finite9(c: &Matrix9) -> bool {
+    c.iter().all(|v| v.is_finite())
+}
+
+/// Sum of element energies in fixed chunks, then over chunks in order.
+fn sum_energy(work: &[ElementOut]) -> f64 {
+    let partial: Vec<f64> = work
+        .par_chunks(CHUNK)
+        .map(|c| c.iter().map(|o| o.energy).sum::<f64>())
+        .collect();
+    partial.iter().sum()
+}
+
+/// Splits a per-vertex output (`stride` values per vertex) into disjoint chunks of
+/// `VERTEX_CHUNK` vertices for parallel gathers: `(first vertex, values)`.
+pub(crate) fn vertex_chunks(
+    values: &mut [f64],
+    offsets: impl Fn(usize) -> usize,
+    num_vertices: usize,
+) -> Vec<(usize, &mut [f64])> {
+    let mut chunks = Vec::with_capacity(num_vertices.div_ceil(VERTEX_CHUNK));
+    let mut rest = values;
+    let mut v = 0;
+    while v < num_vertices {
+        let end = (v + VERTEX_CHUNK).min(num_vertices);
+        let (head, tail) = rest.split_at_mut(offsets(end) - offsets(v));
+        chunks.push((v, head));
+        rest = tail;
+        v = end;
+    }
+    chunks
+}
+
+/// `f_v = sum of the element forces on v`, in element order.
+pub(crate) fn gather_forces(geo: &Geometry, work: &[ElementOut], f: &mut [f64]) {
+    gather_vertex_vectors(geo, |slot| work[slot / 4].forces[slot % 4], f);
+}
+
+/// Sums per-element corner vectors into a flat `3N` vector, each vertex in element order.
+pub(crate) fn gather_vertex_vectors(
+    geo: &Geometry,
+    corner: impl Fn(usize) -> Vector3<f64> + Sync,
+    f: &mut [f64],
+) {
+    let n = geo.num_vertices;
+    vertex_chunks(f, |v| 3 * v, n)
+        .into_par_iter()
+        .for_each(|(v0, out)| {
+            for (i, fi) in out.chunks_exact_mut(3).enumerate() {
+                let v = v0 + i;
+                let mut acc = Vector3::zeros();
+                for &slot in &geo.vertex_slots[geo.vertex_ptr[v]..geo.vertex_ptr[v + 1]] {
+                    acc += corner(slot as usize);
+                }
+                fi.copy_from_slice(acc.as_slice());
+            }
+        });
+}
+
+/// Refills K's values: each block is the sum of its element blocks, in element order.
+fn gather_stiffness(geo: &Geometry, work: &[ElementOut], values: &mut [f64]) {
+    gather_blocks(geo, |slot| work[slot / 10].blocks[slot % 10], values);
+}
+
+/// Sums element blocks (upper slot `10 e + u`) into CSR values through the block map.
+pub(crate) fn gather_blocks(
+    geo: &Geometry,
+    block: impl Fn(usize) -> Matrix3<f64> + Sync,
+    values: &mut [f64],
+) {
+    let pattern = &geo.pattern;
+    let offsets = pattern.offsets();
+    vertex_chunks(values, |v| 9 * offsets[v], geo.num_vertices)
+        .into_par_iter()
+        .for_each(|(v0, out)| {
+            let base = 9 * offsets[v0];
+            let mut v = v0;
+            let mut row_start = offsets[v];
+            while row_start * 9 - base < out.len() {
+                let row_end = offsets[v + 1];
+                let len = row_end - row_start;
+                for k in row_start..row_end {
+                    let mut acc = Matrix3::zeros();
+                    for &code in &geo.block_slots[geo.block_ptr[k]..geo.block_ptr[k + 1]] {
+                        let b = block((code >> 1) as usize);
+                        if code & 1 == 1 {
+                            acc += b.transpose();
+                        } else {
+                            acc += b;
+                        }
+                    }
+                    let col = 3 * (k - row_start);
+                    for r in 0..3 {
+                        let at = 9 * row_start - base + 3 * len * r + col;
+                        out[at..at + 3].copy_from_slice(&[acc[(r, 0)], acc[(r, 1)], acc[(r, 2)]]);
+                    }
+                }
+                v += 1;
+                if v == geo.num_vertices {
+                    break;
+                }
+                row_start = offsets[v];
+            }
+        });
+}

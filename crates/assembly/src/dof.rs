@@ -1,0 +1,177 @@
+//! Dirichlet conditions by elimination: a map between all `3N` degrees of freedom and the
+//! free ones, for vectors and for K.
+//!
+//! Constrained vertices (fixed, or kinematic ones whose positions follow a prescribed path)
+//! are removed from the linear system. The integrator sets their positions (and velocities)
+//! before evaluating forces, so Newton updates are zero there and the reduced system
+//! `A_ff dv_f = r_f` is exact; the coupling `A_fc` only enters through the forces, which are
+//! evaluated at the prescribed positions.
+
+use sprs::CsMat;
+
+use crate::AssemblyError;
+use crate::assembly::check_len;
+
+/// Which degrees of freedom are free, and where they go in reduced vectors.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DofMap {
+    num_vertices: usize,
+    constrained: Vec<bool>,
+    /// Full DOF of each reduced DOF, increasing.
+    free: Vec<usize>,
+    /// Reduced index of each full DOF, `usize::MAX` when constrained.
+    reduced: Vec<usize>,
+}
+
+impl DofMap {
+    /// All three DOFs of each listed vertex are constrained (duplicates are fine).
+    ///
+    /// # Errors
+    /// [`AssemblyError::VertexOutOfRange`].
+    pub fn new(num_vertices: usize, constrained_vertices: &[usize]) -> Result<Self, AssemblyError> {
+        let mut constrained = vec![false; num_vertices];
+        for &v in constrained_vertices {
+            if v >= num_vertices {
+                return Err(AssemblyError::VertexOutOfRange {
+                    vertex: v,
+                    num_vertices,
+                });
+            }
+            constrained[v] = true;
+        }
+        let mut free = Vec::with_capacity(3 * num_vertices);
+        let mut reduced = vec![usize::MAX; 3 * num_vertices];
+        for v in 0..num_vertices {
+            if !constrained[v] {
+                for c in 0..3 {
+                    reduced[3 * v + c] = free.len();
+                    free.push(3 * v + c);
+                }
+            }
+        }
+        Ok(Self {
+            num_vertices,
+            constrained,
+            free,
+            reduced,
+        })
+    }
+
+    /// Number of free DOFs.
+    pub fn num_free(&self) -> usize {
+        self.free.len()
+    }
+
+    /// Number of DOFs in total, `3N`.
+    pub fn num_dofs(&self) -> usize {
+        3 * self.num_vertices
+    }
+
+    /// Whether vertex `v` is constrained.
+    pub fn is_constrained(&self, v: usize) -> bool {
+        self.constrained[v]
+    }
+
+    /// The constrained vertices, increasing.
+    pub fn constrained_vertices(&self) -> Vec<usize> {
+        (0..self.num_vertices)
+            .filter(|&v| self.constrained[v])
+            .collect()
+    }
+
+    /// The full index of each free DOF.
+    pub fn free_dofs(&self) -> &[usize] {
+        &self.free
+    }
+
+    /// `reduced = full` restricted to the free DOFs.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`].
+    pub fn restrict(&self, full: &[f64], reduced: &mut [f64]) -> Result<(), AssemblyError> {
+        check_len("full vector", full.len(), self.num_dofs())?;
+        check_len("reduced vector", reduced.len(), self.num_free())?;
+        for (r, &i) in reduced.iter_mut().zip(&self.free) {
+            *r = full[i];
+        }
+        Ok(())
+    }
+
+    /// Writes the free DOFs of `full` from `reduced`; constrained DOFs are left untouched.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`].
+    pub fn scatter(&self, reduced: &[f64], full: &mut [f64]) -> Result<(), AssemblyError> {
+        check_len("full vector", full.len(), self.num_dofs())?;
+        check_len("reduced vector", reduced.len(), self.num_free())?;
+        for (r, &i) in reduced.iter().zip(&self.free) {
+            full[i] = *r;
+        }
+        Ok(())
+    }
+
+    /// The reduced matrix `A_ff` (rows and columns of the free DOFs) with its pattern, and the
+    /// map through which [`DofMap::restrict_matrix`] refills it from a full matrix of the same
+    /// pattern.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`] when `full` is not `3N x 3N` CSR.
+    pub fn reduced_matrix(&self, full: &CsMat<f64>) -> Result<ReducedMatrix, AssemblyError> {
+        check_len("matrix rows", full.rows(), self.num_dofs())?;
+        check_len("matrix columns", full.cols(), self.num_dofs())?;
+        if !full.is_csr() {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        let (indptr, indices) = (full.indptr(), full.indices());
+        let indptr = indptr.raw_storage();
+        let mut rptr = Vec::with_capacity(self.num_free() + 1);
+        let mut ridx = Vec::new();
+        let mut gather = Vec::new();
+        rptr.push(0);
+        for &i in &self.free {
+            for p in indptr[i]..indptr[i + 1] {
+                let j = self.reduced[indices[p]];
+                if j != usize::MAX {
+                    ridx.push(j);
+                    gather.push(p);
+                }
+            }
+            rptr.push(ridx.len());
+        }
+        let data = gather.iter().map(|&p| full.data()[p]).collect();
+        let n = self.num_free();
+        Ok(ReducedMatrix {
+            matrix: CsMat::new((n, n), rptr, ridx, data),
+            gather,
+            full_nnz: full.nnz(),
+        })
+    }
+
+    /// Refills `reduced` from `full` (same pattern as when `reduced` was made).
+    ///
+    /// # Errors
+    /// [`AssemblyError::PatternMismatch`] when `full` has a different number of entries.
+    pub fn restrict_matrix(
+        &self,
+        full: &CsMat<f64>,
+        reduced: &mut ReducedMatrix,
+    ) -> Result<(), AssemblyError> {
+        if full.nnz() != reduced.full_nnz {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        let data = full.data();
+        for (r, &p) in reduced.matrix.data_mut().iter_mut().zip(&reduced.gather) {
+            *r = data[p];
+        }
+        Ok(())
+    }
+}
+
+/// The free-DOF block of a matrix and the gather map that refills it.
+#[derive(Debug, Clone)]
+pub struct ReducedMatrix {
+    /// `A_ff` in CSR.
+    pub matrix: CsMat<f64>,
+    gather: Vec<usize>,
+    full_nnz: usize,
+}

@@ -1,0 +1,113 @@
+//! Element kernels: the 12x12 element stiffness as ten 3x3 blocks from a 9x9 tangent.
+
+use deform_materials::Matrix9;
+use nalgebra::{Matrix3, SMatrix, Vector3};
+
+/// The upper-triangle local pairs `(a, b)`, `a <= b`, in storage order.
+#[cfg(test)]
+pub(crate) const UPPER: [(usize, usize); 10] = [
+    (0, 0),
+    (0, 1),
+    (0, 2),
+    (0, 3),
+    (1, 1),
+    (1, 2),
+    (1, 3),
+    (2, 2),
+    (2, 3),
+    (3, 3),
+];
+
+/// Index in [`UPPER`] of the pair `(a, b)` and whether the stored block must be transposed.
+pub(crate) const fn upper_slot(a: usize, b: usize) -> (usize, bool) {
+    let (lo, hi, t) = if a <= b { (a, b, false) } else { (b, a, true) };
+    // Row offsets of the packed upper triangle of a 4x4 matrix.
+    let start = [0, 4, 7, 9][lo];
+    (start + hi - lo, t)
+}
+
+/// `K_ab = w sum_{j,l} C[r + 3j, s + 3l] g_a[j] g_b[l]` for the ten upper pairs, using
+/// `g_0 = -(g_1 + g_2 + g_3)` so only the 3x3 pairs among vertices 1..3 are contracted with
+/// `C`; the others follow from the zero row sums. Assumes `C` has major symmetry.
+#[inline]
+pub(crate) fn stiffness_blocks(
+    c: &Matrix9,
+    g: &[Vector3<f64>; 4],
+    w: f64,
+    out: &mut [Matrix3<f64>; 10],
+) {
+    // m[b] (9x3): m[b][(p, s)] = sum_l C[p, s + 3l] g_b[l], for b = 1, 2, 3.
+    let mut m = [SMatrix::<f64, 9, 3>::zeros(); 3];
+    for (mb, gb) in m.iter_mut().zip(&g[1..]) {
+        for s in 0..3 {
+            let col = c.column(s) * gb[0] + c.column(s + 3) * gb[1] + c.column(s + 6) * gb[2];
+            mb.set_column(s, &col);
+        }
+    }
+    // k[a][b] for a, b in 1..3: K_ab[r][s] = sum_j g_a[j] m_b[(r + 3j, s)].
+    let block = |ga: &Vector3<f64>, mb: &SMatrix<f64, 9, 3>| -> Matrix3<f64> {
+        mb.fixed_rows::<3>(0) * ga[0]
+            + mb.fixed_rows::<3>(3) * ga[1]
+            + mb.fixed_rows::<3>(6) * ga[2]
+    };
+    let k11 = block(&g[1], &m[0]) * w;
+    let k12 = block(&g[1], &m[1]) * w;
+    let k13 = block(&g[1], &m[2]) * w;
+    let k22 = block(&g[2], &m[1]) * w;
+    let k23 = block(&g[2], &m[2]) * w;
+    let k33 = block(&g[3], &m[2]) * w;
+    // K_0b = -(K_1b + K_2b + K_3b); K_00 = -(K_01 + K_02 + K_03).
+    let k01 = -(k11 + k12.transpose() + k13.transpose());
+    let k02 = -(k12 + k22 + k23.transpose());
+    let k03 = -(k13 + k23 + k33);
+    let k00 = -(k01 + k02 + k03);
+    // Diagonal blocks are symmetric in exact arithmetic; make them so in floating point, so
+    // the assembled K is exactly symmetric (off-diagonal blocks are stored once and
+    // transposed on the gather).
+    let sym = |k: Matrix3<f64>| (k + k.transpose()) * 0.5;
+    *out = [
+        sym(k00),
+        k01,
+        k02,
+        k03,
+        sym(k11),
+        k12,
+        k13,
+        sym(k22),
+        k23,
+        sym(k33),
+    ];
+}
+
+/// Element forces `f_a = -w P g_a`.
+#[inline]
+pub(crate) fn element_forces(p: &Matrix3<f64>, g: &[Vector3<f64>; 4], w: f64) -> [Vector3<f64>; 4] {
+    let f1 = -w * (p * g[1]);
+    let f2 = -w * (p * g[2]);
+    let f3 = -w * (p * g[3]);
+    [-(f1 + f2 + f3), f1, f2, f3]
+}
+
+/// The element's displacement gradient `dF = sum_a dx_a g_a^T`.
+#[inline]
+pub(crate) fn gradient(dx: &[Vector3<f64>; 4], g: &[Vector3<f64>; 4]) -> Matrix3<f64> {
+    // sum over a of dx_a g_a^T with g_0 = -(g_1 + g_2 + g_3): sum_{a>0} (dx_a - dx_0) g_a^T.
+    (dx[1] - dx[0]) * g[1].transpose()
+        + (dx[2] - dx[0]) * g[2].transpose()
+        + (dx[3] - dx[0]) * g[3].transpose()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn upper_slots_match_the_table() {
+        for (u, &(a, b)) in UPPER.iter().enumerate() {
+            assert_eq!(upper_slot(a, b), (u, false));
+            if a != b {
+                assert_eq!(upper_slot(b, a), (u, true));
+            }
+        }
+    }
+}

@@ -1,0 +1,173 @@
+//! Mass matrices and Rayleigh damping on K's pattern.
+
+use sprs::CsMat;
+
+use crate::assembly::check_len;
+use crate::{Assembly, AssemblyError};
+
+/// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
+/// (`M_ab = rho W (1 + delta_ab) / 20` per element, one scalar per 3x3 block of K's pattern).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Mass {
+    /// One mass per vertex.
+    Lumped(Vec<f64>),
+    /// One scalar per block of the stiffness pattern (block `(i, j)` is `m_k I3`).
+    Consistent(Vec<f64>),
+}
+
+impl Assembly {
+    /// The lumped mass for `density` (kg/m^3).
+    pub fn lumped_mass(&self, density: f64) -> Mass {
+        let geo = &self.geometry;
+        let mut m = vec![0.0; geo.num_vertices];
+        for (t, w) in geo.tets.iter().zip(&geo.volumes) {
+            for &i in t {
+                m[i] += density * w / 4.0;
+            }
+        }
+        Mass::Lumped(m)
+    }
+
+    /// The consistent mass for `density` on K's block pattern.
+    pub fn consistent_mass(&self, density: f64) -> Mass {
+        let geo = &self.geometry;
+        let mut m = vec![0.0; geo.pattern.num_blocks()];
+        for (t, w) in geo.tets.iter().zip(&geo.volumes) {
+            for a in 0..4 {
+                for b in 0..4 {
+                    let k = geo
+                        .pattern
+                        .find(t[a], t[b])
+                        .expect("element pairs are in the pattern");
+                    m[k] += density * w * if a == b { 2.0 } else { 1.0 } / 20.0;
+                }
+            }
+        }
+        Mass::Consistent(m)
+    }
+
+    /// `y = M x`.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`] for bad lengths.
+    pub fn mass_apply(&self, mass: &Mass, x: &[f64], y: &mut [f64]) -> Result<(), AssemblyError> {
+        let n = self.num_dofs();
+        check_len("x", x.len(), n)?;
+        check_len("y", y.len(), n)?;
+        self.check_mass(mass)?;
+        match mass {
+            Mass::Lumped(m) => {
+                for (i, yi) in y.iter_mut().enumerate() {
+                    *yi = m[i / 3] * x[i];
+                }
+            }
+            Mass::Consistent(m) => {
+                let p = &self.geometry.pattern;
+                for v in 0..p.num_rows() {
+                    let mut acc = [0.0; 3];
+                    for k in p.offsets()[v]..p.offsets()[v + 1] {
+                        let j = p.columns()[k];
+                        for c in 0..3 {
+                            acc[c] += m[k] * x[3 * j + c];
+                        }
+                    }
+                    y[3 * v..3 * v + 3].copy_from_slice(&acc);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Per-vertex masses of a lumped matrix, or the row sums of a consistent one.
+    pub fn vertex_masses(&self, mass: &Mass) -> Vec<f64> {
+        match mass {
+            Mass::Lumped(m) => m.clone(),
+            Mass::Consistent(m) => {
+                let p = &self.geometry.pattern;
+                (0..p.num_rows())
+                    .map(|v| m[p.offsets()[v]..p.offsets()[v + 1]].iter().sum())
+                    .collect()
+            }
+        }
+    }
+
+    fn check_mass(&self, mass: &Mass) -> Result<(), AssemblyError> {
+        match mass {
+            Mass::Lumped(m) => check_len("lumped mass", m.len(), self.num_vertices()),
+            Mass::Consistent(m) => check_len(
+                "consistent mass",
+                m.len(),
+                self.geometry.pattern.num_blocks(),
+            ),
+        }
+    }
+
+    /// `out = c_m M + c_k K` on K's pattern: the Rayleigh damping matrix `alpha M + gamma K`,
+    /// or the Backward-Euler matrix `(1 + dt alpha) M + (dt gamma + dt^2) K`. `k` and `out`
+    /// must have this mesh's pattern (from [`Assembly::stiffness_matrix`]).
+    ///
+    /// # Errors
+    /// [`AssemblyError::PatternMismatch`], or a mass of the wrong size.
+    pub fn combine(
+        &self,
+        c_m: f64,
+        mass: &Mass,
+        c_k: f64,
+        k: &CsMat<f64>,
+        out: &mut CsMat<f64>,
+    ) -> Result<(), AssemblyError> {
+        if !self.has_pattern(k) || !self.has_pattern(out) {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        self.check_mass(mass)?;
+        let p = &self.geometry.pattern;
+        let offsets = p.offsets();
+        let values = out.data_mut();
+        for (o, kv) in values.iter_mut().zip(k.data()) {
+            *o = c_k * kv;
+        }
+        for v in 0..p.num_rows() {
+            let (start, len) = (offsets[v], offsets[v + 1] - offsets[v]);
+            for blk in start..offsets[v + 1] {
+                let m = match mass {
+                    Mass::Lumped(m) if p.columns()[blk] == v => m[v],
+                    Mass::Lumped(_) => continue,
+                    Mass::Consistent(m) => m[blk],
+                };
+                for r in 0..3 {
+                    values[9 * start + 3 * len * r + 3 * (blk - start) + r] += c_m * m;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Rayleigh damping forces `f_d = -(alpha M + gamma K) v`, with `K` already assembled.
+    ///
+    /// # Errors
+    /// Bad lengths or a matrix without this mesh's pattern.
+    pub fn damping_forces(
+        &self,
+        alpha: f64,
+        gamma: f64,
+        mass: &Mass,
+        k: &CsMat<f64>,
+        v: &[f64],
+        out: &mut [f64],
+    ) -> Result<(), AssemblyError> {
+        if !self.has_pattern(k) {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        self.mass_apply(mass, v, out)?;
+        let (indptr, indices, data) = (k.indptr(), k.indices(), k.data());
+        let indptr = indptr.raw_storage();
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut kv = 0.0;
+            for p in indptr[i]..indptr[i + 1] {
+                kv += data[p] * v[indices[p]];
+            }
+            *o = -(alpha * *o + gamma * kv);
+        }
+        Ok(())
+    }
+}

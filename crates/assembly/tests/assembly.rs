@@ -1,0 +1,572 @@
+//! Derivative checks, symmetry, rigid motions, refills, reduction, parameter gradients,
+//! errors and thread-count independence of the assembly, for every material model.
+
+use std::collections::BTreeMap;
+
+use deform_assembly::{
+    Assembly, AssemblyError, DofMap, Grouping, Mass, MaterialField, Outputs, Tangent,
+};
+use deform_materials::{MaterialSpec, Model};
+use deform_mesh::TetMesh;
+use deform_mesh::generate::BoxGrid;
+use nalgebra::{DMatrix, Rotation3, Vector3};
+use proptest::prelude::*;
+use sprs::CsMat;
+
+const SPECS: [&str; 8] = [
+    "LinearElastic(Young(e: 1e5, nu: 0.3))",
+    "CorotatedLinear(moduli: Young(e: 1e5, nu: 0.3))",
+    "CorotatedLinear(moduli: Young(e: 1e5, nu: 0.3), lagged_rotation: true)",
+    "FixedCorotated(Young(e: 1e5, nu: 0.3))",
+    "StVenantKirchhoff(Young(e: 1e5, nu: 0.3))",
+    "NeoHookean(Young(e: 1e5, nu: 0.3))",
+    "StableNeoHookean(Young(e: 1e5, nu: 0.3))",
+    "Ensemble([(weight: 0.5, model: NeoHookean(Young(e: 1e5, nu: 0.3))), (weight: 0.5, model: CorotatedLinear(moduli: Young(e: 2e5, nu: 0.2)))])",
+];
+
+fn model(spec: &str) -> Model {
+    ron::from_str::<MaterialSpec>(spec)
+        .unwrap()
+        .build()
+        .unwrap()
+}
+
+fn small_mesh() -> TetMesh {
+    BoxGrid {
+        cells: [2, 1, 1],
+        ..BoxGrid::beam(1)
+    }
+    .build()
+    .unwrap()
+}
+
+/// A smooth, moderately large deformation plus a deterministic per-DOF wiggle.
+fn deformed(mesh: &TetMesh, amount: f64) -> Vec<f64> {
+    mesh.rest_positions_flat()
+        .chunks(3)
+        .enumerate()
+        .flat_map(|(v, p)| {
+            let wiggle = |c: usize| amount * 0.02 * (((7 * v + 3 * c) % 11) as f64 / 11.0 - 0.5);
+            [
+                p[0] + amount * 0.1 * p[0] * p[2] + wiggle(0),
+                p[1] + amount * 0.05 * (3.0 * p[0]).sin() + wiggle(1),
+                p[2] - amount * 0.2 * p[0] * p[0] + wiggle(2),
+            ]
+        })
+        .collect()
+}
+
+fn dense(k: &CsMat<f64>) -> DMatrix<f64> {
+    let mut d = DMatrix::zeros(k.rows(), k.cols());
+    for (v, (i, j)) in k.iter() {
+        d[(i, j)] = *v;
+    }
+    d
+}
+
+fn forces(asm: &mut Assembly, x: &[f64]) -> Vec<f64> {
+    let mut f = vec![0.0; x.len()];
+    asm.forces(x, &mut f).unwrap();
+    f
+}
+
+fn stiffness(asm: &mut Assembly, x: &[f64], tangent: Tangent) -> CsMat<f64> {
+    let mut k = asm.stiffness_matrix();
+    asm.stiffness(x, tangent, &mut k).unwrap();
+    k
+}
+
+fn max_abs(v: impl IntoIterator<Item = f64>) -> f64 {
+    v.into_iter().fold(0.0, |m, x| m.max(x.abs()))
+}
+
+#[test]
+fn forces_are_minus_the_energy_gradient_and_k_is_minus_the_force_jacobian() {
+    let mesh = small_mesh();
+    let x = deformed(&mesh, 1.0);
+    for spec in SPECS {
+        let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(spec))).unwrap();
+        let f = forces(&mut asm, &x);
+        let k = dense(&stiffness(&mut asm, &x, Tangent::Exact));
+        let h = 1e-6;
+        let (fscale, kscale) = (max_abs(f.iter().copied()), max_abs(k.iter().copied()));
+        for i in 0..x.len() {
+            let (mut xp, mut xm) = (x.clone(), x.clone());
+            xp[i] += h;
+            xm[i] -= h;
+            let de = (asm.energy(&xp).unwrap() - asm.energy(&xm).unwrap()) / (2.0 * h);
+            assert!(
+                (f[i] + de).abs() <= 1e-6 * fscale,
+                "{spec}: dof {i}: f {} vs -dE/dx {}",
+                f[i],
+                -de
+            );
+            // The lagged-rotation tangent is by design not the exact Jacobian away from pure
+            // rotations (the materials crate checks it there).
+            if spec.contains("lagged_rotation: true") {
+                continue;
+            }
+            let (fp, fm) = (forces(&mut asm, &xp), forces(&mut asm, &xm));
+            for j in 0..x.len() {
+                let dfd = -(fp[j] - fm[j]) / (2.0 * h);
+                assert!(
+                    (k[(j, i)] - dfd).abs() <= 1e-6 * kscale,
+                    "{spec}: K[{j},{i}] = {} vs -df/dx {}",
+                    k[(j, i)],
+                    dfd
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn k_is_exactly_symmetric_and_matrix_free_products_agree() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let x = deformed(&mesh, 1.0);
+    let dx: Vec<f64> = (0..x.len())
+        .map(|i| ((i * 37) % 17) as f64 / 17.0 - 0.5)
+        .collect();
+    for spec in SPECS {
+        let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(spec))).unwrap();
+        for tangent in [Tangent::Exact, Tangent::Projected] {
+            let k = stiffness(&mut asm, &x, tangent);
+            let kd = dense(&k);
+            assert!(
+                kd == kd.transpose(),
+                "{spec} {tangent:?}: K is not exactly symmetric"
+            );
+            let kdx = &kd * nalgebra::DVector::from_column_slice(&dx);
+            let scale = max_abs(kdx.iter().copied());
+            let op = asm.tangents(&x, tangent).unwrap();
+            let mut y = vec![0.0; x.len()];
+            op.apply(&dx, &mut y);
+            assert!(
+                max_abs(y.iter().zip(kdx.iter()).map(|(a, b)| a - b)) <= 1e-10 * scale,
+                "{spec}"
+            );
+            let mut diag = vec![0.0; x.len()];
+            op.diagonal(&mut diag);
+            for (i, d) in diag.iter().enumerate() {
+                assert!(
+                    (d - kd[(i, i)]).abs() <= 1e-10 * kscale_of(&kd),
+                    "{spec}: diag {i}"
+                );
+            }
+            if tangent == Tangent::Exact {
+                let mut df = vec![0.0; x.len()];
+                asm.force_differential(&x, &dx, &mut df).unwrap();
+                assert!(
+                    max_abs(df.iter().zip(kdx.iter()).map(|(a, b)| a + b)) <= 1e-9 * scale,
+                    "{spec}"
+                );
+            } else {
+                let min = kd.symmetric_eigenvalues().min();
+                assert!(
+                    min >= -1e-8 * kscale_of(&kd),
+                    "{spec}: projected K has eigenvalue {min}"
+                );
+            }
+        }
+    }
+}
+
+fn kscale_of(k: &DMatrix<f64>) -> f64 {
+    max_abs(k.iter().copied())
+}
+
+#[test]
+fn rigid_motions_cost_nothing() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let rest = mesh.rest_positions_flat();
+    let rotation = Rotation3::from_axis_angle(&Vector3::y_axis(), 0.7)
+        * Rotation3::from_axis_angle(&Vector3::x_axis(), -1.1);
+    let x = deformed(&mesh, 1.0);
+    let moved: Vec<f64> = x
+        .chunks(3)
+        .flat_map(|p| {
+            let q = rotation * Vector3::new(p[0], p[1], p[2]) + Vector3::new(0.3, -2.0, 5.0);
+            [q.x, q.y, q.z]
+        })
+        .collect();
+    for spec in SPECS {
+        let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(spec))).unwrap();
+        let k = dense(&stiffness(&mut asm, &rest, Tangent::Exact));
+        let scale = kscale_of(&k);
+        // Translations and infinitesimal rotations are in K's null space at rest.
+        let mut fields: Vec<Vec<f64>> = (0..3)
+            .map(|c| {
+                (0..rest.len())
+                    .map(|i| f64::from(u8::from(i % 3 == c)))
+                    .collect()
+            })
+            .collect();
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            fields.push(
+                rest.chunks(3)
+                    .flat_map(|p| {
+                        let w = axis.cross(&Vector3::new(p[0], p[1], p[2]));
+                        [w.x, w.y, w.z]
+                    })
+                    .collect(),
+            );
+        }
+        for u in &fields {
+            let ku = &k * nalgebra::DVector::from_column_slice(u);
+            assert!(ku.amax() <= 1e-10 * scale, "{spec}: K u = {}", ku.amax());
+        }
+        // Forces sum to zero (momentum) at any state.
+        let f = forces(&mut asm, &x);
+        let mut total = Vector3::zeros();
+        for c in f.chunks(3) {
+            total += Vector3::new(c[0], c[1], c[2]);
+        }
+        assert!(
+            total.amax() <= 1e-10 * max_abs(f.iter().copied()),
+            "{spec}: {total}"
+        );
+        // Frame invariance (not for small-strain linear elasticity).
+        if !spec.starts_with("LinearElastic") {
+            let (e0, e1) = (asm.energy(&x).unwrap(), asm.energy(&moved).unwrap());
+            assert!((e0 - e1).abs() <= 1e-10 * e0.abs(), "{spec}: {e0} vs {e1}");
+        }
+    }
+}
+
+#[test]
+fn refills_equal_fresh_assembly_and_reduction_equals_restriction() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[5]))).unwrap();
+    let (x1, x2) = (deformed(&mesh, 0.5), deformed(&mesh, 1.0));
+    let mut k = asm.stiffness_matrix();
+    asm.stiffness(&x1, Tangent::Exact, &mut k).unwrap();
+    asm.stiffness(&x2, Tangent::Exact, &mut k).unwrap();
+    let fresh = stiffness(
+        &mut Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[5]))).unwrap(),
+        &x2,
+        Tangent::Exact,
+    );
+    assert_eq!(k, fresh);
+    // Energy, forces and K in one pass equal the separate calls.
+    let (mut e, mut f, mut k2) = (0.0, vec![0.0; x2.len()], asm.stiffness_matrix());
+    asm.evaluate(
+        &x2,
+        Outputs {
+            energy: Some(&mut e),
+            forces: Some(&mut f),
+            stiffness: Some(&mut k2),
+            tangent: Tangent::Exact,
+        },
+    )
+    .unwrap();
+    assert_eq!(e, asm.energy(&x2).unwrap());
+    assert_eq!(f, forces(&mut asm, &x2));
+    assert_eq!(k2, fresh);
+
+    let clamped: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].x < 1e-9)
+        .collect();
+    let dofs = DofMap::new(mesh.num_vertices(), &clamped).unwrap();
+    assert_eq!(dofs.num_free(), 3 * (mesh.num_vertices() - clamped.len()));
+    let mut reduced = dofs.reduced_matrix(&asm.stiffness_matrix()).unwrap();
+    dofs.restrict_matrix(&k, &mut reduced).unwrap();
+    let (kd, rd) = (dense(&k), dense(&reduced.matrix));
+    for (a, &i) in dofs.free_dofs().iter().enumerate() {
+        for (b, &j) in dofs.free_dofs().iter().enumerate() {
+            assert_eq!(rd[(a, b)], kd[(i, j)]);
+        }
+    }
+    let mut rf = vec![0.0; dofs.num_free()];
+    dofs.restrict(&f, &mut rf).unwrap();
+    let mut back = vec![7.0; f.len()];
+    dofs.scatter(&rf, &mut back).unwrap();
+    for v in 0..mesh.num_vertices() {
+        for c in 0..3 {
+            let expect = if dofs.is_constrained(v) {
+                7.0
+            } else {
+                f[3 * v + c]
+            };
+            assert_eq!(back[3 * v + c], expect);
+        }
+    }
+    assert!(matches!(
+        DofMap::new(3, &[3]),
+        Err(AssemblyError::VertexOutOfRange { vertex: 3, .. })
+    ));
+}
+
+#[test]
+fn mass_and_damping() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[5]))).unwrap();
+    let volume: f64 = mesh.volumes().iter().sum();
+    let (lumped, consistent) = (asm.lumped_mass(1000.0), asm.consistent_mass(1000.0));
+    let total: f64 = asm.vertex_masses(&lumped).iter().sum();
+    assert!((total - 1000.0 * volume).abs() < 1e-12 * total);
+    let rows = asm.vertex_masses(&consistent);
+    for (a, b) in rows.iter().zip(asm.vertex_masses(&lumped)) {
+        assert!((a - b).abs() < 1e-12 * b);
+    }
+    let x = deformed(&mesh, 1.0);
+    let k = stiffness(&mut asm, &x, Tangent::Exact);
+    let v: Vec<f64> = (0..x.len()).map(|i| (i as f64 * 0.37).sin()).collect();
+    for mass in [&lumped, &consistent] {
+        let mut a = asm.stiffness_matrix();
+        asm.combine(0.3, mass, 0.01, &k, &mut a).unwrap();
+        let mut mv = vec![0.0; v.len()];
+        asm.mass_apply(mass, &v, &mut mv).unwrap();
+        let kv = dense(&k) * nalgebra::DVector::from_column_slice(&v);
+        let av = dense(&a) * nalgebra::DVector::from_column_slice(&v);
+        let mut fd = vec![0.0; v.len()];
+        asm.damping_forces(0.3, 0.01, mass, &k, &v, &mut fd)
+            .unwrap();
+        for i in 0..v.len() {
+            let expect = 0.3 * mv[i] + 0.01 * kv[i];
+            assert!(
+                (av[i] - expect).abs() <= 1e-10 * expect.abs().max(1.0),
+                "{i}"
+            );
+            assert!(
+                (fd[i] + expect).abs() <= 1e-10 * expect.abs().max(1.0),
+                "{i}"
+            );
+        }
+    }
+}
+
+#[test]
+fn parameter_gradients_equal_finite_differences() {
+    // Two regions with different Lame pairs; the Jacobian per region against perturbing each.
+    let mesh = small_mesh();
+    let regions: Vec<u32> = (0..mesh.num_tets())
+        .map(|e| if e < mesh.num_tets() / 2 { 1 } else { 2 })
+        .collect();
+    let mesh = TetMesh::try_with_options(
+        mesh.rest_positions().to_vec(),
+        mesh.tets().to_vec(),
+        Some(regions),
+        &Default::default(),
+    )
+    .unwrap();
+    let x = deformed(&mesh, 1.0);
+    let dx: Vec<f64> = (0..x.len())
+        .map(|i| ((i * 13) % 7) as f64 / 7.0 - 0.5)
+        .collect();
+    for base in [
+        "NeoHookean",
+        "StVenantKirchhoff",
+        "CorotatedLinear",
+        "StableNeoHookean",
+    ] {
+        let make = |lame: [(f64, f64); 2]| {
+            let mut table = BTreeMap::new();
+            for (r, (mu, lambda)) in [1u32, 2].into_iter().zip(lame) {
+                let spec = if base == "CorotatedLinear" {
+                    format!("CorotatedLinear(moduli: Lame(mu: {mu}, lambda: {lambda}))")
+                } else {
+                    format!("{base}(Lame(mu: {mu}, lambda: {lambda}))")
+                };
+                table.insert(r, model(&spec));
+            }
+            Assembly::new(&mesh, MaterialField::by_region(&mesh, &table).unwrap()).unwrap()
+        };
+        let lame = [(3e4, 5e4), (1e4, 2e4)];
+        let asm = make(lame);
+        let grouping = Grouping::by_region(&asm);
+        assert_eq!(grouping.labels(), &[1, 2]);
+        let jf = asm.term_forces(&x, &grouping).unwrap();
+        let jk = asm.term_stiffness_products(&x, &dx, &grouping).unwrap();
+        assert_eq!(jf.num_columns(), 4);
+        for (col, (g, k)) in [(0usize, 0usize), (0, 1), (1, 0), (1, 1)]
+            .into_iter()
+            .enumerate()
+        {
+            let h = 1.0;
+            let perturbed = |s: f64| {
+                let mut l = lame;
+                if k == 0 {
+                    l[g].0 += s * h
+                } else {
+                    l[g].1 += s * h
+                }
+                make(l)
+            };
+            let (mut ap, mut am) = (perturbed(1.0), perturbed(-1.0));
+            let (fp, fm) = (forces(&mut ap, &x), forces(&mut am, &x));
+            let fd: Vec<f64> = fp
+                .iter()
+                .zip(&fm)
+                .map(|(a, b)| (a - b) / (2.0 * h))
+                .collect();
+            let got = jf.column(col);
+            let scale = max_abs(fd.iter().copied());
+            assert!(
+                max_abs(got.iter().zip(&fd).map(|(a, b)| a - b)) <= 1e-6 * scale,
+                "{base} column {col}"
+            );
+            let kp = dense(&stiffness(&mut ap, &x, Tangent::Exact))
+                * nalgebra::DVector::from_column_slice(&dx);
+            let km = dense(&stiffness(&mut am, &x, Tangent::Exact))
+                * nalgebra::DVector::from_column_slice(&dx);
+            let got = jk.column(col);
+            let scale = kp.amax();
+            for i in 0..x.len() {
+                assert!(
+                    (got[i] - (kp[i] - km[i]) / (2.0 * h)).abs() <= 1e-6 * scale,
+                    "{base} K column {col}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn inverted_elements_and_bad_input_give_typed_errors() {
+    let mesh = small_mesh();
+    let mut x = mesh.rest_positions_flat();
+    // Push vertex 0 through the opposite faces of its elements: its first element inverts.
+    let first = (0..mesh.num_tets())
+        .find(|&e| mesh.tets()[e].contains(&0))
+        .unwrap();
+    x[0] = 0.6;
+    x[1] = 0.3;
+    x[2] = 0.3;
+    let mut nh = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[5]))).unwrap();
+    let mut f = vec![0.0; x.len()];
+    match nh.forces(&x, &mut f) {
+        Err(AssemblyError::Inadmissible {
+            element,
+            det,
+            model,
+        }) => {
+            assert!(
+                element >= first && det <= 0.0 && model.contains("eo"),
+                "{element} {det} {model}"
+            );
+            assert!(mesh.tets()[element].contains(&0));
+        }
+        other => panic!("expected an inadmissible element, got {other:?}"),
+    }
+    // Stable Neo-Hookean is defined there, and finite.
+    let mut snh = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[6]))).unwrap();
+    snh.forces(&x, &mut f).unwrap();
+    assert!(f.iter().all(|v| v.is_finite()));
+    let mut nan = mesh.rest_positions_flat();
+    nan[7] = f64::NAN;
+    assert!(matches!(
+        snh.energy(&nan),
+        Err(AssemblyError::NonFinite { vertex: 2, .. })
+    ));
+    assert!(matches!(
+        snh.energy(&nan[..6]),
+        Err(AssemblyError::DimensionMismatch { what: "x", .. })
+    ));
+    let mut wrong: CsMat<f64> = CsMat::eye(x.len());
+    assert!(matches!(
+        snh.stiffness(&x, Tangent::Exact, &mut wrong),
+        Err(AssemblyError::PatternMismatch)
+    ));
+    assert!(
+        Assembly::new(
+            &mesh,
+            MaterialField::PerElement {
+                models: vec![model(SPECS[0])],
+                index: vec![0; 3]
+            }
+        )
+        .is_err()
+    );
+}
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let mesh = BoxGrid::beam(3).build().unwrap();
+    let x = deformed(&mesh, 1.0);
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let mut asm =
+                    Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[7]))).unwrap();
+                let (mut e, mut f, mut k) = (0.0, vec![0.0; x.len()], asm.stiffness_matrix());
+                asm.evaluate(
+                    &x,
+                    Outputs {
+                        energy: Some(&mut e),
+                        forces: Some(&mut f),
+                        stiffness: Some(&mut k),
+                        tangent: Tangent::Projected,
+                    },
+                )
+                .unwrap();
+                let mut y = vec![0.0; x.len()];
+                asm.tangents(&x, Tangent::Exact).unwrap().apply(&f, &mut y);
+                let j = asm.term_forces(&x, &Grouping::global(&asm)).unwrap();
+                (e, f, k, y, j)
+            })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(4));
+}
+
+#[test]
+fn a_per_element_field_of_one_model_equals_the_uniform_field() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let x = deformed(&mesh, 1.0);
+    let m = model(SPECS[4]);
+    let mut uniform = Assembly::new(&mesh, MaterialField::Uniform(m.clone())).unwrap();
+    let mut table = Assembly::new(
+        &mesh,
+        MaterialField::PerElement {
+            models: vec![m],
+            index: vec![0; mesh.num_tets()],
+        },
+    )
+    .unwrap();
+    assert_eq!(forces(&mut uniform, &x), forces(&mut table, &x));
+    assert_eq!(
+        stiffness(&mut uniform, &x, Tangent::Exact),
+        stiffness(&mut table, &x, Tangent::Exact)
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    #[test]
+    fn momentum_and_symmetry_hold_at_random_states(
+        noise in prop::collection::vec(-0.02f64..0.02, 60),
+        which in 0usize..SPECS.len(),
+    ) {
+        let mesh = small_mesh();
+        let x: Vec<f64> = mesh.rest_positions_flat().iter().zip(noise.iter().cycle()).map(|(p, n)| p + n).collect();
+        let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[which]))).unwrap();
+        let mut f = vec![0.0; x.len()];
+        match asm.forces(&x, &mut f) {
+            Ok(()) => {}
+            Err(AssemblyError::Inadmissible { .. }) => return Ok(()),
+            Err(e) => panic!("{e}"),
+        }
+        let total: Vector3<f64> = f.chunks(3).map(|c| Vector3::new(c[0], c[1], c[2])).sum();
+        prop_assert!(total.amax() <= 1e-9 * max_abs(f.iter().copied()).max(1e-300));
+        let k = dense(&stiffness(&mut asm, &x, Tangent::Exact));
+        prop_assert!(k == k.transpose(), "K is not exactly symmetric");
+    }
+}
+
+#[test]
+fn lumped_mass_matches_the_mesh_crate() {
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let asm = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[0]))).unwrap();
+    let Mass::Lumped(m) = asm.lumped_mass(1000.0) else {
+        unreachable!()
+    };
+    let reference = mesh.lumped_mass(1000.0);
+    for (a, b) in m.iter().zip(&reference) {
+        assert!((a - b).abs() <= 1e-12 * b);
+    }
+}
