@@ -7,12 +7,14 @@
 Writes:
   assets/meshes/beam.msh             gmsh, MSH 4.1 ASCII: the 1 x 0.25 x 0.25 m cantilever, unstructured
   assets/meshes/bracket.msh          gmsh, MSH 2.2 binary: an L bracket with a bolt hole, two regions
+  assets/meshes/torus.msh            gmsh, MSH 4.1 binary: a torus (R 0.2, r 0.06) centred at z = 0.3
   assets/meshes/block.node/.ele      TetGen 1.5 from a PLC of a notched block (1-based, region attribute)
   crates/mesh/tests/data/two_boxes_{22,41}_{ascii,binary}.msh
                                      one small two-region mesh in all four MSH variants
 and prints counts and volumes that the Rust tests check against.
 """
 import os
+import sys
 import subprocess
 import tempfile
 
@@ -80,6 +82,20 @@ def bracket():
     print("  exact volume", 0.4 * 0.2 * 0.05 - np.pi * 0.04**2 * 0.05 + 0.05 * 0.2 * 0.25)
 
 
+def torus():
+    gmsh.model.add("torus")
+    gmsh.model.occ.addTorus(0, 0, 0.3, 0.2, 0.06)
+    gmsh.model.occ.synchronize()
+    gmsh.model.addPhysicalGroup(3, [1], 1, name="torus")
+    gmsh.option.setNumber("Mesh.MeshSizeMax", 0.04)
+    gmsh.model.mesh.generate(3)
+    path = os.path.join(ASSETS, "torus.msh")
+    save(path, 4.1, True)
+    gmsh.model.remove()
+    summary(path)
+    print("  exact volume", 2 * np.pi**2 * 0.2 * 0.06**2)
+
+
 def two_boxes():
     gmsh.model.add("two_boxes")
     occ = gmsh.model.occ
@@ -142,10 +158,12 @@ def block():
 if __name__ == "__main__":
     os.makedirs(ASSETS, exist_ok=True)
     os.makedirs(DATA, exist_ok=True)
+    only = sys.argv[1:]  # e.g. `torus` to make one mesh; all when empty
     gmsh.initialize()
     gmsh.option.setNumber("General.Terminal", 0)
-    beam()
-    bracket()
-    two_boxes()
+    for make in [beam, bracket, torus, two_boxes]:
+        if not only or make.__name__ in only:
+            make()
     gmsh.finalize()
-    block()
+    if not only or "block" in only:
+        block()

@@ -3,6 +3,7 @@
 //! Tasks are plain Rust (no make, no shell scripts); each lives in its own module.
 
 mod mesh;
+mod simulate;
 
 use clap::{Parser, Subcommand};
 
@@ -19,12 +20,15 @@ enum Task {
     /// Inspect, convert and generate tetrahedral meshes.
     #[command(subcommand)]
     Mesh(mesh::MeshTask),
+    /// Run a scene (RON): progress bar, .vtu/.pvd frames, per-step CSV, summary.
+    Simulate(simulate::SimulateArgs),
 }
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.task {
         Task::Mesh(task) => mesh::run(task),
+        Task::Simulate(args) => simulate::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

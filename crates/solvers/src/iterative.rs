@@ -283,6 +283,24 @@ impl LinearSolver for Iterative {
         }
     }
 
+    fn set_relative_tolerance(&mut self, rel: f64) -> Result<(), SolverError> {
+        if !(rel > 0.0 && rel < 1.0) {
+            return Err(SolverError::InvalidParameter {
+                field: "rel",
+                value: rel,
+                reason: "must be in (0, 1)",
+            });
+        }
+        self.set_tolerance(Tolerance {
+            rel,
+            ..self.tolerance
+        })
+    }
+
+    fn refresh(&mut self) {
+        self.refresh_preconditioner();
+    }
+
     fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError> {
         let start = Instant::now();
         let mut setup = SetupStats::default();

@@ -75,6 +75,19 @@ pub trait LinearSolver: Send {
     /// [`SolverError::NotPositiveDefinite`] and the like.
     fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError>;
 
+    /// Sets the relative residual tolerance of later solves (adaptive forcing terms); a
+    /// no-op for direct solvers.
+    ///
+    /// # Errors
+    /// [`SolverError::InvalidParameter`] for a value outside `(0, 1)`.
+    fn set_relative_tolerance(&mut self, _rel: f64) -> Result<(), SolverError> {
+        Ok(())
+    }
+
+    /// Makes the next `factorize` recompute anything it would otherwise reuse (a stale
+    /// preconditioner); a no-op for solvers that keep nothing.
+    fn refresh(&mut self) {}
+
     /// Solves `a x = b`; `x` holds the initial guess on entry and the solution on exit.
     ///
     /// # Errors

@@ -1,0 +1,47 @@
+//! Backward-Euler time integration of deformable solids (the seed's Section 2, Eq. 7-9).
+//!
+//! Each step solves, by Newton's method on the velocity `v = v^{n+1}`,
+//! `M (v - v^n) = dt (f_e(x^n + dt v) - (alpha M + gamma K) v + M g)` on the free degrees of
+//! freedom, with the linearisation (K held at the iterate, docs/theory.md)
+//! `((1 + dt alpha) M + (dt gamma + dt^2) K) dv = -r`. Constrained vertices (fixed or moving
+//! along a prescribed [`Motion`]) are eliminated through the assembly's DOF map. A
+//! [`SolverPolicy`] picks the linear solver at each Newton iteration; every iteration is
+//! reported ([`StepReport`]) and observable ([`Observer`]); failures are typed
+//! ([`StepError`]) and carry the report; an option retries with halved steps.
+//!
+//! ```
+//! use deform_assembly::MaterialField;
+//! use deform_integrator::{Constraint, Integrator, IntegratorOptions, Motion, PolicySpec};
+//! use deform_materials::MaterialSpec;
+//! use deform_mesh::generate::BoxGrid;
+//!
+//! let mesh = BoxGrid::beam(1).build().unwrap();
+//! let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))").unwrap().build().unwrap();
+//! let clamp: Vec<usize> = (0..mesh.num_vertices()).filter(|&v| mesh.rest_positions()[v].x == 0.0).collect();
+//! let mut sim = Integrator::new(
+//!     &mesh,
+//!     MaterialField::Uniform(model),
+//!     1000.0,
+//!     vec![Constraint { vertices: clamp, motion: Motion::Fixed }],
+//!     IntegratorOptions::default(),
+//!     PolicySpec::default().build().unwrap(),
+//! )
+//! .unwrap();
+//! let mut state = sim.rest_state();
+//! let report = sim.step(&mut state).unwrap();
+//! assert!(report.converged && state.x.iter().all(|v| v.is_finite()));
+//! ```
+
+mod integrator;
+mod policy;
+mod report;
+pub mod scene;
+mod state;
+
+pub use integrator::{Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions};
+pub use policy::{
+    Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy, spec_name,
+};
+pub use report::{IterationReport, NoObserver, Observer, StepError, StepReport};
+pub use scene::{Scene, SceneError};
+pub use state::{Constraint, Motion, State};

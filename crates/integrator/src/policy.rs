@@ -1,0 +1,259 @@
+//! Which linear solver runs at each Newton iteration.
+//!
+//! A [`SolverPolicy`] sees what happened so far in the step (and the previous steps'
+//! outcomes, through `observe`) and returns a [`Decision`]: a solver configuration, an
+//! optional relative tolerance for this solve (adaptive forcing terms), and whether a stale
+//! preconditioner must be refreshed. Solvers are kept between iterations and steps, keyed by
+//! their configuration, so factorisations and symbolic analyses are reused.
+
+use deform_solvers::SolverSpec;
+use serde::{Deserialize, Serialize};
+
+use crate::report::IterationReport;
+
+/// What the policy can see before a linear solve.
+#[derive(Debug, Clone)]
+pub struct PolicyContext<'a> {
+    /// Time step index (0 for the first step of the integrator).
+    pub step: usize,
+    /// Newton iteration index within the step.
+    pub iteration: usize,
+    /// Time step size.
+    pub dt: f64,
+    /// Free degrees of freedom.
+    pub num_free: usize,
+    /// Norm of the current Newton residual.
+    pub residual: f64,
+    /// Norm of the residual at the first iteration of this step.
+    pub initial_residual: f64,
+    /// The iterations of this step so far.
+    pub history: &'a [IterationReport],
+}
+
+/// A policy's choice for one linear solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decision {
+    /// The solver configuration (also the key of the kept solver instance).
+    pub solver: SolverSpec,
+    /// Relative residual tolerance for this solve only (iterative solvers); `None` keeps the
+    /// configuration's.
+    pub rel_tolerance: Option<f64>,
+    /// Recompute a stale preconditioner before this solve.
+    pub refresh: bool,
+}
+
+impl Decision {
+    /// `solver` as configured.
+    pub fn solver(solver: SolverSpec) -> Self {
+        Self {
+            solver,
+            rel_tolerance: None,
+            refresh: false,
+        }
+    }
+}
+
+/// Chooses the linear solver for each Newton iteration.
+pub trait SolverPolicy: Send {
+    /// A short description for reports.
+    fn name(&self) -> String;
+
+    /// The solver for the next linear solve.
+    fn choose(&mut self, context: &PolicyContext<'_>) -> Decision;
+
+    /// Called after each Newton iteration with its outcome (for policies that adapt or learn).
+    fn observe(&mut self, _context: &PolicyContext<'_>, _outcome: &IterationReport) {}
+}
+
+/// The same solver at every iteration.
+#[derive(Debug, Clone)]
+pub struct Fixed(pub SolverSpec);
+
+impl SolverPolicy for Fixed {
+    fn name(&self) -> String {
+        format!("fixed({})", spec_name(&self.0))
+    }
+
+    fn choose(&mut self, _: &PolicyContext<'_>) -> Decision {
+        Decision::solver(self.0.clone())
+    }
+}
+
+/// `iterations[k]` at Newton iteration `k`, `otherwise` after the list.
+#[derive(Debug, Clone)]
+pub struct Schedule {
+    /// Solvers for the first iterations.
+    pub iterations: Vec<SolverSpec>,
+    /// The solver after them.
+    pub otherwise: SolverSpec,
+}
+
+impl SolverPolicy for Schedule {
+    fn name(&self) -> String {
+        let list: Vec<String> = self.iterations.iter().map(spec_name).collect();
+        format!(
+            "schedule([{}], then {})",
+            list.join(", "),
+            spec_name(&self.otherwise)
+        )
+    }
+
+    fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
+        Decision::solver(
+            self.iterations
+                .get(c.iteration)
+                .unwrap_or(&self.otherwise)
+                .clone(),
+        )
+    }
+}
+
+/// Eisenstat-Walker forcing terms (their "choice 2"): the relative tolerance of iteration
+/// `k` is `eta_k = gamma (||r_k|| / ||r_{k-1}||)^alpha`, safeguarded by
+/// `max(eta_k, gamma eta_{k-1}^alpha)` when that exceeds 0.1, and clamped to
+/// `[eta_min, eta_max]`. Solves are loose while Newton is far from the solution and tight
+/// near it.
+#[derive(Debug, Clone)]
+pub struct EisenstatWalker {
+    /// An iterative solver configuration.
+    pub solver: SolverSpec,
+    /// First iteration's tolerance and upper clamp.
+    pub eta_max: f64,
+    /// Lower clamp.
+    pub eta_min: f64,
+    /// `gamma` in (0, 1].
+    pub gamma: f64,
+    /// `alpha` in (1, 2].
+    pub alpha: f64,
+    last_eta: f64,
+}
+
+impl EisenstatWalker {
+    /// With the usual constants `gamma = 0.9`, `alpha = 2`, `eta_max = 0.1`, `eta_min = 1e-10`.
+    pub fn new(solver: SolverSpec) -> Self {
+        Self {
+            solver,
+            eta_max: 0.1,
+            eta_min: 1e-10,
+            gamma: 0.9,
+            alpha: 2.0,
+            last_eta: 0.1,
+        }
+    }
+}
+
+impl SolverPolicy for EisenstatWalker {
+    fn name(&self) -> String {
+        format!("eisenstat-walker({})", spec_name(&self.solver))
+    }
+
+    fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
+        let eta = match c.history.last() {
+            None => self.eta_max,
+            Some(previous) if previous.residual > 0.0 => {
+                let mut eta = self.gamma * (c.residual / previous.residual).powf(self.alpha);
+                let safeguard = self.gamma * self.last_eta.powf(self.alpha);
+                if safeguard > 0.1 {
+                    eta = eta.max(safeguard);
+                }
+                eta
+            }
+            Some(_) => self.eta_min,
+        };
+        let eta = eta.clamp(self.eta_min, self.eta_max);
+        self.last_eta = eta;
+        Decision {
+            solver: self.solver.clone(),
+            rel_tolerance: Some(eta),
+            refresh: false,
+        }
+    }
+}
+
+/// A policy as a configuration states it. Unknown fields are rejected.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum PolicySpec {
+    /// One solver throughout.
+    Fixed(SolverSpec),
+    /// A solver per Newton iteration index, then a default.
+    Schedule {
+        /// Solvers for the first iterations.
+        iterations: Vec<SolverSpec>,
+        /// The solver after them.
+        otherwise: SolverSpec,
+    },
+    /// Eisenstat-Walker adaptive tolerances for an iterative solver.
+    EisenstatWalker {
+        /// The iterative solver.
+        solver: SolverSpec,
+        /// Upper clamp and first tolerance.
+        #[serde(default = "default_eta_max")]
+        eta_max: f64,
+    },
+}
+
+fn default_eta_max() -> f64 {
+    0.1
+}
+
+impl Default for PolicySpec {
+    fn default() -> Self {
+        PolicySpec::Fixed(SolverSpec::Direct {
+            ordering: Default::default(),
+            indefinite: Default::default(),
+        })
+    }
+}
+
+impl PolicySpec {
+    /// Builds the policy.
+    ///
+    /// # Errors
+    /// A message naming the bad field.
+    pub fn build(&self) -> Result<Box<dyn SolverPolicy>, String> {
+        let check = |s: &SolverSpec| s.build().map(|_| ()).map_err(|e| e.to_string());
+        Ok(match self {
+            PolicySpec::Fixed(s) => {
+                check(s)?;
+                Box::new(Fixed(s.clone()))
+            }
+            PolicySpec::Schedule {
+                iterations,
+                otherwise,
+            } => {
+                for s in iterations {
+                    check(s)?;
+                }
+                check(otherwise)?;
+                Box::new(Schedule {
+                    iterations: iterations.clone(),
+                    otherwise: otherwise.clone(),
+                })
+            }
+            PolicySpec::EisenstatWalker { solver, eta_max } => {
+                check(solver)?;
+                if !(*eta_max > 0.0 && *eta_max < 1.0) {
+                    return Err(format!("eta_max = {eta_max} must be in (0, 1)"));
+                }
+                if matches!(solver, SolverSpec::Direct { .. }) {
+                    return Err("solver: Eisenstat-Walker needs an iterative solver".into());
+                }
+                let mut p = EisenstatWalker::new(solver.clone());
+                p.eta_max = *eta_max;
+                p.last_eta = *eta_max;
+                Box::new(p)
+            }
+        })
+    }
+}
+
+/// A short name of a solver configuration.
+pub fn spec_name(spec: &SolverSpec) -> String {
+    match spec {
+        SolverSpec::Jacobi { omega, .. } => format!("jacobi({omega})"),
+        SolverSpec::Cg { .. } => "cg".into(),
+        SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),
+        SolverSpec::Direct { ordering, .. } => format!("direct({ordering:?})"),
+    }
+}

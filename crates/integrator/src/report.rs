@@ -1,0 +1,167 @@
+//! What each Newton iteration and each step did, and why a step failed.
+
+use deform_assembly::AssemblyError;
+use deform_solvers::{SetupStats, SolveStats, SolverError};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// One Newton iteration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IterationReport {
+    /// Newton iteration index within the step.
+    pub iteration: usize,
+    /// Norm of the (free) residual before this iteration's solve.
+    pub residual: f64,
+    /// Elastic energy at the iterate.
+    pub energy: f64,
+    /// The linear solver used (its configuration's short name).
+    pub solver: String,
+    /// What its set-up (factorisation, preconditioner) did and cost.
+    pub setup: SetupStats,
+    /// The linear solve's statistics.
+    pub solve: SolveStats,
+    /// The chosen solver failed and the direct solver was used instead.
+    pub fallback: bool,
+    /// Line-search step length (1 = full Newton step).
+    pub step_length: f64,
+    /// Max-norm of the position update of this iteration.
+    pub update: f64,
+    /// Wall time of the iteration (assembly, solve, line search), seconds.
+    pub seconds: f64,
+}
+
+/// One time step (or quasi-static solve).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct StepReport {
+    /// Step index.
+    pub step: usize,
+    /// Time at the end of the step.
+    pub t: f64,
+    /// Step size actually used (smaller than asked after retries).
+    pub dt: f64,
+    /// The policy's name.
+    pub policy: String,
+    /// Every Newton iteration, across substeps after retries.
+    pub iterations: Vec<IterationReport>,
+    /// Residual norm at the end.
+    pub final_residual: f64,
+    /// Residual norm at the start.
+    pub initial_residual: f64,
+    /// Whether Newton converged.
+    pub converged: bool,
+    /// How many times dt was halved.
+    pub retries: usize,
+    /// Elastic energy at the end.
+    pub energy: f64,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+impl StepReport {
+    /// Newton iterations.
+    pub fn newton_iterations(&self) -> usize {
+        self.iterations.len()
+    }
+
+    /// Linear-solver iterations summed over the step.
+    pub fn linear_iterations(&self) -> usize {
+        self.iterations.iter().map(|i| i.solve.iterations).sum()
+    }
+
+    /// Deterministic work: set-up and solve flops summed over the step.
+    pub fn flops(&self) -> u64 {
+        self.iterations
+            .iter()
+            .map(|i| i.setup.flops + i.solve.flops)
+            .sum()
+    }
+
+    /// Linear-solve wall time (set-up and solve) summed over the step.
+    pub fn solver_seconds(&self) -> f64 {
+        self.iterations
+            .iter()
+            .map(|i| i.setup.seconds + i.solve.seconds)
+            .sum()
+    }
+}
+
+/// Why a step failed; every variant carries the report up to the failure.
+#[derive(Debug, Clone, Error)]
+#[non_exhaustive]
+pub enum StepError {
+    /// Newton did not reach its tolerance within the iteration cap.
+    #[error("Newton did not converge in {} iterations (residual {:e} from {:e})", report.newton_iterations(), report.final_residual, report.initial_residual)]
+    NotConverged {
+        /// The report.
+        report: Box<StepReport>,
+    },
+    /// Assembly failed (inverted element for a model that cannot invert, NaN positions).
+    #[error("assembly failed: {source}")]
+    Assembly {
+        /// The cause.
+        source: AssemblyError,
+        /// The report.
+        report: Box<StepReport>,
+    },
+    /// The linear solver failed (and no fallback was allowed or the fallback failed too).
+    #[error("linear solve failed: {source}")]
+    Solver {
+        /// The cause.
+        source: SolverError,
+        /// The report.
+        report: Box<StepReport>,
+    },
+    /// A residual or update became NaN or infinite.
+    #[error("non-finite {what} at Newton iteration {}", report.newton_iterations())]
+    NonFinite {
+        /// What was non-finite.
+        what: &'static str,
+        /// The report.
+        report: Box<StepReport>,
+    },
+}
+
+impl StepError {
+    /// The report up to the failure.
+    pub fn report(&self) -> &StepReport {
+        match self {
+            StepError::NotConverged { report }
+            | StepError::Assembly { report, .. }
+            | StepError::Solver { report, .. }
+            | StepError::NonFinite { report, .. } => report,
+        }
+    }
+
+    fn report_mut(&mut self) -> &mut StepReport {
+        match self {
+            StepError::NotConverged { report }
+            | StepError::Assembly { report, .. }
+            | StepError::Solver { report, .. }
+            | StepError::NonFinite { report, .. } => report,
+        }
+    }
+
+    /// Prepends earlier iterations (of retried substeps) to the report.
+    pub(crate) fn with_earlier(mut self, earlier: &[IterationReport], retries: usize) -> Self {
+        let r = self.report_mut();
+        let mut all = earlier.to_vec();
+        all.append(&mut r.iterations);
+        r.iterations = all;
+        r.retries = retries;
+        self
+    }
+}
+
+/// Receives every iteration and step as they happen (progress bars, logs, learning data).
+pub trait Observer: Send {
+    /// After each Newton iteration.
+    fn iteration(&mut self, _report: &IterationReport) {}
+    /// After each step.
+    fn step(&mut self, _report: &StepReport) {}
+}
+
+/// The default observer: does nothing.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoObserver;
+
+impl Observer for NoObserver {}

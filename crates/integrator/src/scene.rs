@@ -1,0 +1,298 @@
+//! Scenes: a mesh, its material, boundary conditions, the integrator's options and solver
+//! policy, initial conditions and outputs, as one RON document with unknown fields rejected.
+//!
+//! The scene lives here rather than in xtask because the learning crate generates data from
+//! scenes too; it only composes the specs of the crates below it.
+
+use std::path::{Path, PathBuf};
+
+use deform_assembly::MaterialField;
+use deform_materials::MaterialSpec;
+use deform_mesh::generate::BoxGrid;
+use deform_mesh::select::Selector;
+use deform_mesh::{MeshOptions, TetMesh};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::{Constraint, Integrator, IntegratorOptions, Motion, PolicySpec, State};
+
+/// Where the mesh comes from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum MeshSource {
+    /// A `.msh`, `.node` or `.ele` file, relative to the scene file's directory.
+    File(PathBuf),
+    /// A generated box grid.
+    Generate(BoxGrid),
+    /// The beam of size `n` of `BENCHMARKS.md`.
+    Beam(usize),
+}
+
+/// A set of vertices with a prescribed motion.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConstraintSpec {
+    /// Which vertices.
+    pub select: Selector,
+    /// How they move.
+    #[serde(default = "fixed")]
+    pub motion: Motion,
+}
+
+fn fixed() -> Motion {
+    Motion::Fixed
+}
+
+/// Initial conditions beyond rest.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Initial {
+    /// Uniform initial velocity (m/s).
+    pub velocity: [f64; 3],
+    /// Initial angular velocity (rad/s) about the rest centroid.
+    pub angular_velocity: [f64; 3],
+    /// Start from the static equilibrium under gravity instead of rest.
+    pub equilibrium: bool,
+    /// Uniform scaling of the initial positions about the rest centroid (1 = rest): a
+    /// stretched or squeezed start that is then released.
+    pub scale: Option<[f64; 3]>,
+}
+
+/// What the runner writes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Output {
+    /// Write a `.vtu` frame every this many steps (0: none).
+    pub every: usize,
+    /// A rest position; the CSV tracks the vertex nearest to it. `None` tracks the vertex
+    /// with the largest rest x (then z): the tip of a cantilever.
+    pub track: Option<[f64; 3]>,
+}
+
+impl Default for Output {
+    fn default() -> Self {
+        Self {
+            every: 1,
+            track: None,
+        }
+    }
+}
+
+/// A simulation scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Human-readable name (output folder name).
+    pub name: String,
+    /// The mesh.
+    pub mesh: MeshSource,
+    /// The material.
+    pub material: MaterialSpec,
+    /// Mass density (kg/m^3).
+    pub density: f64,
+    /// Boundary conditions.
+    #[serde(default)]
+    pub constraints: Vec<ConstraintSpec>,
+    /// Time stepping.
+    #[serde(default)]
+    pub integrator: IntegratorOptions,
+    /// The linear-solver policy.
+    #[serde(default)]
+    pub policy: PolicySpec,
+    /// Initial conditions.
+    #[serde(default)]
+    pub initial: Initial,
+    /// Number of steps.
+    pub steps: usize,
+    /// Outputs.
+    #[serde(default)]
+    pub output: Output,
+}
+
+/// Why a scene cannot be loaded or built; messages name the file and field.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("{path}: {error}")]
+    Io {
+        /// The scene file.
+        path: PathBuf,
+        /// The cause.
+        error: std::io::Error,
+    },
+    /// RON syntax or an unknown / missing field.
+    #[error("{path}: {error}")]
+    Parse {
+        /// The scene file.
+        path: PathBuf,
+        /// The parser's message (with line and column).
+        error: String,
+    },
+    /// A value is out of range.
+    #[error("{path}: {field}: {reason}")]
+    Invalid {
+        /// The scene file.
+        path: PathBuf,
+        /// The field.
+        field: String,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// A scene turned into an integrator, its mesh and initial state.
+pub struct Built {
+    /// The mesh.
+    pub mesh: TetMesh,
+    /// The integrator.
+    pub integrator: Integrator,
+    /// The initial state.
+    pub state: State,
+}
+
+impl Scene {
+    /// Reads and validates a scene file.
+    ///
+    /// # Errors
+    /// [`SceneError`] naming the file (and line, column or field).
+    pub fn load(path: &Path) -> Result<Self, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|error| SceneError::Io {
+            path: path.to_owned(),
+            error,
+        })?;
+        let mut scene: Scene = ron::from_str(&text).map_err(|e| SceneError::Parse {
+            path: path.to_owned(),
+            error: e.to_string(),
+        })?;
+        if let MeshSource::File(file) = &mut scene.mesh
+            && file.is_relative()
+        {
+            *file = path.parent().unwrap_or(Path::new(".")).join(&*file);
+        }
+        Ok(scene)
+    }
+
+    /// Builds the mesh, integrator and initial state. `origin` names the scene in errors.
+    ///
+    /// # Errors
+    /// [`SceneError::Invalid`] naming the field.
+    pub fn build(&self, origin: &Path) -> Result<Built, SceneError> {
+        let invalid = |field: &str, reason: String| SceneError::Invalid {
+            path: origin.to_owned(),
+            field: field.to_owned(),
+            reason,
+        };
+        let mesh = match &self.mesh {
+            MeshSource::File(file) => deform_mesh::io::read(file, &MeshOptions::default())
+                .map_err(|e| invalid("mesh", e.to_string()))?,
+            MeshSource::Generate(grid) => {
+                grid.build().map_err(|e| invalid("mesh", e.to_string()))?
+            }
+            MeshSource::Beam(n) => BoxGrid::beam(*n)
+                .build()
+                .map_err(|e| invalid("mesh", e.to_string()))?,
+        };
+        let model = self
+            .material
+            .build()
+            .map_err(|e| invalid("material", e.to_string()))?;
+        if !(self.density.is_finite() && self.density > 0.0) {
+            return Err(invalid(
+                "density",
+                format!("{} must be finite and > 0", self.density),
+            ));
+        }
+        let mut constraints = Vec::new();
+        for (i, c) in self.constraints.iter().enumerate() {
+            let vertices = c
+                .select
+                .select(&mesh)
+                .map_err(|e| invalid(&format!("constraints[{i}].select"), e.to_string()))?;
+            if vertices.is_empty() {
+                return Err(invalid(
+                    &format!("constraints[{i}].select"),
+                    "selects no vertex".into(),
+                ));
+            }
+            constraints.push(Constraint {
+                vertices,
+                motion: c.motion.clone(),
+            });
+        }
+        let policy = self.policy.build().map_err(|e| invalid("policy", e))?;
+        if self.steps == 0 {
+            return Err(invalid("steps", "must be at least 1".into()));
+        }
+        if let Some(t) = self.output.track
+            && !t.iter().all(|c| c.is_finite())
+        {
+            return Err(invalid("output.track", "must be finite".into()));
+        }
+        let mut integrator = Integrator::new(
+            &mesh,
+            MaterialField::Uniform(model),
+            self.density,
+            constraints,
+            self.integrator.clone(),
+            policy,
+        )
+        .map_err(|e| invalid("integrator", e.to_string()))?;
+        let state = self
+            .initial_state(&mesh, &mut integrator)
+            .map_err(|e| invalid("initial", e))?;
+        Ok(Built {
+            mesh,
+            integrator,
+            state,
+        })
+    }
+
+    fn initial_state(&self, mesh: &TetMesh, integrator: &mut Integrator) -> Result<State, String> {
+        let mut state = integrator.rest_state();
+        let init = &self.initial;
+        if init.equilibrium {
+            integrator
+                .solve_static(&mut state)
+                .map_err(|e| format!("static equilibrium: {e}"))?;
+        }
+        let n = mesh.num_vertices() as f64;
+        let centroid = mesh
+            .rest_positions()
+            .iter()
+            .fold(nalgebra::Vector3::zeros(), |a, p| a + p)
+            / n;
+        let omega = nalgebra::Vector3::from(init.angular_velocity);
+        for (v, p) in mesh.rest_positions().iter().enumerate() {
+            if integrator.dofs().is_constrained(v) {
+                continue;
+            }
+            let w = omega.cross(&(p - centroid));
+            for d in 0..3 {
+                state.v[3 * v + d] = init.velocity[d] + w[d];
+                if let Some(s) = init.scale {
+                    state.x[3 * v + d] = centroid[d] + s[d] * (state.x[3 * v + d] - centroid[d]);
+                }
+            }
+        }
+        if !state.x.iter().chain(&state.v).all(|v| v.is_finite()) {
+            return Err("non-finite initial state".into());
+        }
+        Ok(state)
+    }
+
+    /// The tracked vertex: the one nearest to `output.track`, or the one with the largest
+    /// rest x (then largest z), e.g. the tip of a cantilever.
+    pub fn tracked_vertex(&self, mesh: &TetMesh) -> usize {
+        let p = mesh.rest_positions();
+        let best = |key: &dyn Fn(usize) -> (f64, f64)| {
+            (0..p.len())
+                .min_by(|&a, &b| key(a).partial_cmp(&key(b)).expect("finite positions"))
+                .unwrap_or(0)
+        };
+        match self.output.track {
+            Some(t) => best(&|v| ((p[v] - nalgebra::Vector3::from(t)).norm(), 0.0)),
+            None => best(&|v| (-p[v].x, -p[v].z)),
+        }
+    }
+}

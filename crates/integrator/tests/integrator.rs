@@ -1,0 +1,447 @@
+//! Backward Euler against analytic cases (free fall, momentum), dissipation, equilibrium,
+//! agreement of every solver policy, kinematic constraints, typed failures and reports.
+
+use std::sync::{Arc, Mutex};
+
+use deform_assembly::MaterialField;
+use deform_integrator::{
+    Constraint, Integrator, IntegratorError, IntegratorOptions, IterationReport, Motion,
+    NewtonOptions, Observer, PolicySpec, State, StepError, StepReport,
+};
+use deform_materials::MaterialSpec;
+use deform_mesh::TetMesh;
+use deform_mesh::generate::BoxGrid;
+
+fn material(spec: &str) -> MaterialField {
+    MaterialField::Uniform(
+        ron::from_str::<MaterialSpec>(spec)
+            .unwrap()
+            .build()
+            .unwrap(),
+    )
+}
+
+const NH: &str = "NeoHookean(Young(e: 1e5, nu: 0.4))";
+
+fn beam() -> TetMesh {
+    BoxGrid::beam(1).build().unwrap()
+}
+
+fn clamp(mesh: &TetMesh) -> Vec<Constraint> {
+    vec![Constraint {
+        vertices: (0..mesh.num_vertices())
+            .filter(|&v| mesh.rest_positions()[v].x < 1e-9)
+            .collect(),
+        motion: Motion::Fixed,
+    }]
+}
+
+fn policy(ron_text: &str) -> Box<dyn deform_integrator::SolverPolicy> {
+    ron::from_str::<PolicySpec>(ron_text)
+        .unwrap()
+        .build()
+        .unwrap()
+}
+
+fn sim(
+    mesh: &TetMesh,
+    constraints: Vec<Constraint>,
+    options: IntegratorOptions,
+    p: &str,
+) -> Integrator {
+    Integrator::new(mesh, material(NH), 1000.0, constraints, options, policy(p)).unwrap()
+}
+
+fn momentum(sim: &Integrator, v: &[f64]) -> [f64; 3] {
+    let m = sim.assembly().vertex_masses(sim.mass());
+    let mut p = [0.0; 3];
+    for (i, vi) in v.iter().enumerate() {
+        p[i % 3] += m[i / 3] * vi;
+    }
+    p
+}
+
+#[test]
+fn free_fall_is_exact() {
+    let mesh = beam();
+    let mut s = sim(
+        &mesh,
+        vec![],
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let mut state = s.rest_state();
+    let x0 = state.x.clone();
+    let dt = s.options().dt;
+    for _ in 0..5 {
+        s.step(&mut state).unwrap();
+    }
+    // v_n = n dt g, x_n = x_0 + dt^2 g n(n+1)/2 (backward Euler).
+    let g = -9.81;
+    for i in 0..state.x.len() {
+        let (ev, ex) = if i % 3 == 2 {
+            (5.0 * dt * g, x0[i] + dt * dt * g * 15.0)
+        } else {
+            (0.0, x0[i])
+        };
+        assert!((state.v[i] - ev).abs() < 1e-9, "v[{i}] = {}", state.v[i]);
+        assert!((state.x[i] - ex).abs() < 1e-9, "x[{i}]");
+    }
+    assert!((state.t - 5.0 * dt).abs() < 1e-15);
+}
+
+#[test]
+fn momentum_is_conserved_and_energy_is_dissipated_without_external_forces() {
+    let mesh = beam();
+    let options = IntegratorOptions {
+        gravity: [0.0; 3],
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, vec![], options, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    // A stretched, spinning, drifting start.
+    for (i, p) in mesh.rest_positions().iter().enumerate() {
+        state.x[3 * i] = 1.1 * p.x;
+        state.v[3 * i] = 0.3 - p.y;
+        state.v[3 * i + 1] = p.x;
+        state.v[3 * i + 2] = 0.1;
+    }
+    let p0 = momentum(&s, &state.v);
+    let total = |s: &mut Integrator, st: &State| {
+        let m = s.assembly().vertex_masses(s.mass());
+        let kinetic: f64 =
+            st.v.iter()
+                .enumerate()
+                .map(|(i, v)| 0.5 * m[i / 3] * v * v)
+                .sum();
+        kinetic + s.assembly_mut().energy(&st.x).unwrap()
+    };
+    let mut energy = total(&mut s, &state);
+    for _ in 0..10 {
+        s.step(&mut state).unwrap();
+        let p = momentum(&s, &state.v);
+        for c in 0..3 {
+            assert!(
+                (p[c] - p0[c]).abs() < 1e-9 * (1.0 + p0[c].abs()),
+                "momentum {c}: {} vs {}",
+                p[c],
+                p0[c]
+            );
+        }
+        let e = total(&mut s, &state);
+        assert!(e <= energy * (1.0 + 1e-9), "energy grew: {e} > {energy}");
+        energy = e;
+    }
+}
+
+#[test]
+fn static_equilibrium_balances_gravity_and_damped_dynamics_reach_it() {
+    let mesh = beam();
+    // E = 1e6: the tip sags a few centimetres; alpha = 16 is about critical for the first mode.
+    let options = IntegratorOptions {
+        alpha: 16.0,
+        dt: 0.02,
+        ..IntegratorOptions::default()
+    };
+    let mut s = Integrator::new(
+        &mesh,
+        material("NeoHookean(Young(e: 1e6, nu: 0.4))"),
+        1000.0,
+        clamp(&mesh),
+        options,
+        policy("Fixed(Direct())"),
+    )
+    .unwrap();
+    let mut equilibrium = s.rest_state();
+    let report = s.solve_static(&mut equilibrium).unwrap();
+    assert!(report.converged);
+    // f_e + M g = 0 on the free DOFs.
+    let mut f = vec![0.0; equilibrium.x.len()];
+    s.assembly_mut().forces(&equilibrium.x, &mut f).unwrap();
+    let g = s.gravity_forces().to_vec();
+    let scale = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for &d in s.dofs().free_dofs() {
+        assert!(
+            (f[d] + g[d]).abs() <= 1e-5 * scale,
+            "dof {d}: {}",
+            f[d] + g[d]
+        );
+    }
+    // The tip sags.
+    let tip = (0..mesh.num_vertices())
+        .find(|&v| mesh.rest_positions()[v].x > 1.0 - 1e-9)
+        .unwrap();
+    assert!(equilibrium.x[3 * tip + 2] < mesh.rest_positions()[tip].z - 1e-3);
+    let mut state = s.rest_state();
+    for _ in 0..150 {
+        s.step(&mut state).unwrap();
+    }
+    let diff = state
+        .x
+        .iter()
+        .zip(&equilibrium.x)
+        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-4, "damped dynamics end {diff} m from equilibrium");
+}
+
+#[test]
+fn every_policy_gives_the_same_trajectory() {
+    let mesh = beam();
+    let run = |p: &str| {
+        let options = IntegratorOptions {
+            newton: NewtonOptions {
+                rel: 1e-9,
+                abs: 1e-12,
+                ..NewtonOptions::default()
+            },
+            max_retries: 0,
+            ..IntegratorOptions::default()
+        };
+        let mut s = sim(&mesh, clamp(&mesh), options, p);
+        let mut state = s.rest_state();
+        let mut reports = Vec::new();
+        for _ in 0..5 {
+            reports.push(s.step(&mut state).unwrap());
+        }
+        (state, reports)
+    };
+    let (reference, _) = run("Fixed(Direct())");
+    for p in [
+        "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-12)))",
+        "Fixed(Cg(tolerance: (rel: 1e-12, max_iterations: 5000)))",
+        "Fixed(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12)))",
+        "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-12)))",
+        "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+    ] {
+        let (state, reports) = run(p);
+        let diff = state
+            .x
+            .iter()
+            .zip(&reference.x)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-7, "{p}: {diff}");
+        assert!(
+            reports
+                .iter()
+                .all(|r| r.converged && r.iterations.iter().all(|i| !i.fallback)),
+            "{p}"
+        );
+        if p.starts_with("Schedule") {
+            // Later Newton iterations and later steps reuse the factor of the first.
+            let solvers: Vec<&str> = reports
+                .iter()
+                .flat_map(|r| r.iterations.iter().map(|i| i.solver.as_str()))
+                .collect();
+            assert!(
+                solvers.iter().any(|s| s.contains("StaleCholesky")),
+                "{solvers:?}"
+            );
+            let reused = reports
+                .iter()
+                .flat_map(|r| &r.iterations)
+                .filter(|i| i.setup.reused)
+                .count();
+            assert!(reused > 0);
+        }
+        if p.starts_with("EisenstatWalker") {
+            let tolerances: Vec<f64> = reports[0]
+                .iterations
+                .iter()
+                .map(|i| i.solve.relative_residual())
+                .collect();
+            assert!(
+                tolerances[0] <= 0.1 && tolerances[0] > 1e-6,
+                "the first solve is loose: {tolerances:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn kinematic_vertices_follow_their_path() {
+    let mesh = beam();
+    let end: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].x > 1.0 - 1e-9)
+        .collect();
+    let mut constraints = clamp(&mesh);
+    let motion = Motion::Rotate {
+        center: [1.0, 0.125, 0.125],
+        axis: [1.0, 0.0, 0.0],
+        angular_velocity: 3.0,
+        until: None,
+    };
+    constraints.push(Constraint {
+        vertices: end.clone(),
+        motion: motion.clone(),
+    });
+    let options = IntegratorOptions {
+        gravity: [0.0; 3],
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, constraints, options, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    for _ in 0..10 {
+        s.step(&mut state).unwrap();
+    }
+    for &v in &end {
+        let target = motion.position(&mesh.rest_positions()[v], state.t);
+        for d in 0..3 {
+            assert!((state.x[3 * v + d] - target[d]).abs() < 1e-12);
+        }
+    }
+    // The middle of the bar twists too.
+    assert!(s.assembly_mut().energy(&state.x).unwrap() > 0.0);
+}
+
+#[test]
+fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
+    let mesh = beam();
+    // A one-iteration cap with tight tolerances cannot converge.
+    let options = IntegratorOptions {
+        newton: NewtonOptions {
+            max_iterations: 1,
+            rel: 1e-12,
+            abs: 0.0,
+            ..NewtonOptions::default()
+        },
+        max_retries: 0,
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    state.v.iter_mut().step_by(3).for_each(|v| *v = 5.0);
+    let before = state.clone();
+    match s.step(&mut state) {
+        Err(StepError::NotConverged { report }) => assert_eq!(report.iterations.len(), 1),
+        other => panic!("expected NotConverged, got {other:?}"),
+    }
+    assert_eq!(state, before);
+
+    // An inverted element for Neo-Hookean: a typed assembly error naming it.
+    let mut s = sim(
+        &mesh,
+        clamp(&mesh),
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let mut state = s.rest_state();
+    let tip = (0..mesh.num_vertices())
+        .rev()
+        .find(|&v| !s.dofs().is_constrained(v))
+        .unwrap();
+    state.x[3 * tip] -= 0.5;
+    let before = state.clone();
+    match s.step(&mut state) {
+        Err(StepError::Assembly { source, .. }) => {
+            assert!(source.to_string().contains("element"), "{source}")
+        }
+        other => panic!("expected an assembly error, got {other:?}"),
+    }
+    assert_eq!(state, before);
+
+    // Options are validated with the field named.
+    let bad = IntegratorOptions {
+        dt: -1.0,
+        ..IntegratorOptions::default()
+    };
+    match Integrator::new(
+        &mesh,
+        material(NH),
+        1000.0,
+        vec![],
+        bad,
+        policy("Fixed(Direct())"),
+    ) {
+        Err(IntegratorError::Invalid { field: "dt", .. }) => {}
+        other => panic!("expected invalid dt, got {other:?}"),
+    }
+    assert!(ron::from_str::<IntegratorOptions>("(dt: 0.01, damping: 3.0)").is_err());
+    assert!(
+        ron::from_str::<PolicySpec>("EisenstatWalker(solver: Direct())")
+            .unwrap()
+            .build()
+            .is_err()
+    );
+}
+
+#[test]
+fn halved_retries_recover_from_a_hard_step() {
+    let mesh = beam();
+    let options = IntegratorOptions {
+        dt: 0.05,
+        newton: NewtonOptions {
+            max_iterations: 3,
+            ..NewtonOptions::default()
+        },
+        max_retries: 4,
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    state
+        .v
+        .iter_mut()
+        .skip(2)
+        .step_by(3)
+        .for_each(|v| *v = -8.0);
+    let report = s.step(&mut state).unwrap();
+    assert!(
+        report.retries > 0 && report.dt < 0.05,
+        "{} retries",
+        report.retries
+    );
+    assert!(
+        (state.t - 0.05).abs() < 1e-12,
+        "the whole step is covered: t = {}",
+        state.t
+    );
+}
+
+#[derive(Default)]
+struct Recorder {
+    iterations: Vec<IterationReport>,
+    steps: Vec<StepReport>,
+}
+
+struct Shared(Arc<Mutex<Recorder>>);
+
+impl Observer for Shared {
+    fn iteration(&mut self, r: &IterationReport) {
+        self.0.lock().unwrap().iterations.push(r.clone());
+    }
+    fn step(&mut self, r: &StepReport) {
+        self.0.lock().unwrap().steps.push(r.clone());
+    }
+}
+
+#[test]
+fn observers_see_every_iteration_and_newton_converges_fast() {
+    let mesh = beam();
+    let mut s = sim(
+        &mesh,
+        clamp(&mesh),
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let recorder = Arc::new(Mutex::new(Recorder::default()));
+    s.set_observer(Box::new(Shared(recorder.clone())));
+    let mut state = s.rest_state();
+    let mut total = 0;
+    for _ in 0..3 {
+        let r = s.step(&mut state).unwrap();
+        total += r.newton_iterations();
+        assert!(
+            r.newton_iterations() <= 6,
+            "{} Newton iterations",
+            r.newton_iterations()
+        );
+        assert!(
+            r.final_residual <= 1e-6 * r.initial_residual.max(1e-300) || r.final_residual <= 1e-10
+        );
+        assert!(r.flops() > 0);
+    }
+    let rec = recorder.lock().unwrap();
+    assert_eq!(rec.iterations.len(), total);
+    assert_eq!(rec.steps.len(), 3);
+    assert_eq!(rec.steps[2].step, 2);
+}
