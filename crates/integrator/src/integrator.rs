@@ -197,6 +197,7 @@ fn fallback_spec() -> SolverSpec {
     SolverSpec::Direct {
         ordering: Ordering::Auto,
         indefinite: Indefinite::Ldlt,
+        parallel: false,
     }
 }
 

