@@ -74,6 +74,15 @@ fn bad_scenes_name_the_file_and_field() {
         let e = load_str(&text).map(|_| ()).unwrap_err().to_string();
         assert!(e.contains(field), "{extra}: {e}");
     }
+    let e = load_str(
+        &base
+            .replace("nu: 0.4", "nu: 0.5")
+            .replace("steps: 1", "steps: 1)"),
+    )
+    .map(|_| ())
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("material") && e.contains("nu"), "{e}");
     let e = load_str(r#"Scene(name: "t", mesh: File("missing.msh"), material: NeoHookean(Young(e: 1e6, nu: 0.4)), density: 1.0, steps: 1)"#)
         .map(|_| ())
         .unwrap_err()

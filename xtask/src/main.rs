@@ -2,6 +2,7 @@
 //!
 //! Tasks are plain Rust (no make, no shell scripts); each lives in its own module.
 
+mod bench;
 mod mesh;
 mod simulate;
 
@@ -20,6 +21,9 @@ enum Task {
     /// Inspect, convert and generate tetrahedral meshes.
     #[command(subcommand)]
     Mesh(mesh::MeshTask),
+    /// Quick measurements on the benchmark beams, as JSON lines (see bench/peers/).
+    #[command(subcommand)]
+    Bench(bench::BenchTask),
     /// Run a scene (RON): progress bar, .vtu/.pvd frames, per-step CSV, summary.
     Simulate(simulate::SimulateArgs),
 }
@@ -29,6 +33,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.task {
         Task::Mesh(task) => mesh::run(task),
         Task::Simulate(args) => simulate::run(args),
+        Task::Bench(task) => bench::run(task),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -590,7 +590,13 @@ impl Integrator {
             let mut step_length = 1.0;
             if opts.newton.line_search && slope < 0.0 {
                 let phi0 = self.merit(mode, state, &u, energy);
+                // Near the solution the predicted decrease falls below the rounding noise of
+                // the merit function; Armijo's test is then meaningless, so take the step.
+                let noise = 1e-12 * phi0.abs();
                 loop {
+                    if -slope * step_length <= noise {
+                        break;
+                    }
                     let trial: Vec<f64> = u
                         .iter()
                         .zip(&du)
@@ -602,7 +608,7 @@ impl Integrator {
                         Err(AssemblyError::Inadmissible { .. }) => f64::INFINITY,
                         Err(e) => return Err(fail_assembly(e, &report)),
                     };
-                    if phi <= phi0 + 1e-4 * step_length * slope || step_length < 1e-4 {
+                    if phi <= phi0 + 1e-4 * step_length * slope + noise || step_length < 1e-4 {
                         break;
                     }
                     step_length *= 0.5;

@@ -445,3 +445,150 @@ fn observers_see_every_iteration_and_newton_converges_fast() {
     assert_eq!(rec.steps.len(), 3);
     assert_eq!(rec.steps[2].step, 2);
 }
+
+/// Total energy: kinetic + elastic + gravitational (`-x . M g`).
+fn total_energy(s: &mut Integrator, st: &State) -> f64 {
+    let m = s.assembly().vertex_masses(s.mass());
+    let kinetic: f64 =
+        st.v.iter()
+            .enumerate()
+            .map(|(i, v)| 0.5 * m[i / 3] * v * v)
+            .sum();
+    let gravity: f64 = -st
+        .x
+        .iter()
+        .zip(s.gravity_forces())
+        .map(|(x, g)| x * g)
+        .sum::<f64>();
+    kinetic + s.assembly_mut().energy(&st.x).unwrap() + gravity
+}
+
+#[test]
+fn bundled_scenes_dissipate_energy_with_and_without_damping() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes");
+    // The cantilever and the torus have fixed constraints only, so nothing does work.
+    for name in ["cantilever.ron", "torus.ron"] {
+        let path = root.join(name);
+        for damped in [true, false] {
+            let mut scene = deform_integrator::Scene::load(&path).unwrap();
+            if !damped {
+                scene.integrator.alpha = 0.0;
+                scene.integrator.gamma = 0.0;
+            }
+            scene.integrator.newton.rel = 1e-9;
+            // Dissipation is the integrator's property; solve exactly.
+            scene.policy = PolicySpec::Fixed(deform_solvers::SolverSpec::Direct {
+                ordering: Default::default(),
+                indefinite: Default::default(),
+                parallel: false,
+            });
+            let mut built = scene.build(&path).unwrap();
+            let mut previous = total_energy(&mut built.integrator, &built.state);
+            let scale = previous.abs().max(1.0);
+            for step in 0..15 {
+                built.integrator.step(&mut built.state).unwrap();
+                let e = total_energy(&mut built.integrator, &built.state);
+                assert!(
+                    e <= previous + 1e-7 * scale,
+                    "{name} damped={damped} step {step}: {e} > {previous}"
+                );
+                previous = e;
+            }
+        }
+    }
+}
+
+#[test]
+fn newton_with_the_direct_solver_converges_quadratically() {
+    let mesh = beam();
+    let options = IntegratorOptions {
+        newton: NewtonOptions {
+            rel: 1e-13,
+            abs: 1e-13,
+            line_search: false,
+            ..NewtonOptions::default()
+        },
+        max_retries: 0,
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    // A sharp kick: Newton starts far enough away to show its rate.
+    for (v, p) in mesh.rest_positions().iter().enumerate() {
+        state.v[3 * v + 2] = -3.0 * p.x;
+    }
+    let report = match s.step(&mut state) {
+        Ok(r) => r,
+        Err(StepError::NotConverged { report }) => *report,
+        Err(e) => panic!("{e}"),
+    };
+    let r: Vec<f64> = report
+        .iterations
+        .iter()
+        .map(|i| i.residual / report.initial_residual)
+        .collect();
+    // In the quadratic regime (relative residual below 1e-2, above the rounding floor), each
+    // residual is bounded by a constant times the square of the previous one.
+    let mut checked = 0;
+    for w in r.windows(2) {
+        if w[0] < 1e-2 && w[1] > 1e-12 {
+            assert!(w[1] <= 50.0 * w[0] * w[0], "not quadratic: {r:?}");
+            checked += 1;
+        }
+    }
+    assert!(checked >= 1, "no iteration in the quadratic regime: {r:?}");
+}
+
+#[test]
+fn cantilever_tip_deflection_approaches_beam_theory_under_refinement() {
+    // Linear elasticity with nu = 0 (no Poisson coupling), small load: the static tip
+    // deflection against Euler-Bernoulli w = q L^4 / (8 E I) plus Timoshenko's shear term
+    // q L^2 / (2 kappa G A), kappa = 5/6 (L/h = 4, so shear adds about 5 %).
+    let (e, rho, g) = (1e7, 1000.0, 0.01);
+    let (l, h) = (1.0f64, 0.25f64);
+    let (area, inertia, shear) = (h * h, h.powi(4) / 12.0, e / 2.0);
+    let q = rho * g * area;
+    let euler_bernoulli = q * l.powi(4) / (8.0 * e * inertia);
+    let timoshenko = euler_bernoulli + q * l * l / (2.0 * 5.0 / 6.0 * shear * area);
+    let mut errors = Vec::new();
+    for n in [1, 2, 4, 8] {
+        let mesh = BoxGrid::beam(n).build().unwrap();
+        let options = IntegratorOptions {
+            gravity: [0.0, 0.0, -g],
+            ..IntegratorOptions::default()
+        };
+        let mut s = Integrator::new(
+            &mesh,
+            material(&format!("LinearElastic(Young(e: {e}, nu: 0.0))")),
+            rho,
+            clamp(&mesh),
+            options,
+            policy("Fixed(Direct())"),
+        )
+        .unwrap();
+        let mut state = s.rest_state();
+        s.solve_static(&mut state).unwrap();
+        let tip: Vec<usize> = (0..mesh.num_vertices())
+            .filter(|&v| mesh.rest_positions()[v].x > l - 1e-9)
+            .collect();
+        let w = -tip
+            .iter()
+            .map(|&v| state.x[3 * v + 2] - mesh.rest_positions()[v].z)
+            .sum::<f64>()
+            / tip.len() as f64;
+        let error = (w - timoshenko).abs() / timoshenko;
+        eprintln!(
+            "n = {n}: {} tets, tip {w:.4e} m, Timoshenko {timoshenko:.4e}, Euler-Bernoulli {euler_bernoulli:.4e}, error {:.2} %",
+            mesh.num_tets(),
+            100.0 * error
+        );
+        errors.push(error);
+    }
+    for w in errors.windows(2) {
+        assert!(
+            w[1] < w[0],
+            "the error must decrease with refinement: {errors:?}"
+        );
+    }
+    assert!(errors[3] < 0.1, "finest error {:.3}", errors[3]);
+}
