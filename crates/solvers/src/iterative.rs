@@ -5,7 +5,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
-use crate::operator::{LinearOperator, dot, norm};
+use crate::operator::{LinearOperator, dot, for_each_entry, norm};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::{LinearSolver, SolverError};
@@ -246,10 +246,8 @@ impl Iterative {
                 return Some(curvature);
             }
             let alpha = rz / curvature;
-            for i in 0..n {
-                x[i] += alpha * p[i];
-                r[i] -= alpha * ap[i];
-            }
+            for_each_entry(x, |i, xi| *xi += alpha * p[i]);
+            for_each_entry(&mut r, |i, ri| *ri -= alpha * ap[i]);
             stats.iterations += 1;
             rn = norm(&r);
             stats.residuals.push(rn);
@@ -265,9 +263,7 @@ impl Iterative {
             let rz_new = dot(&r, &z);
             let beta = rz_new / rz;
             rz = rz_new;
-            for i in 0..n {
-                p[i] = z[i] + beta * p[i];
-            }
+            for_each_entry(&mut p, |i, pi| *pi = z[i] + beta * *pi);
         }
         stats.termination = Termination::MaxIterations;
         None

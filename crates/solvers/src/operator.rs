@@ -1,6 +1,7 @@
 //! Operators: what a solver needs from a matrix, assembled (CSR) or matrix-free.
 
 use nalgebra::Matrix3;
+use rayon::prelude::*;
 use sprs::CsMat;
 
 use crate::SolverError;
@@ -48,12 +49,21 @@ impl LinearOperator for CsMat<f64> {
     fn apply(&self, x: &[f64], y: &mut [f64]) {
         let (indptr, indices, data) = (self.indptr(), self.indices(), self.data());
         let indptr = indptr.raw_storage();
-        for (i, yi) in y.iter_mut().enumerate() {
-            let mut acc = 0.0;
-            for k in indptr[i]..indptr[i + 1] {
-                acc += data[k] * x[indices[k]];
+        // Rows in parallel, each row summed in order: identical for any thread count.
+        let rows = |(c, ys): (usize, &mut [f64])| {
+            for (r, yi) in ys.iter_mut().enumerate() {
+                let i = c * ROW_CHUNK + r;
+                let mut acc = 0.0;
+                for k in indptr[i]..indptr[i + 1] {
+                    acc += data[k] * x[indices[k]];
+                }
+                *yi = acc;
             }
-            *yi = acc;
+        };
+        if self.nnz() < PARALLEL_NNZ {
+            y.chunks_mut(ROW_CHUNK).enumerate().for_each(rows);
+        } else {
+            y.par_chunks_mut(ROW_CHUNK).enumerate().for_each(rows);
         }
     }
 
@@ -98,12 +108,50 @@ impl LinearOperator for CsMat<f64> {
     }
 }
 
+/// Rows per parallel task of the CSR product.
+const ROW_CHUNK: usize = 1024;
+/// Below this many nonzeros the product runs on the calling thread (same arithmetic).
+const PARALLEL_NNZ: usize = 200_000;
+/// Entries per partial sum of dot products and per task of vector updates.
+const VECTOR_CHUNK: usize = 8192;
+/// Below this length vector operations run on the calling thread (same arithmetic).
+const PARALLEL_LEN: usize = 4 * VECTOR_CHUNK;
+
 /// `sqrt(x . x)`.
 pub(crate) fn norm(x: &[f64]) -> f64 {
     dot(x, x).sqrt()
 }
 
-/// `x . y`, summed in index order (deterministic).
+/// `x . y` as partial sums over fixed chunks of `VECTOR_CHUNK` entries, added in chunk
+/// order: the same arithmetic whether the chunks run in parallel or not, so the result does
+/// not depend on the thread count.
 pub(crate) fn dot(x: &[f64], y: &[f64]) -> f64 {
-    x.iter().zip(y).map(|(a, b)| a * b).sum()
+    let partial = |(a, b): (&[f64], &[f64])| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
+    if x.len() < PARALLEL_LEN {
+        x.chunks(VECTOR_CHUNK)
+            .zip(y.chunks(VECTOR_CHUNK))
+            .map(partial)
+            .sum()
+    } else {
+        let parts: Vec<f64> = x
+            .par_chunks(VECTOR_CHUNK)
+            .zip(y.par_chunks(VECTOR_CHUNK))
+            .map(partial)
+            .collect();
+        parts.iter().sum()
+    }
+}
+
+/// Applies `f(i, &mut y[i])` to every entry, in parallel chunks for long vectors.
+pub(crate) fn for_each_entry(y: &mut [f64], f: impl Fn(usize, &mut f64) + Sync + Send) {
+    let chunk = |(c, ys): (usize, &mut [f64])| {
+        for (k, v) in ys.iter_mut().enumerate() {
+            f(c * VECTOR_CHUNK + k, v);
+        }
+    };
+    if y.len() < PARALLEL_LEN {
+        y.chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
+    } else {
+        y.par_chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
+    }
 }

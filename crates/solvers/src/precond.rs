@@ -5,7 +5,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::direct::{Cholesky, Indefinite};
-use crate::operator::LinearOperator;
+use crate::operator::{LinearOperator, for_each_entry};
 use crate::ordering::Ordering;
 use crate::{LinearSolver, SolverError};
 
@@ -164,11 +164,7 @@ impl Preconditioner {
     pub fn apply(&self, a: &dyn LinearOperator, r: &[f64], z: &mut [f64]) {
         match self {
             Preconditioner::Identity => z.copy_from_slice(r),
-            Preconditioner::Jacobi(inv) => {
-                for ((zi, ri), d) in z.iter_mut().zip(r).zip(inv) {
-                    *zi = ri * d;
-                }
-            }
+            Preconditioner::Jacobi(inv) => for_each_entry(z, |i, zi| *zi = r[i] * inv[i]),
             Preconditioner::BlockJacobi(blocks) => {
                 for (v, b) in blocks.iter().enumerate() {
                     let y = b * Vector3::new(r[3 * v], r[3 * v + 1], r[3 * v + 2]);

@@ -332,3 +332,33 @@ fn direct_solves_do_not_depend_on_the_thread_count() {
     assert_eq!(one, solve(2));
     assert_eq!(one, solve(4));
 }
+
+#[test]
+fn iterative_solves_do_not_depend_on_the_thread_count() {
+    // Large enough (about 300k nonzeros, 8k rows) for the parallel kernels to engage.
+    let mesh = beam(8);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.05), 100.0);
+    let b = rhs(a.rows());
+    for spec in [
+        "Cg(tolerance: (rel: 1e-8))",
+        "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8))",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))",
+    ] {
+        let solve = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    let mut s = ron::from_str::<SolverSpec>(spec).unwrap().build().unwrap();
+                    s.factorize(&a).unwrap();
+                    let mut x = vec![0.0; b.len()];
+                    let stats = s.solve(&a, &b, &mut x).unwrap();
+                    (x, stats.residuals, stats.flops)
+                })
+        };
+        let one = solve(1);
+        assert_eq!(one, solve(2), "{spec}");
+        assert_eq!(one, solve(4), "{spec}");
+    }
+}
