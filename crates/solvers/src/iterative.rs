@@ -5,7 +5,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
-use crate::operator::{LinearOperator, dot, for_each_entry, norm};
+use crate::operator::{LinearOperator, dot, fast_operator, for_each_entry, norm};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::{LinearSolver, SolverError};
@@ -348,6 +348,13 @@ impl LinearSolver for Iterative {
         check_vector("b", b, n)?;
         check_vector("x", x, n)?;
         let start = Instant::now();
+        // Large blocked matrices are multiplied in a 3x3 block copy (same results, about half
+        // the memory traffic); the copy costs about one product.
+        let blocked = fast_operator(a);
+        let a: &dyn LinearOperator = match &blocked {
+            Some(bsr) => bsr,
+            None => a,
+        };
         let mut stats = SolveStats::new(self.name(), norm(b));
         let mut curvature = f64::NAN;
         match self.method {

@@ -108,8 +108,8 @@ impl LinearOperator for CsMat<f64> {
     }
 }
 
-/// Rows per parallel task of the CSR product.
-const ROW_CHUNK: usize = 1024;
+/// Rows per parallel task of the CSR product (a multiple of 3 for the block product).
+const ROW_CHUNK: usize = 1020;
 /// Below this many nonzeros the product runs on the calling thread (same arithmetic).
 const PARALLEL_NNZ: usize = 200_000;
 /// Entries per partial sum of dot products and per task of vector updates.
@@ -153,5 +153,159 @@ pub(crate) fn for_each_entry(y: &mut [f64], f: impl Fn(usize, &mut f64) + Sync +
         y.chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
     } else {
         y.par_chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
+    }
+}
+
+/// A copy of a CSR matrix whose rows come in 3x3 blocks (every FEM matrix deform assembles,
+/// reduced or not), stored as block CSR: 76 bytes per nine entries instead of 144, so the
+/// memory-bound product moves about half the data. Each row is still summed in column order,
+/// so the product equals the CSR product bit for bit.
+pub(crate) struct Bsr3<'a> {
+    ptr: Vec<usize>,
+    cols: Vec<u32>,
+    values: Vec<[f64; 9]>,
+    csr: &'a CsMat<f64>,
+}
+
+impl<'a> Bsr3<'a> {
+    /// The block copy, or `None` when the pattern is not made of aligned 3x3 blocks.
+    pub fn from_csr(a: &'a CsMat<f64>) -> Option<Self> {
+        let n = a.rows();
+        if !n.is_multiple_of(3) || a.cols() != n || !a.is_csr() || n / 3 > u32::MAX as usize {
+            return None;
+        }
+        let (indptr, indices, data) = (a.indptr(), a.indices(), a.data());
+        let indptr = indptr.raw_storage();
+        let mut ptr = Vec::with_capacity(n / 3 + 1);
+        let mut cols = Vec::with_capacity(a.nnz() / 9);
+        let mut values = Vec::with_capacity(a.nnz() / 9);
+        ptr.push(0);
+        for v in 0..n / 3 {
+            let rows = [3 * v, 3 * v + 1, 3 * v + 2];
+            let len = indptr[rows[0] + 1] - indptr[rows[0]];
+            if !len.is_multiple_of(3) {
+                return None;
+            }
+            for &r in &rows[1..] {
+                if indptr[r + 1] - indptr[r] != len
+                    || indices[indptr[r]..indptr[r + 1]]
+                        != indices[indptr[rows[0]]..indptr[rows[0] + 1]]
+                {
+                    return None;
+                }
+            }
+            let row_cols = &indices[indptr[rows[0]]..indptr[rows[0] + 1]];
+            for (b, triple) in row_cols.chunks_exact(3).enumerate() {
+                if !triple[0].is_multiple_of(3)
+                    || triple[1] != triple[0] + 1
+                    || triple[2] != triple[0] + 2
+                {
+                    return None;
+                }
+                cols.push((triple[0] / 3) as u32);
+                let mut block = [0.0; 9];
+                for (i, &r) in rows.iter().enumerate() {
+                    let at = indptr[r] + 3 * b;
+                    block[3 * i..3 * i + 3].copy_from_slice(&data[at..at + 3]);
+                }
+                values.push(block);
+            }
+            ptr.push(cols.len());
+        }
+        Some(Self {
+            ptr,
+            cols,
+            values,
+            csr: a,
+        })
+    }
+}
+
+impl LinearOperator for Bsr3<'_> {
+    fn nrows(&self) -> usize {
+        3 * (self.ptr.len() - 1)
+    }
+
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        let rows = |(c, ys): (usize, &mut [f64])| {
+            for (local, yv) in ys.chunks_exact_mut(3).enumerate() {
+                let v = c * (ROW_CHUNK / 3) + local;
+                let mut acc = [0.0; 3];
+                for k in self.ptr[v]..self.ptr[v + 1] {
+                    let j = 3 * self.cols[k] as usize;
+                    let (b, xj) = (&self.values[k], &x[j..j + 3]);
+                    for r in 0..3 {
+                        acc[r] += b[3 * r] * xj[0];
+                        acc[r] += b[3 * r + 1] * xj[1];
+                        acc[r] += b[3 * r + 2] * xj[2];
+                    }
+                }
+                yv.copy_from_slice(&acc);
+            }
+        };
+        // ROW_CHUNK is a multiple of 3, so chunks hold whole block rows.
+        y.par_chunks_mut(ROW_CHUNK).enumerate().for_each(rows);
+    }
+
+    fn diagonal(&self, out: &mut [f64]) {
+        self.csr.diagonal(out);
+    }
+
+    fn block_diagonal(&self, out: &mut [Matrix3<f64>]) -> Result<(), SolverError> {
+        self.csr.block_diagonal(out)
+    }
+
+    fn csr(&self) -> Option<&CsMat<f64>> {
+        Some(self.csr)
+    }
+
+    fn apply_flops(&self) -> u64 {
+        self.csr.apply_flops()
+    }
+}
+
+/// The operator iterative solvers should multiply with: a block copy of a large blocked CSR
+/// matrix (faster, same results), or `a` itself.
+pub(crate) fn fast_operator(a: &dyn LinearOperator) -> Option<Bsr3<'_>> {
+    a.csr()
+        .filter(|m| m.nnz() >= PARALLEL_NNZ)
+        .and_then(Bsr3::from_csr)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sprs::TriMat;
+
+    #[test]
+    fn the_block_copy_multiplies_exactly_like_the_csr_matrix() {
+        // A block-tridiagonal pattern of 3x3 blocks with irrational-ish values.
+        let nb = 40;
+        let n = 3 * nb;
+        let mut t = TriMat::new((n, n));
+        for i in 0..nb {
+            for j in i.saturating_sub(1)..(i + 2).min(nb) {
+                for r in 0..3 {
+                    for c in 0..3 {
+                        let v = ((7 * (3 * i + r) + 13 * (3 * j + c)) as f64).sin();
+                        t.add_triplet(3 * i + r, 3 * j + c, v);
+                    }
+                }
+            }
+        }
+        let a: CsMat<f64> = t.to_csr();
+        let bsr = Bsr3::from_csr(&a).expect("a blocked pattern");
+        let x: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).cos()).collect();
+        let (mut y1, mut y2) = (vec![0.0; n], vec![0.0; n]);
+        a.apply(&x, &mut y1);
+        bsr.apply(&x, &mut y2);
+        assert_eq!(y1, y2);
+        // Not blocked: one extra entry breaks the triples.
+        let mut t2 = TriMat::new((n, n));
+        for (v, (i, j)) in a.iter() {
+            t2.add_triplet(i, j, *v);
+        }
+        t2.add_triplet(0, n - 1, 1.0);
+        assert!(Bsr3::from_csr(&t2.to_csr()).is_none());
     }
 }
