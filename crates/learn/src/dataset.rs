@@ -1,0 +1,482 @@
+//! Trajectory datasets: pairs `((x^n, v^n), (x^n+1, v^n+1))` from a base model, on disk as
+//! RON metadata plus `.npy` arrays that numpy loads directly.
+//!
+//! Layout of a dataset folder (docs/experiments.md):
+//!
+//! ```text
+//! meta.ron                  DatasetMeta: the base scene, seed, versions, splits, noise
+//! traj_000/x.npy            positions,  shape (steps + 1, vertices, 3), float64
+//! traj_000/v.npy            velocities, same shape
+//! traj_001/...
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use deform_integrator::scene::{Built, Initial};
+use deform_integrator::{Scene, State, StepError};
+use deform_mesh::io::write_atomic;
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::npy::{self, NpyError};
+use crate::rng::Rng;
+
+/// Which part of the data a trajectory belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Split {
+    /// Fitting.
+    Train,
+    /// Model selection and early stopping.
+    Validation,
+    /// Held out for the final figures.
+    Test,
+}
+
+/// One trajectory: states at `t_0 + n dt`, `n = 0..=steps`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    /// Positions per step, flat `3N` each.
+    pub x: Vec<Vec<f64>>,
+    /// Velocities per step.
+    pub v: Vec<Vec<f64>>,
+}
+
+impl Trajectory {
+    /// Number of steps (pairs).
+    pub fn steps(&self) -> usize {
+        self.x.len().saturating_sub(1)
+    }
+}
+
+/// What a trajectory started from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryMeta {
+    /// Folder name inside the dataset.
+    pub name: String,
+    /// Its split.
+    pub split: Split,
+    /// Number of steps.
+    pub steps: usize,
+    /// The initial conditions used.
+    pub initial: Initial,
+}
+
+/// Gaussian noise added after generation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Noise {
+    /// Standard deviation of position noise, relative to the RMS displacement from rest
+    /// over the trajectory (0.01 = "1 % position noise").
+    pub position: f64,
+    /// Standard deviation of velocity noise, relative to the RMS velocity.
+    pub velocity: f64,
+    /// Seed of the noise.
+    pub seed: u64,
+}
+
+/// Everything needed to reproduce or reinterpret a dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetMeta {
+    /// Format version of this layout.
+    pub format: u32,
+    /// deform's version that wrote it.
+    pub deform_version: String,
+    /// The base model's full scene (mesh, material, constraints, integrator, policy).
+    pub scene: Scene,
+    /// Seed of the initial-condition variations.
+    pub seed: u64,
+    /// Time step.
+    pub dt: f64,
+    /// Number of vertices.
+    pub vertices: usize,
+    /// The trajectories.
+    pub trajectories: Vec<TrajectoryMeta>,
+    /// Noise added, if any.
+    pub noise: Option<Noise>,
+}
+
+/// A dataset in memory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dataset {
+    /// Metadata.
+    pub meta: DatasetMeta,
+    /// Trajectories, in the order of `meta.trajectories`.
+    pub trajectories: Vec<Trajectory>,
+}
+
+/// How to vary the initial conditions between trajectories.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Variations {
+    /// Largest uniform initial speed (m/s), random direction.
+    pub speed: f64,
+    /// Largest initial angular speed (rad/s), random axis.
+    pub spin: f64,
+    /// Largest relative stretch or squeeze per axis of the released initial shape.
+    pub stretch: f64,
+    /// Start every trajectory from rest (no variation); overrides the above.
+    pub rest: bool,
+}
+
+impl Default for Variations {
+    fn default() -> Self {
+        Self {
+            speed: 1.0,
+            spin: 2.0,
+            stretch: 0.1,
+            rest: false,
+        }
+    }
+}
+
+/// Why a dataset could not be made, read or written.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum DatasetError {
+    /// An array file.
+    #[error(transparent)]
+    Npy(#[from] NpyError),
+    /// The metadata file.
+    #[error("{path}: {reason}")]
+    Meta {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Building the scene.
+    #[error(transparent)]
+    Scene(#[from] deform_integrator::SceneError),
+    /// A step of the base model failed.
+    #[error("trajectory {trajectory}, step {step}: {source}")]
+    Step {
+        /// Trajectory index.
+        trajectory: usize,
+        /// Step index.
+        step: usize,
+        /// The failure.
+        source: Box<StepError>,
+    },
+    /// Arrays disagree with the metadata or each other.
+    #[error("{0}")]
+    Inconsistent(String),
+}
+
+/// Current layout version.
+const FORMAT: u32 = 1;
+
+/// Split `count` trajectories by the fractions `(train, validation)`, the rest test; at least
+/// one trajectory in each non-empty split when there are three or more.
+fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
+    let train = ((fractions.0 * count as f64).round() as usize).clamp(1, count);
+    let val = ((fractions.1 * count as f64).round() as usize).min(count - train);
+    if k < train {
+        Split::Train
+    } else if k < train + val {
+        Split::Validation
+    } else {
+        Split::Test
+    }
+}
+
+/// Generates `count` trajectories of `steps` steps from `scene` (its `initial` is replaced
+/// by random variations drawn from `seed`), split `(train, validation)` by fraction, the
+/// rest test. `progress` is called after every step.
+///
+/// # Errors
+/// [`DatasetError`] naming the trajectory and step that failed.
+pub fn generate(
+    scene: &Scene,
+    origin: &Path,
+    count: usize,
+    steps: usize,
+    seed: u64,
+    variations: &Variations,
+    fractions: (f64, f64),
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Dataset, DatasetError> {
+    let mut rng = Rng::new(seed);
+    let mut trajectories = Vec::with_capacity(count);
+    let mut metas = Vec::with_capacity(count);
+    for k in 0..count {
+        let initial = if variations.rest {
+            scene.initial.clone()
+        } else {
+            let dir = |rng: &mut Rng| {
+                let v = Vector3::new(rng.normal(), rng.normal(), rng.normal());
+                v / v.norm().max(1e-12)
+            };
+            let speed = rng.range(0.0, variations.speed);
+            let spin = rng.range(0.0, variations.spin);
+            let (d1, d2) = (dir(&mut rng), dir(&mut rng));
+            let s = variations.stretch;
+            Initial {
+                velocity: (d1 * speed).into(),
+                angular_velocity: (d2 * spin).into(),
+                equilibrium: false,
+                scale: Some([
+                    rng.range(1.0 - s, 1.0 + s),
+                    rng.range(1.0 - s, 1.0 + s),
+                    rng.range(1.0 - s, 1.0 + s),
+                ]),
+            }
+        };
+        let mut variant = scene.clone();
+        variant.initial = initial.clone();
+        let Built {
+            mut integrator,
+            mut state,
+            ..
+        } = variant.build(origin)?;
+        let mut traj = Trajectory {
+            x: vec![state.x.clone()],
+            v: vec![state.v.clone()],
+        };
+        for step in 0..steps {
+            integrator
+                .step(&mut state)
+                .map_err(|e| DatasetError::Step {
+                    trajectory: k,
+                    step,
+                    source: Box::new(e),
+                })?;
+            traj.x.push(state.x.clone());
+            traj.v.push(state.v.clone());
+            progress(k, step);
+        }
+        metas.push(TrajectoryMeta {
+            name: format!("traj_{k:03}"),
+            split: split_of(k, count, fractions),
+            steps,
+            initial,
+        });
+        trajectories.push(traj);
+    }
+    let vertices = trajectories
+        .first()
+        .map_or(0, |t: &Trajectory| t.x[0].len() / 3);
+    Ok(Dataset {
+        meta: DatasetMeta {
+            format: FORMAT,
+            deform_version: env!("CARGO_PKG_VERSION").to_owned(),
+            scene: scene.clone(),
+            seed,
+            dt: scene.integrator.dt,
+            vertices,
+            trajectories: metas,
+            noise: None,
+        },
+        trajectories,
+    })
+}
+
+impl Dataset {
+    /// The trajectories of one split.
+    pub fn split(&self, split: Split) -> Vec<&Trajectory> {
+        self.meta
+            .trajectories
+            .iter()
+            .zip(&self.trajectories)
+            .filter(|(m, _)| m.split == split)
+            .map(|(_, t)| t)
+            .collect()
+    }
+
+    /// Adds Gaussian noise to positions and velocities (not to constrained vertices, whose
+    /// motion is known), scaled per trajectory by the RMS displacement and RMS velocity.
+    pub fn add_noise(&mut self, noise: Noise, constrained: &[usize]) {
+        let mut rng = Rng::new(noise.seed);
+        let rest = self
+            .trajectories
+            .first()
+            .map(|t| t.x[0].clone())
+            .unwrap_or_default();
+        let mut skip = vec![false; self.meta.vertices];
+        for &c in constrained {
+            if c < skip.len() {
+                skip[c] = true;
+            }
+        }
+        for t in &mut self.trajectories {
+            let rms = |frames: &[Vec<f64>], reference: Option<&[f64]>| {
+                let (mut sum, mut count) = (0.0, 0usize);
+                for f in frames {
+                    for (i, v) in f.iter().enumerate() {
+                        let d = v - reference.map_or(0.0, |r| r[i]);
+                        sum += d * d;
+                        count += 1;
+                    }
+                }
+                (sum / count.max(1) as f64).sqrt()
+            };
+            let (sx, sv) = (
+                noise.position * rms(&t.x, Some(&rest)),
+                noise.velocity * rms(&t.v, None),
+            );
+            for (frames, sigma) in [(&mut t.x, sx), (&mut t.v, sv)] {
+                for f in frames.iter_mut() {
+                    for (i, v) in f.iter_mut().enumerate() {
+                        if !skip[i / 3] {
+                            *v += sigma * rng.normal();
+                        }
+                    }
+                }
+            }
+        }
+        self.meta.noise = Some(noise);
+    }
+
+    /// Writes the dataset folder (see the module docs); every file atomically.
+    ///
+    /// # Errors
+    /// [`DatasetError`] naming the file.
+    pub fn save(&self, dir: &Path) -> Result<(), DatasetError> {
+        let meta_path = dir.join("meta.ron");
+        std::fs::create_dir_all(dir).map_err(|e| DatasetError::Meta {
+            path: dir.to_owned(),
+            reason: e.to_string(),
+        })?;
+        for (m, t) in self.meta.trajectories.iter().zip(&self.trajectories) {
+            let sub = dir.join(&m.name);
+            std::fs::create_dir_all(&sub).map_err(|e| DatasetError::Meta {
+                path: sub.clone(),
+                reason: e.to_string(),
+            })?;
+            let shape = [t.x.len(), self.meta.vertices, 3];
+            npy::write(&sub.join("x.npy"), &shape, &t.x.concat())?;
+            npy::write(&sub.join("v.npy"), &shape, &t.v.concat())?;
+        }
+        let text = ron::ser::to_string_pretty(&self.meta, ron::ser::PrettyConfig::default())
+            .map_err(|e| DatasetError::Meta {
+                path: meta_path.clone(),
+                reason: e.to_string(),
+            })?;
+        write_atomic(&meta_path, |w| w.write_all(text.as_bytes())).map_err(|e| DatasetError::Meta {
+            path: meta_path.clone(),
+            reason: e.to_string(),
+        })
+    }
+
+    /// Reads a dataset folder written by [`Dataset::save`] (or by hand in that layout).
+    ///
+    /// # Errors
+    /// [`DatasetError`] naming the file and what does not match.
+    pub fn load(dir: &Path) -> Result<Self, DatasetError> {
+        let meta_path = dir.join("meta.ron");
+        let text = std::fs::read_to_string(&meta_path).map_err(|e| DatasetError::Meta {
+            path: meta_path.clone(),
+            reason: e.to_string(),
+        })?;
+        let meta: DatasetMeta = ron::from_str(&text).map_err(|e| DatasetError::Meta {
+            path: meta_path.clone(),
+            reason: e.to_string(),
+        })?;
+        if meta.format != FORMAT {
+            return Err(DatasetError::Meta {
+                path: meta_path,
+                reason: format!("format {} is not the supported {FORMAT}", meta.format),
+            });
+        }
+        let mut trajectories = Vec::with_capacity(meta.trajectories.len());
+        for m in &meta.trajectories {
+            let read = |file: &str| -> Result<Vec<Vec<f64>>, DatasetError> {
+                let path = dir.join(&m.name).join(file);
+                let a = npy::read(&path)?;
+                if a.shape != [m.steps + 1, meta.vertices, 3] {
+                    return Err(DatasetError::Inconsistent(format!(
+                        "{}: shape {:?}, meta.ron says ({}, {}, 3)",
+                        path.display(),
+                        a.shape,
+                        m.steps + 1,
+                        meta.vertices
+                    )));
+                }
+                if let Some(i) = a.data.iter().position(|v| !v.is_finite()) {
+                    return Err(DatasetError::Inconsistent(format!(
+                        "{}: non-finite value at step {}, vertex {}",
+                        path.display(),
+                        i / (3 * meta.vertices),
+                        (i / 3) % meta.vertices
+                    )));
+                }
+                Ok(a.data
+                    .chunks(3 * meta.vertices)
+                    .map(<[f64]>::to_vec)
+                    .collect())
+            };
+            trajectories.push(Trajectory {
+                x: read("x.npy")?,
+                v: read("v.npy")?,
+            });
+        }
+        Ok(Self { meta, trajectories })
+    }
+}
+
+/// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
+/// 3), optional velocities. Without velocities they follow from Backward Euler's own relation
+/// `v^n+1 = (x^n+1 - x^n) / dt`; the first frame has no velocity then and is dropped, so the
+/// trajectory starts at step 1 (`steps - 1` pairs).
+///
+/// # Errors
+/// [`DatasetError`] naming the file.
+pub fn import_trajectory(
+    positions: &Path,
+    velocities: Option<&Path>,
+    dt: f64,
+) -> Result<Trajectory, DatasetError> {
+    let a = npy::read(positions)?;
+    if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 {
+        return Err(DatasetError::Inconsistent(format!(
+            "{}: shape {:?}, expected (steps + 1 >= 2, vertices, 3)",
+            positions.display(),
+            a.shape
+        )));
+    }
+    if !(dt.is_finite() && dt > 0.0) {
+        return Err(DatasetError::Inconsistent(format!(
+            "dt = {dt} must be finite and > 0"
+        )));
+    }
+    let frame = 3 * a.shape[1];
+    let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
+    let v = match velocities {
+        Some(path) => {
+            let b = npy::read(path)?;
+            if b.shape != a.shape {
+                return Err(DatasetError::Inconsistent(format!(
+                    "{}: shape {:?} differs from the positions' {:?}",
+                    path.display(),
+                    b.shape,
+                    a.shape
+                )));
+            }
+            b.data.chunks(frame).map(<[f64]>::to_vec).collect()
+        }
+        None => {
+            let v: Vec<Vec<f64>> = (1..x.len())
+                .map(|n| {
+                    x[n].iter()
+                        .zip(&x[n - 1])
+                        .map(|(a, b)| (a - b) / dt)
+                        .collect()
+                })
+                .collect();
+            return Ok(Trajectory {
+                x: x[1..].to_vec(),
+                v,
+            });
+        }
+    };
+    Ok(Trajectory { x, v })
+}
+
+/// The state at step `n` of a trajectory.
+pub fn state_at(t: &Trajectory, n: usize, dt: f64) -> State {
+    State {
+        x: t.x[n].clone(),
+        v: t.v[n].clone(),
+        t: n as f64 * dt,
+    }
+}

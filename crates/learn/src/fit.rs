@@ -1,0 +1,333 @@
+//! Stage 1 of force-model optimisation: the equation error.
+//!
+//! Plugging a data pair into the Backward-Euler residual (seed Eq. 8, docs/theory.md),
+//! `M (v^n+1 - v^n) - dt M g = dt (f_e(x^n+1) - alpha M v^n+1 - gamma K(x^n+1) v^n+1)` on the
+//! free DOFs. The materials' parameter split makes `f_e = J_f c` linear in the coefficients
+//! `c` (for a single model, the Lame pair), and `gamma K v = J_k (gamma c)` linear in
+//! `d = gamma c`. So `c`, `d` and `alpha` solve one linear least-squares problem over all
+//! pairs: no simulation. Columns are scaled to unit norm before solving; optionally the
+//! solution is kept non-negative (Lawson-Hanson active set on the normal equations).
+
+use deform_assembly::Grouping;
+use deform_integrator::Integrator;
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::dataset::Trajectory;
+
+/// Options of the equation-error fit.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EquationErrorOptions {
+    /// Also fit Rayleigh `alpha` and `gamma` (otherwise the integrator's values are used).
+    pub damping: bool,
+    /// Separate coefficients per mesh region.
+    pub by_region: bool,
+    /// Keep every coefficient non-negative.
+    pub nonnegative: bool,
+}
+
+impl Default for EquationErrorOptions {
+    fn default() -> Self {
+        Self {
+            damping: false,
+            by_region: false,
+            nonnegative: true,
+        }
+    }
+}
+
+/// The fitted coefficients and how well they explain the data.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EquationErrorFit {
+    /// Coefficients, `groups x terms`, group-major (for one model per group: `[mu, lambda]`).
+    pub coefficients: Vec<f64>,
+    /// Terms per group.
+    pub terms: usize,
+    /// Region tags of the groups (one `0` group when not by region).
+    pub groups: Vec<u32>,
+    /// Rayleigh `alpha` (fitted, or the integrator's).
+    pub alpha: f64,
+    /// Rayleigh `gamma` (fitted, or the integrator's).
+    pub gamma: f64,
+    /// `||A p - b|| / ||b||` at the solution.
+    pub relative_residual: f64,
+    /// Equations used (free DOFs x pairs).
+    pub equations: usize,
+}
+
+/// Why a fit failed.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum FitError {
+    /// No pair in the data.
+    #[error("no data pairs to fit")]
+    NoData,
+    /// A trajectory does not match the mesh.
+    #[error("trajectory {index}: {reason}")]
+    Data {
+        /// Trajectory index.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The assembly failed on a data state (e.g. an inverted element for Neo-Hookean).
+    #[error("trajectory {trajectory}, step {step}: {source}")]
+    Assembly {
+        /// Trajectory index.
+        trajectory: usize,
+        /// Step of the state.
+        step: usize,
+        /// The cause.
+        source: deform_assembly::AssemblyError,
+    },
+    /// The least-squares problem is singular (the data do not excite a parameter).
+    #[error("the data do not determine the parameters (rank-deficient least squares)")]
+    Singular,
+}
+
+/// Fits the coefficients of the integrator's material (its term split) and optionally the
+/// Rayleigh parameters to the pairs of `trajectories`, by equation error.
+///
+/// # Errors
+/// [`FitError`].
+pub fn fit_equation_error(
+    sim: &Integrator,
+    trajectories: &[&Trajectory],
+    options: EquationErrorOptions,
+) -> Result<EquationErrorFit, FitError> {
+    let asm = sim.assembly();
+    let dt = sim.options().dt;
+    let grouping = if options.by_region {
+        Grouping::by_region(asm)
+    } else {
+        Grouping::global(asm)
+    };
+    let terms = asm.materials().max_terms();
+    let nc = terms * grouping.num_groups();
+    let p = if options.damping { 2 * nc + 1 } else { nc };
+    let n = asm.num_dofs();
+    let free = sim.dofs().free_dofs();
+    let mass = sim.mass();
+    let (alpha0, gamma0) = (sim.options().alpha, sim.options().gamma);
+    let mut g = DMatrix::<f64>::zeros(p, p);
+    let mut h = DVector::<f64>::zeros(p);
+    let mut bb = 0.0;
+    let mut equations = 0;
+    let mut column = vec![0.0; n];
+    for (ti, t) in trajectories.iter().enumerate() {
+        if t.x.iter().chain(&t.v).any(|f| f.len() != n) {
+            return Err(FitError::Data {
+                index: ti,
+                reason: format!("states must have {n} values (3 per vertex)"),
+            });
+        }
+        for step in 0..t.steps() {
+            let (x1, v0, v1) = (&t.x[step + 1], &t.v[step], &t.v[step + 1]);
+            let fail = |source| FitError::Assembly {
+                trajectory: ti,
+                step: step + 1,
+                source,
+            };
+            let jf = asm.term_forces(x1, &grouping).map_err(fail)?;
+            // Columns of A (full length, restricted below), and b.
+            let mut cols: Vec<Vec<f64>> = (0..nc)
+                .map(|j| jf.column(j).iter().map(|v| dt * v).collect())
+                .collect();
+            let mut b = vec![0.0; n];
+            let dv: Vec<f64> = v1.iter().zip(v0).map(|(a, b)| a - b).collect();
+            asm.mass_apply(mass, &dv, &mut b).map_err(fail)?;
+            for (bi, gi) in b.iter_mut().zip(sim.gravity_forces()) {
+                *bi -= dt * gi;
+            }
+            let mut mv = vec![0.0; n];
+            asm.mass_apply(mass, v1, &mut mv).map_err(fail)?;
+            if options.damping {
+                let jk = asm
+                    .term_stiffness_products(x1, v1, &grouping)
+                    .map_err(fail)?;
+                for j in 0..nc {
+                    cols.push(jk.column(j).iter().map(|v| -dt * v).collect());
+                }
+                cols.push(mv.iter().map(|v| -dt * v).collect());
+            } else {
+                // Known damping moves to the right-hand side, with the model's own K.
+                if gamma0 != 0.0 || alpha0 != 0.0 {
+                    let mut kv = vec![0.0; n];
+                    if gamma0 != 0.0 {
+                        asm.tangents(x1, deform_assembly::Tangent::Exact)
+                            .map_err(fail)?
+                            .apply(v1, &mut kv);
+                    }
+                    for i in 0..n {
+                        b[i] += dt * (alpha0 * mv[i] + gamma0 * kv[i]);
+                    }
+                }
+            }
+            // Accumulate the normal equations on the free DOFs.
+            for a in 0..p {
+                for &i in free {
+                    column[i] = cols[a][i];
+                }
+                h[a] += free.iter().map(|&i| column[i] * b[i]).sum::<f64>();
+                for c in a..p {
+                    let v: f64 = free.iter().map(|&i| cols[a][i] * cols[c][i]).sum();
+                    g[(a, c)] += v;
+                    if a != c {
+                        g[(c, a)] += v;
+                    }
+                }
+            }
+            bb += free.iter().map(|&i| b[i] * b[i]).sum::<f64>();
+            equations += free.len();
+        }
+    }
+    if equations == 0 {
+        return Err(FitError::NoData);
+    }
+    // Unit column scaling.
+    let scale: Vec<f64> = (0..p).map(|a| g[(a, a)].sqrt()).collect();
+    if scale.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(FitError::Singular);
+    }
+    let gs = DMatrix::from_fn(p, p, |a, c| g[(a, c)] / (scale[a] * scale[c]));
+    let hs = DVector::from_fn(p, |a, _| h[a] / scale[a]);
+    let ys = if options.nonnegative {
+        nnls_normal(&gs, &hs).ok_or(FitError::Singular)?
+    } else {
+        solve_spd(&gs, &hs).ok_or(FitError::Singular)?
+    };
+    let y: Vec<f64> = (0..p).map(|a| ys[a] / scale[a]).collect();
+    let yv = DVector::from_column_slice(&y);
+    let residual2 = (bb - 2.0 * h.dot(&yv) + yv.dot(&(&g * &yv))).max(0.0);
+    let coefficients = y[..nc].to_vec();
+    let (alpha, gamma) = if options.damping {
+        let d = &y[nc..2 * nc];
+        let cc: f64 = coefficients.iter().map(|c| c * c).sum();
+        let dc: f64 = d.iter().zip(&coefficients).map(|(a, b)| a * b).sum();
+        (y[2 * nc], if cc > 0.0 { dc / cc } else { 0.0 })
+    } else {
+        (alpha0, gamma0)
+    };
+    Ok(EquationErrorFit {
+        coefficients,
+        terms,
+        groups: grouping.labels().to_vec(),
+        alpha,
+        gamma,
+        relative_residual: (residual2 / bb.max(f64::MIN_POSITIVE)).sqrt(),
+        equations,
+    })
+}
+
+/// Solves the SPD system `G y = h` (Cholesky, or `None` if singular).
+fn solve_spd(g: &DMatrix<f64>, h: &DVector<f64>) -> Option<DVector<f64>> {
+    let chol = g.clone().cholesky()?;
+    let y = chol.solve(h);
+    y.iter().all(|v| v.is_finite()).then_some(y)
+}
+
+/// Lawson-Hanson non-negative least squares on the normal equations: minimises
+/// `1/2 y^T G y - h^T y` subject to `y >= 0`.
+fn nnls_normal(g: &DMatrix<f64>, h: &DVector<f64>) -> Option<DVector<f64>> {
+    let p = h.len();
+    let mut x = DVector::<f64>::zeros(p);
+    let mut passive = vec![false; p];
+    let tol = 1e-12 * h.amax().max(1e-300);
+    for _outer in 0..3 * p + 10 {
+        let w = h - g * &x;
+        let candidate = (0..p)
+            .filter(|&j| !passive[j] && w[j] > tol)
+            .max_by(|&a, &b| w[a].total_cmp(&w[b]));
+        let Some(j) = candidate else {
+            return Some(x);
+        };
+        passive[j] = true;
+        for _inner in 0..3 * p + 10 {
+            let idx: Vec<usize> = (0..p).filter(|&k| passive[k]).collect();
+            let gp = DMatrix::from_fn(idx.len(), idx.len(), |a, b| g[(idx[a], idx[b])]);
+            let hp = DVector::from_fn(idx.len(), |a, _| h[idx[a]]);
+            let zp = solve_spd(&gp, &hp)?;
+            let mut z = DVector::<f64>::zeros(p);
+            for (a, &k) in idx.iter().enumerate() {
+                z[k] = zp[a];
+            }
+            if idx.iter().all(|&k| z[k] > 0.0) {
+                x = z;
+                break;
+            }
+            let step = idx
+                .iter()
+                .filter(|&&k| z[k] <= 0.0)
+                .map(|&k| x[k] / (x[k] - z[k]))
+                .fold(f64::INFINITY, f64::min);
+            x += (z - &x) * step;
+            for &k in &idx {
+                if x[k] <= tol {
+                    x[k] = 0.0;
+                    passive[k] = false;
+                }
+            }
+        }
+    }
+    Some(x)
+}
+
+/// The Lame pair and (E, nu) of a single-model fit of one group.
+pub fn lame_of(fit: &EquationErrorFit, group: usize) -> Option<deform_materials::Lame> {
+    if fit.terms != 2 {
+        return None;
+    }
+    let c = &fit.coefficients[2 * group..2 * group + 2];
+    deform_materials::Lame::try_new(c[0], c[1]).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nnls_matches_a_brute_force_on_small_problems() {
+        // G = A^T A for a fixed A; compare with enumerating all active sets.
+        let a = DMatrix::from_row_slice(
+            5,
+            3,
+            &[
+                1.0, 2.0, 0.5, -1.0, 0.3, 2.0, 0.7, -0.2, 1.0, 0.0, 1.5, -1.0, 2.0, 0.1, 0.4,
+            ],
+        );
+        for b in [
+            DVector::from_column_slice(&[1.0, -2.0, 0.5, 3.0, -1.0]),
+            DVector::from_column_slice(&[-1.0, -1.0, -1.0, -1.0, -1.0]),
+            DVector::from_column_slice(&[0.3, 2.0, 1.0, 0.0, 1.0]),
+        ] {
+            let (g, h) = (a.transpose() * &a, a.transpose() * &b);
+            let x = nnls_normal(&g, &h).unwrap();
+            let cost = |y: &DVector<f64>| (&a * y - &b).norm_squared();
+            let mut best = f64::INFINITY;
+            for mask in 0..8u32 {
+                let idx: Vec<usize> = (0..3).filter(|k| mask & (1 << k) != 0).collect();
+                let mut y = DVector::zeros(3);
+                if !idx.is_empty() {
+                    let gp = DMatrix::from_fn(idx.len(), idx.len(), |i, j| g[(idx[i], idx[j])]);
+                    let hp = DVector::from_fn(idx.len(), |i, _| h[idx[i]]);
+                    let z = gp.cholesky().unwrap().solve(&hp);
+                    if z.iter().any(|v| *v < 0.0) {
+                        continue;
+                    }
+                    for (i, &k) in idx.iter().enumerate() {
+                        y[k] = z[i];
+                    }
+                }
+                best = best.min(cost(&y));
+            }
+            assert!(x.iter().all(|v| *v >= 0.0));
+            assert!(
+                (cost(&x) - best).abs() <= 1e-10 * best.max(1.0),
+                "{} vs {best}",
+                cost(&x)
+            );
+        }
+    }
+}

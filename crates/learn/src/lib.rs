@@ -1,0 +1,15 @@
+//! Learning from trajectories: the seed's Section 2.1. Data are pairs
+//! `((x^n, v^n), (x^n+1, v^n+1))` produced by a base model (any scene) or imported from
+//! elsewhere; they fit material parameters and Rayleigh damping ([`fit`]), and weighted
+//! ensembles of energy models.
+//!
+//! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]); every
+//! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
+
+pub mod dataset;
+pub mod fit;
+pub mod npy;
+pub mod rng;
+
+pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
+pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
