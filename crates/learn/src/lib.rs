@@ -9,7 +9,9 @@
 pub mod dataset;
 pub mod fit;
 pub mod npy;
+pub mod output;
 pub mod rng;
 
 pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
+pub use output::{OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error};

@@ -276,3 +276,85 @@ fn per_region_moduli_on_a_gmsh_mesh() {
         );
     }
 }
+
+#[test]
+fn output_error_gradient_equals_finite_differences() {
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 1, 5);
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let trajectories = data.split(Split::Train);
+    for rollout in [1, 4] {
+        let options = deform_learn::OutputErrorOptions {
+            rollout,
+            velocity_weight: 0.5,
+            ..Default::default()
+        };
+        let objective =
+            deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
+        // Away from the truth, so the gradient is not zero.
+        let c = [3.0e4, 1.2e5];
+        let (loss, grad) = objective.evaluate(&c).unwrap();
+        assert!(loss > 0.0);
+        for j in 0..2 {
+            let h = 1e-4 * c[j];
+            let (mut cp, mut cm) = (c, c);
+            cp[j] += h;
+            cm[j] -= h;
+            let fd = (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0)
+                / (2.0 * h);
+            eprintln!(
+                "rollout {rollout}: dL/dc[{j}] = {:.6e}, finite difference {fd:.6e}",
+                grad[j]
+            );
+            assert!(
+                (grad[j] - fd).abs() <= 1e-4 * fd.abs(),
+                "rollout {rollout}, component {j}: {} vs {fd}",
+                grad[j]
+            );
+        }
+        drop(objective);
+    }
+}
+
+#[test]
+fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
+    let s = scene("", "Beam(2)");
+    let mut data = make(&s, 5, 20);
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let constrained = sim.dofs().constrained_vertices();
+    data.add_noise(
+        Noise {
+            position: 0.01,
+            velocity: 0.0,
+            seed: 7,
+        },
+        &constrained,
+    );
+    let train = data.split(Split::Train);
+    let stage1 = fit_equation_error(&sim, &train, EquationErrorOptions::default()).unwrap();
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 10,
+        ..Default::default()
+    };
+    let fit =
+        deform_learn::fit_output_error(&mut sim, &train, &stage1.coefficients, options, |_, _| {})
+            .unwrap();
+    let lame = deform_materials::Lame::try_new(fit.coefficients[0], fit.coefficients[1]).unwrap();
+    let (e, nu) = lame.to_young();
+    eprintln!(
+        "1 % noise: stage 1 E = {:.4e}, stage 2 E = {e:.4e} ({:.2} %), nu = {nu:.4} ({:.2} %), loss {:.3e} -> {:.3e}, {} iterations, {} evaluations, {:?}",
+        lame_of(&stage1, 0).unwrap().to_young().0,
+        100.0 * relative(e, 1e5),
+        100.0 * relative(nu, 0.4),
+        fit.initial_loss,
+        fit.loss,
+        fit.iterations.len(),
+        fit.evaluations,
+        fit.termination
+    );
+    assert!(fit.loss <= fit.initial_loss);
+    assert!(
+        relative(e, 1e5) < 0.02 && relative(nu, 0.4) < 0.02,
+        "E {e}, nu {nu}"
+    );
+}

@@ -1,0 +1,435 @@
+//! Stage 2 of force-model optimisation: the output error.
+//!
+//! From data states `(x^n, v^n)`, Backward-Euler rollouts of `rollout` steps predict the
+//! following states; the loss is the squared prediction error relative to the motion,
+//! `L = sum |x_pred - x_data|^2 / sum |x^n+1 - x^n|^2` (plus a weighted velocity term).
+//! Rollout gradients run the adjoint backwards through the steps: with `A_k lambda_k = g_k`,
+//! `g_k = adj_v(k+1) + dt adj_x(k+1)`, then `adj_x(k) = dl/dx_k + adj_x(k+1) - dt K lambda_k`
+//! and `adj_v(k) = dl/dv_k + M lambda_k` (`dr/dx_k = dt K`, `dr/dv_k = -M`).
+//! Its exact gradient comes from implicit differentiation of the converged step: with the
+//! residual `r(v, c) = 0` and its Jacobian `A = dr/dv` (the Newton matrix at the converged
+//! state), `dv/dc = -A^-1 dr/dc`, and in adjoint form `dL/dc = -lambda^T dr/dc` with
+//! `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
+//! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
+//!
+//! The parameters are the logarithms of the Lame pair (positive by construction); the
+//! optimiser is argmin's L-BFGS with a More-Thuente line search, behind [`fit_output_error`],
+//! which reports every iteration and ends with a typed [`Termination`].
+//!
+//! The gradient is exact for `gamma = 0`; with stiffness damping it neglects the term
+//! `dt^2 gamma (dK/dx) v` of `A` (as Newton does), an `O(dt^2 gamma)` relative error.
+
+use std::cell::RefCell;
+use std::sync::{Arc, Mutex};
+
+use argmin::core::observers::{Observe, ObserverMode};
+use argmin::core::{
+    CostFunction, Error as ArgminError, Executor, Gradient, IterState, KV, State as _,
+    TerminationReason,
+};
+use argmin::solver::linesearch::MoreThuenteLineSearch;
+use argmin::solver::quasinewton::LBFGS;
+use deform_assembly::{Grouping, MaterialField, Tangent};
+use deform_integrator::{Integrator, State};
+use deform_materials::Parametric;
+use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::Trajectory;
+use crate::fit::FitError;
+
+/// Options of the output-error fit.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputErrorOptions {
+    /// Weight of the velocity error (times `dt^2`, so it is measured like positions).
+    pub velocity_weight: f64,
+    /// Steps per rollout: 1 compares one-step predictions from every data state; `k`
+    /// predicts `k` steps from every `k`-th data state (noisy inputs then enter once per
+    /// rollout instead of once per step).
+    pub rollout: usize,
+    /// L-BFGS iteration cap.
+    pub max_iterations: u64,
+    /// Stop when the gradient norm (in log-parameters) is below this.
+    pub tolerance: f64,
+}
+
+impl Default for OutputErrorOptions {
+    fn default() -> Self {
+        Self {
+            velocity_weight: 0.0,
+            rollout: 1,
+            max_iterations: 50,
+            tolerance: 1e-10,
+        }
+    }
+}
+
+/// How the optimiser stopped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Termination {
+    /// The gradient or cost criterion was met.
+    Converged,
+    /// The iteration cap was reached.
+    MaxIterations,
+    /// The optimiser stopped for another reason (line search failure, ...).
+    Stopped(String),
+}
+
+/// One optimiser iteration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitIteration {
+    /// Iteration index.
+    pub iteration: u64,
+    /// Loss at the iterate.
+    pub loss: f64,
+    /// The coefficients (`mu, lambda`) at the iterate.
+    pub coefficients: Vec<f64>,
+}
+
+/// The result of an output-error fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OutputErrorFit {
+    /// Fitted coefficients (`mu, lambda` for a single model).
+    pub coefficients: Vec<f64>,
+    /// Loss at the start.
+    pub initial_loss: f64,
+    /// Loss at the end.
+    pub loss: f64,
+    /// Every iteration.
+    pub iterations: Vec<FitIteration>,
+    /// Loss evaluations (each is one Backward-Euler step per pair).
+    pub evaluations: usize,
+    /// Why it stopped.
+    pub termination: Termination,
+}
+
+/// Loss and gradient in the coefficients `c` for the pairs of `trajectories`.
+pub struct OutputError<'a> {
+    sim: RefCell<&'a mut Integrator>,
+    trajectories: Vec<&'a Trajectory>,
+    options: OutputErrorOptions,
+    solver: RefCell<Cholesky>,
+    cache: RefCell<Option<(Vec<f64>, f64, Vec<f64>)>>,
+    evaluations: RefCell<usize>,
+    progress: RefCell<Box<dyn FnMut(usize, f64) + 'a>>,
+}
+
+impl<'a> OutputError<'a> {
+    /// The objective on `sim`'s mesh, constraints and options, whose material (a single
+    /// uniform model) gets the coefficients being evaluated. `progress` sees each evaluation.
+    ///
+    /// # Errors
+    /// [`FitError::Data`] when the material is not one uniform model.
+    pub fn new(
+        sim: &'a mut Integrator,
+        trajectories: &[&'a Trajectory],
+        options: OutputErrorOptions,
+        progress: impl FnMut(usize, f64) + 'a,
+    ) -> Result<Self, FitError> {
+        if !matches!(sim.assembly().materials(), MaterialField::Uniform(_)) {
+            return Err(FitError::Data {
+                index: 0,
+                reason: "the output-error fit needs one uniform material".into(),
+            });
+        }
+        Ok(Self {
+            sim: RefCell::new(sim),
+            trajectories: trajectories.to_vec(),
+            options,
+            solver: RefCell::new(Cholesky::new(Ordering::Auto, Indefinite::Ldlt)),
+            cache: RefCell::new(None),
+            evaluations: RefCell::new(0),
+            progress: RefCell::new(Box::new(progress)),
+        })
+    }
+
+    /// Loss and its gradient at coefficients `c`.
+    ///
+    /// # Errors
+    /// [`FitError`] when a step or the assembly fails at these coefficients.
+    pub fn evaluate(&self, c: &[f64]) -> Result<(f64, Vec<f64>), FitError> {
+        if let Some((cached, loss, grad)) = self.cache.borrow().as_ref()
+            && cached == c
+        {
+            return Ok((*loss, grad.clone()));
+        }
+        let mut sim = self.sim.borrow_mut();
+        let MaterialField::Uniform(model) = sim.assembly().materials() else {
+            unreachable!("checked in new")
+        };
+        let mut model = model.clone();
+        model.set_params(c).map_err(|e| FitError::Data {
+            index: 0,
+            reason: format!("coefficients {c:?}: {e}"),
+        })?;
+        sim.assembly_mut()
+            .set_materials(MaterialField::Uniform(model))
+            .map_err(|e| FitError::Data {
+                index: 0,
+                reason: e.to_string(),
+            })?;
+        let dt = sim.options().dt;
+        let (alpha, gamma) = (sim.options().alpha, sim.options().gamma);
+        let n = sim.assembly().num_dofs();
+        let grouping = Grouping::global(sim.assembly());
+        let mass = sim.mass().clone();
+        let mut solver = self.solver.borrow_mut();
+        let (mut num, mut den) = (0.0, 0.0);
+        let mut grad = vec![0.0; c.len()];
+        let wv = self.options.velocity_weight * dt * dt;
+        let horizon = self.options.rollout.max(1);
+        for (ti, t) in self.trajectories.iter().enumerate() {
+            let mut start = 0;
+            while start < t.steps() {
+                let len = horizon.min(t.steps() - start);
+                // Forward: the rollout from the data state at `start`.
+                let mut states = vec![State {
+                    x: t.x[start].clone(),
+                    v: t.v[start].clone(),
+                    t: start as f64 * dt,
+                }];
+                for k in 0..len {
+                    let mut s = states[k].clone();
+                    sim.step(&mut s).map_err(|e| FitError::Data {
+                        index: ti,
+                        reason: format!("step {} at coefficients {c:?}: {e}", start + k),
+                    })?;
+                    states.push(s);
+                }
+                // Loss terms and their partial derivatives per predicted state.
+                let mut dl_dx = vec![vec![0.0; n]; len + 1];
+                let mut dl_dv = vec![vec![0.0; n]; len + 1];
+                for k in 1..=len {
+                    let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
+                    for i in 0..n {
+                        let ex = states[k].x[i] - xd[i];
+                        let ev = states[k].v[i] - vd[i];
+                        num += ex * ex + wv * ev * ev;
+                        let motion = xd[i] - t.x[start + k - 1][i];
+                        den += motion * motion;
+                        dl_dx[k][i] = 2.0 * ex;
+                        dl_dv[k][i] = 2.0 * wv * ev;
+                    }
+                }
+                // Backward (adjoint) through the steps, see the module docs.
+                let mut adj_x = dl_dx[len].clone();
+                let mut adj_v = dl_dv[len].clone();
+                for k in (0..len).rev() {
+                    let next = &states[k + 1];
+                    let fail = |e: deform_assembly::AssemblyError| FitError::Assembly {
+                        trajectory: ti,
+                        step: start + k + 1,
+                        source: e,
+                    };
+                    let asm = sim.assembly_mut();
+                    let mut kmat = asm.stiffness_matrix();
+                    asm.stiffness(&next.x, Tangent::Exact, &mut kmat)
+                        .map_err(fail)?;
+                    let mut a = asm.stiffness_matrix();
+                    asm.combine(1.0 + dt * alpha, &mass, dt * gamma + dt * dt, &kmat, &mut a)
+                        .map_err(fail)?;
+                    let dofs = sim.dofs();
+                    let mut reduced = dofs.reduced_matrix(&a).map_err(fail)?;
+                    dofs.restrict_matrix(&a, &mut reduced).map_err(fail)?;
+                    // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
+                    let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
+                    let mut g_free = vec![0.0; dofs.num_free()];
+                    dofs.restrict(&g, &mut g_free).map_err(fail)?;
+                    let solve_fail = |e: deform_solvers::SolverError| FitError::Data {
+                        index: ti,
+                        reason: format!("adjoint solve at step {}: {e}", start + k),
+                    };
+                    solver.factorize(&reduced.matrix).map_err(solve_fail)?;
+                    let mut lambda_free = vec![0.0; g_free.len()];
+                    solver
+                        .solve(&reduced.matrix, &g_free, &mut lambda_free)
+                        .map_err(solve_fail)?;
+                    let mut lambda = vec![0.0; n];
+                    dofs.scatter(&lambda_free, &mut lambda).map_err(fail)?;
+                    // dL/dc += dt lambda^T (J_f - gamma J_k) at the step's end state.
+                    let jf = sim
+                        .assembly()
+                        .term_forces(&next.x, &grouping)
+                        .map_err(fail)?;
+                    let jk = if gamma != 0.0 {
+                        Some(
+                            sim.assembly()
+                                .term_stiffness_products(&next.x, &next.v, &grouping)
+                                .map_err(fail)?,
+                        )
+                    } else {
+                        None
+                    };
+                    for (j, gj) in grad.iter_mut().enumerate() {
+                        let f = jf.column(j);
+                        let kv = jk.as_ref().map(|m| m.column(j));
+                        let mut sum = 0.0;
+                        for i in 0..n {
+                            sum += lambda[i] * (f[i] - kv.as_ref().map_or(0.0, |kc| gamma * kc[i]));
+                        }
+                        *gj += dt * sum;
+                    }
+                    if k == 0 {
+                        break;
+                    }
+                    // Adjoints of the state at k: x_{k+1} = x_k + dt v_{k+1} passes adj_x on;
+                    // dr/dx_k = dt K and dr/dv_k = -M enter through lambda. Constrained DOFs
+                    // are prescribed: their adjoints vanish.
+                    let mut k_lambda = vec![0.0; n];
+                    deform_solvers::LinearOperator::apply(&kmat, &lambda, &mut k_lambda);
+                    let mut m_lambda = vec![0.0; n];
+                    sim.assembly()
+                        .mass_apply(&mass, &lambda, &mut m_lambda)
+                        .map_err(fail)?;
+                    for i in 0..n {
+                        adj_x[i] = dl_dx[k][i] + adj_x[i] - dt * k_lambda[i];
+                        adj_v[i] = dl_dv[k][i] + m_lambda[i];
+                    }
+                    for v in sim.dofs().constrained_vertices() {
+                        for d in 0..3 {
+                            adj_x[3 * v + d] = 0.0;
+                            adj_v[3 * v + d] = 0.0;
+                        }
+                    }
+                }
+                start += len;
+            }
+        }
+        if den <= 0.0 {
+            return Err(FitError::NoData);
+        }
+        let loss = num / den;
+        for gj in &mut grad {
+            *gj /= den;
+        }
+        *self.evaluations.borrow_mut() += 1;
+        (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
+        *self.cache.borrow_mut() = Some((c.to_vec(), loss, grad.clone()));
+        Ok((loss, grad))
+    }
+}
+
+/// argmin sees log-coefficients.
+struct LogProblem<'p, 'a>(&'p OutputError<'a>);
+
+impl CostFunction for LogProblem<'_, '_> {
+    type Param = Vec<f64>;
+    type Output = f64;
+
+    fn cost(&self, p: &Vec<f64>) -> Result<f64, ArgminError> {
+        let c: Vec<f64> = p.iter().map(|v| v.exp()).collect();
+        Ok(self.0.evaluate(&c)?.0)
+    }
+}
+
+impl Gradient for LogProblem<'_, '_> {
+    type Param = Vec<f64>;
+    type Gradient = Vec<f64>;
+
+    fn gradient(&self, p: &Vec<f64>) -> Result<Vec<f64>, ArgminError> {
+        let c: Vec<f64> = p.iter().map(|v| v.exp()).collect();
+        let (_, g) = self.0.evaluate(&c)?;
+        Ok(g.iter().zip(&c).map(|(gi, ci)| gi * ci).collect())
+    }
+}
+
+/// Records every iteration (argmin wants a `'static` observer, hence the shared vector).
+struct Recorder(Arc<Mutex<Vec<FitIteration>>>);
+
+impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
+    fn observe_iter(
+        &mut self,
+        state: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
+        _kv: &KV,
+    ) -> Result<(), ArgminError> {
+        let coefficients = state
+            .get_param()
+            .map(|p| p.iter().map(|v| v.exp()).collect())
+            .unwrap_or_default();
+        self.0.lock().expect("not poisoned").push(FitIteration {
+            iteration: state.get_iter(),
+            loss: state.get_cost(),
+            coefficients,
+        });
+        Ok(())
+    }
+}
+
+/// Fits the Lame pair of `sim`'s (uniform, single-model) material to the one-step
+/// predictions of `trajectories`, starting from `initial` (`mu, lambda`), with L-BFGS.
+/// `progress(evaluation, loss)` is called after every loss evaluation. The fitted material
+/// is left in `sim`.
+///
+/// # Errors
+/// [`FitError`] when the data or the first evaluation fail.
+pub fn fit_output_error(
+    sim: &mut Integrator,
+    trajectories: &[&Trajectory],
+    initial: &[f64],
+    options: OutputErrorOptions,
+    progress: impl FnMut(usize, f64),
+) -> Result<OutputErrorFit, FitError> {
+    let objective = OutputError::new(sim, trajectories, options, progress)?;
+    let (initial_loss, _) = objective.evaluate(initial)?;
+    let records = Arc::new(Mutex::new(Vec::new()));
+    let solver = LBFGS::new(MoreThuenteLineSearch::new(), 7)
+        .with_tolerance_grad(options.tolerance)
+        .and_then(|s| s.with_tolerance_cost(0.0))
+        .map_err(|e| FitError::Data {
+            index: 0,
+            reason: e.to_string(),
+        })?;
+    let start: Vec<f64> = initial.iter().map(|c| c.ln()).collect();
+    let result = Executor::new(LogProblem(&objective), solver)
+        .configure(|s| s.param(start).max_iters(options.max_iterations))
+        .add_observer(Recorder(records.clone()), ObserverMode::Always)
+        .run();
+    let evaluations = *objective.evaluations.borrow();
+    let (coefficients, loss, termination) = match result {
+        Ok(res) => {
+            let state = res.state();
+            let best: Vec<f64> = state
+                .get_best_param()
+                .cloned()
+                .unwrap_or_default()
+                .iter()
+                .map(|v| v.exp())
+                .collect();
+            let termination = match state.get_termination_reason() {
+                Some(TerminationReason::MaxItersReached) => Termination::MaxIterations,
+                Some(TerminationReason::SolverConverged | TerminationReason::TargetCostReached)
+                | None => Termination::Converged,
+                Some(other) => Termination::Stopped(other.text().to_owned()),
+            };
+            (best, state.get_best_cost(), termination)
+        }
+        Err(e) => {
+            // Keep the best iterate seen before the optimiser stopped.
+            let recs = records.lock().expect("not poisoned");
+            let best = recs
+                .iter()
+                .min_by(|a, b| a.loss.total_cmp(&b.loss))
+                .cloned();
+            match best {
+                Some(b) => (b.coefficients, b.loss, Termination::Stopped(e.to_string())),
+                None => (
+                    initial.to_vec(),
+                    initial_loss,
+                    Termination::Stopped(e.to_string()),
+                ),
+            }
+        }
+    };
+    // Leave the best coefficients in the integrator.
+    objective.evaluate(&coefficients)?;
+    let iterations = records.lock().expect("not poisoned").clone();
+    Ok(OutputErrorFit {
+        coefficients,
+        initial_loss,
+        loss,
+        iterations,
+        evaluations,
+        termination,
+    })
+}
