@@ -104,13 +104,16 @@ pub struct OutputErrorFit {
     pub termination: Termination,
 }
 
+/// Coefficients with their loss and gradient.
+type Evaluation = (Vec<f64>, f64, Vec<f64>);
+
 /// Loss and gradient in the coefficients `c` for the pairs of `trajectories`.
 pub struct OutputError<'a> {
     sim: RefCell<&'a mut Integrator>,
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
-    cache: RefCell<Option<(Vec<f64>, f64, Vec<f64>)>>,
+    cache: RefCell<Option<Evaluation>>,
     evaluations: RefCell<usize>,
     progress: RefCell<Box<dyn FnMut(usize, f64) + 'a>>,
 }
