@@ -60,9 +60,9 @@ pub(crate) struct Geometry {
     /// Vertex `v`'s element slots `4 e + a`, in element order.
     pub vertex_ptr: Vec<usize>,
     pub vertex_slots: Vec<u32>,
-    /// Block `k`'s contributions `2 (10 e + u) + transposed`, in element order.
-    pub block_ptr: Vec<usize>,
-    pub block_slots: Vec<u32>,
+    /// For the `j`-th vertex slot `(e, a)` of vertex `v` and each `b`, the position of block
+    /// `(t[a], t[b])` within row `v` of the block pattern: `row_targets[4 j + b]`.
+    pub row_targets: Vec<u32>,
 }
 
 /// What the element phase writes for one element.
@@ -126,25 +126,17 @@ impl Assembly {
         for v in 0..mesh.num_vertices() {
             vertex_slots.extend(adjacency.of(v).iter().map(|&(e, a)| (4 * e + a) as u32));
         }
-        let element_blocks = pattern.element_blocks(mesh);
-        let mut block_ptr = vec![0usize; pattern.num_blocks() + 1];
-        for eb in &element_blocks {
-            for &k in eb {
-                block_ptr[k + 1] += 1;
-            }
-        }
-        for k in 0..pattern.num_blocks() {
-            block_ptr[k + 1] += block_ptr[k];
-        }
-        let mut fill = block_ptr.clone();
-        let mut block_slots = vec![0u32; block_ptr[pattern.num_blocks()]];
-        for (e, eb) in element_blocks.iter().enumerate() {
-            for a in 0..4 {
-                for b in 0..4 {
-                    let k = eb[4 * a + b];
-                    let (u, t) = upper_slot(a, b);
-                    block_slots[fill[k]] = (2 * (10 * e + u) + usize::from(t)) as u32;
-                    fill[k] += 1;
+        let tets = mesh.tets();
+        let mut row_targets = Vec::with_capacity(4 * vertex_slots.len());
+        for v in 0..mesh.num_vertices() {
+            let start = pattern.offsets()[v];
+            for &slot in &vertex_slots[vertex_ptr[v]..vertex_ptr[v + 1]] {
+                let t = &tets[slot as usize / 4];
+                for &j in t {
+                    let k = pattern
+                        .find(v, j)
+                        .expect("element pairs are in the pattern");
+                    row_targets.push((k - start) as u32);
                 }
             }
         }
@@ -159,8 +151,7 @@ impl Assembly {
             indices,
             vertex_ptr,
             vertex_slots,
-            block_ptr,
-            block_slots,
+            row_targets,
         };
         Ok(Self {
             geometry,
@@ -516,44 +507,48 @@ fn gather_stiffness(geo: &Geometry, work: &[ElementOut], values: &mut [f64]) {
     gather_blocks(geo, |slot| work[slot / 10].blocks[slot % 10], values);
 }
 
-/// Sums element blocks (upper slot `10 e + u`) into CSR values through the block map.
+/// Sums element blocks into CSR values row by row: for each vertex, its elements (in element
+/// order) add their four blocks of that row into a row accumulator, read together from the
+/// element's buffer; each block is therefore summed in element order whatever the threads.
 pub(crate) fn gather_blocks(
     geo: &Geometry,
     block: impl Fn(usize) -> Matrix3<f64> + Sync,
     values: &mut [f64],
 ) {
-    let pattern = &geo.pattern;
-    let offsets = pattern.offsets();
+    let offsets = geo.pattern.offsets();
     vertex_chunks(values, |v| 9 * offsets[v], geo.num_vertices)
         .into_par_iter()
         .for_each(|(v0, out)| {
             let base = 9 * offsets[v0];
+            let mut acc: Vec<Matrix3<f64>> = Vec::new();
             let mut v = v0;
-            let mut row_start = offsets[v];
-            while row_start * 9 - base < out.len() {
-                let row_end = offsets[v + 1];
+            while v < geo.num_vertices && 9 * offsets[v] - base < out.len() {
+                let (row_start, row_end) = (offsets[v], offsets[v + 1]);
                 let len = row_end - row_start;
-                for k in row_start..row_end {
-                    let mut acc = Matrix3::zeros();
-                    for &code in &geo.block_slots[geo.block_ptr[k]..geo.block_ptr[k + 1]] {
-                        let b = block((code >> 1) as usize);
-                        if code & 1 == 1 {
-                            acc += b.transpose();
+                acc.clear();
+                acc.resize(len, Matrix3::zeros());
+                for j in geo.vertex_ptr[v]..geo.vertex_ptr[v + 1] {
+                    let slot = geo.vertex_slots[j] as usize;
+                    let (e, a) = (slot / 4, slot % 4);
+                    for b in 0..4 {
+                        let (u, transposed) = upper_slot(a, b);
+                        let m = block(10 * e + u);
+                        let target = &mut acc[geo.row_targets[4 * j + b] as usize];
+                        if transposed {
+                            *target += m.transpose();
                         } else {
-                            acc += b;
+                            *target += m;
                         }
                     }
-                    let col = 3 * (k - row_start);
+                }
+                let row = &mut out[9 * row_start - base..9 * row_end - base];
+                for (k, m) in acc.iter().enumerate() {
                     for r in 0..3 {
-                        let at = 9 * row_start - base + 3 * len * r + col;
-                        out[at..at + 3].copy_from_slice(&[acc[(r, 0)], acc[(r, 1)], acc[(r, 2)]]);
+                        let at = 3 * len * r + 3 * k;
+                        row[at..at + 3].copy_from_slice(&[m[(r, 0)], m[(r, 1)], m[(r, 2)]]);
                     }
                 }
                 v += 1;
-                if v == geo.num_vertices {
-                    break;
-                }
-                row_start = offsets[v];
             }
         });
 }
