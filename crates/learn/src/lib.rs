@@ -7,11 +7,13 @@
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
 
 pub mod dataset;
+pub mod ensemble;
 pub mod fit;
 pub mod npy;
 pub mod output;
 pub mod rng;
 
 pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
+pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble};
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
 pub use output::{OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error};

@@ -358,3 +358,56 @@ fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
         "E {e}, nu {nu}"
     );
 }
+
+#[test]
+fn the_generating_model_carries_the_ensemble() {
+    let members = [
+        "LinearElastic",
+        "CorotatedLinear",
+        "StVenantKirchhoff",
+        "NeoHookean",
+    ];
+    let variations = Variations {
+        speed: 2.0,
+        spin: 4.0,
+        stretch: 0.3,
+        rest: false,
+    };
+    for base in members {
+        let spec = if base == "CorotatedLinear" {
+            "CorotatedLinear(moduli: Young(e: 1e5, nu: 0.3))".to_owned()
+        } else {
+            format!("{base}(Young(e: 1e5, nu: 0.3))")
+        };
+        let mut s = scene("", "Beam(1)");
+        s.material = ron::from_str(&spec).unwrap();
+        let data = generate(
+            &s,
+            Path::new("test"),
+            5,
+            12,
+            3,
+            &variations,
+            (0.6, 0.2),
+            |_, _| {},
+        )
+        .unwrap();
+        let fit = deform_learn::fit_ensemble(
+            &s,
+            Path::new("test"),
+            &members,
+            &data.split(Split::Train),
+            &data.split(Split::Test),
+        )
+        .unwrap();
+        let share: Vec<String> = fit
+            .members
+            .iter()
+            .map(|m| format!("{} {:.4}", m.model, m.energy_share))
+            .collect();
+        eprintln!("base {base}: {}", share.join(", "));
+        let own = fit.members.iter().find(|m| m.model == base).unwrap();
+        assert!(own.energy_share >= 0.9, "base {base}: {share:?}");
+        assert!(fit.spec().is_some());
+    }
+}

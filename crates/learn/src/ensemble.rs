@@ -1,0 +1,176 @@
+//! Model selection (seed: "an ensemble ... learn the best configuration of the weights"):
+//! a weighted sum of linear, corotated, StVK, Neo-Hookean and stable Neo-Hookean energies,
+//! fitted by the equation error with non-negative coefficients. Each member `m` contributes
+//! the term pair `w_m (mu_m, lambda_m)`, so the fit finds every member's effective Lame pair
+//! at once; a member the data do not support gets zero. The report gives each member's share
+//! of the ensemble's elastic energy on given states.
+
+use std::path::Path;
+
+use deform_assembly::{Assembly, MaterialField};
+use deform_integrator::Scene;
+use deform_materials::{EnsembleMember, Lame, MaterialSpec, Model, Moduli};
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::Trajectory;
+use crate::fit::{EquationErrorOptions, FitError, fit_equation_error};
+
+/// The candidate members, by name.
+pub const MEMBERS: [&str; 5] = [
+    "LinearElastic",
+    "CorotatedLinear",
+    "StVenantKirchhoff",
+    "NeoHookean",
+    "StableNeoHookean",
+];
+
+fn member_spec(name: &str, lame: Moduli) -> MaterialSpec {
+    match name {
+        "LinearElastic" => MaterialSpec::LinearElastic(lame),
+        "CorotatedLinear" => MaterialSpec::CorotatedLinear {
+            moduli: lame,
+            lagged_rotation: false,
+        },
+        "StVenantKirchhoff" => MaterialSpec::StVenantKirchhoff(lame),
+        "NeoHookean" => MaterialSpec::NeoHookean(lame),
+        _ => MaterialSpec::StableNeoHookean(lame),
+    }
+}
+
+/// One fitted member.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FittedMember {
+    /// Model name.
+    pub model: String,
+    /// Effective `mu` (weight times the member's own).
+    pub mu: f64,
+    /// Effective `lambda`.
+    pub lambda: f64,
+    /// Share of the ensemble's elastic energy on the evaluation states (0 to 1).
+    pub energy_share: f64,
+}
+
+/// The fitted ensemble.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EnsembleFit {
+    /// The members, in the order of `names`.
+    pub members: Vec<FittedMember>,
+    /// Relative equation-error residual.
+    pub relative_residual: f64,
+}
+
+impl EnsembleFit {
+    /// The fitted ensemble as a material specification (members with zero coefficients
+    /// left out).
+    pub fn spec(&self) -> Option<MaterialSpec> {
+        let members: Vec<EnsembleMember> = self
+            .members
+            .iter()
+            .filter(|m| m.mu > 0.0 && m.mu + 2.0 * m.lambda / 3.0 > 0.0)
+            .map(|m| EnsembleMember {
+                weight: 1.0,
+                model: member_spec(
+                    &m.model,
+                    Moduli::Lame {
+                        mu: m.mu,
+                        lambda: m.lambda,
+                    },
+                ),
+            })
+            .collect();
+        (!members.is_empty()).then_some(MaterialSpec::Ensemble(members))
+    }
+}
+
+/// Fits an ensemble of the models `names` (from [`MEMBERS`]) to `train` with the equation
+/// error, using `scene`'s mesh, constraints and integrator options; reports energy shares on
+/// the states of `evaluate`.
+///
+/// # Errors
+/// [`FitError`].
+pub fn fit_ensemble(
+    scene: &Scene,
+    origin: &Path,
+    names: &[&str],
+    train: &[&Trajectory],
+    evaluate: &[&Trajectory],
+) -> Result<EnsembleFit, FitError> {
+    // Any positive starting moduli: the equation error only uses the term split.
+    let start = Moduli::Lame {
+        mu: 1.0,
+        lambda: 1.0,
+    };
+    let mut variant = scene.clone();
+    variant.material = MaterialSpec::Ensemble(
+        names
+            .iter()
+            .map(|n| EnsembleMember {
+                weight: 1.0,
+                model: member_spec(n, start),
+            })
+            .collect(),
+    );
+    let built = variant.build(origin).map_err(|e| FitError::Data {
+        index: 0,
+        reason: e.to_string(),
+    })?;
+    let fit = fit_equation_error(&built.integrator, train, EquationErrorOptions::default())?;
+    let mut members: Vec<FittedMember> = names
+        .iter()
+        .enumerate()
+        .map(|(m, n)| FittedMember {
+            model: (*n).to_owned(),
+            mu: fit.coefficients[2 * m],
+            lambda: fit.coefficients[2 * m + 1],
+            energy_share: 0.0,
+        })
+        .collect();
+    // Energy of each member on the evaluation states.
+    let mesh = &built.mesh;
+    let mut energy = vec![0.0; members.len()];
+    for (m, member) in members.iter().enumerate() {
+        let Some(model) = model_of(&member.model, member.mu, member.lambda) else {
+            continue;
+        };
+        let mut asm =
+            Assembly::new(mesh, MaterialField::Uniform(model)).map_err(|e| FitError::Data {
+                index: 0,
+                reason: e.to_string(),
+            })?;
+        for (ti, t) in evaluate.iter().enumerate() {
+            for (step, x) in t.x.iter().enumerate() {
+                energy[m] += asm.energy(x).map_err(|source| FitError::Assembly {
+                    trajectory: ti,
+                    step,
+                    source,
+                })?;
+            }
+        }
+    }
+    let total: f64 = energy.iter().sum();
+    for (member, e) in members.iter_mut().zip(&energy) {
+        member.energy_share = if total > 0.0 { e / total } else { 0.0 };
+    }
+    Ok(EnsembleFit {
+        members,
+        relative_residual: fit.relative_residual,
+    })
+}
+
+/// A member with its effective Lame pair, or `None` when it carries nothing. The pair may
+/// have `lambda = 0` (then `Lame::try_new` is given a tiny positive bulk part if needed).
+fn model_of(name: &str, mu: f64, lambda: f64) -> Option<Model> {
+    if mu <= 0.0 && lambda <= 0.0 {
+        return None;
+    }
+    let lame = Lame::try_new(mu.max(1e-12), lambda).ok()?;
+    member_spec(
+        name,
+        Moduli::Lame {
+            mu: lame.mu,
+            lambda: lame.lambda,
+        },
+    )
+    .build()
+    .ok()
+}
