@@ -7,7 +7,7 @@
 //! mesh (vertex -> element slots, CSR block -> element blocks), in parallel over vertices,
 //! each sum in a fixed order. No output depends on how the work was split.
 
-use deform_materials::{Material, Matrix9};
+use deform_materials::{Material, Matrix9, Model};
 use deform_mesh::TetMesh;
 use deform_mesh::topology::{BlockPattern, VertexElements};
 use nalgebra::{Matrix3, Vector3};
@@ -372,6 +372,21 @@ pub(crate) fn for_each_element<T: Send>(
     first_error.into_iter().next().map_or(Ok(()), Err)
 }
 
+/// [`for_each_element`] with each element's model: the one place that dispatches on the
+/// material field (a uniform field needs no per-element lookup).
+pub(crate) fn for_each_element_with_model<T: Send>(
+    materials: &MaterialField,
+    buffer: &mut [T],
+    body: impl Fn(usize, &mut T, &Model) -> Result<(), AssemblyError> + Sync,
+) -> Result<(), AssemblyError> {
+    match materials {
+        MaterialField::Uniform(m) => for_each_element(buffer, |e, out| body(e, out, m)),
+        MaterialField::PerElement { models, index } => {
+            for_each_element(buffer, |e, out| body(e, out, &models[index[e] as usize]))
+        }
+    }
+}
+
 fn element_phase(
     geo: &Geometry,
     materials: &MaterialField,
@@ -379,27 +394,11 @@ fn element_phase(
     need: Need,
     work: &mut [ElementOut],
 ) -> Result<(), AssemblyError> {
-    match materials {
-        MaterialField::Uniform(m) => element_phase_with(geo, |_| m, x, need, work),
-        MaterialField::PerElement { models, index } => {
-            element_phase_with(geo, |e| &models[index[e] as usize], x, need, work)
-        }
-    }
-}
-
-fn element_phase_with<'m, M: Material + 'm>(
-    geo: &Geometry,
-    material: impl Fn(usize) -> &'m M + Sync,
-    x: &[f64],
-    need: Need,
-    work: &mut [ElementOut],
-) -> Result<(), AssemblyError> {
-    for_each_element(work, |e, out| {
+    for_each_element_with_model(materials, work, |e, out, m| {
         let t = &geo.tets[e];
         let g = &geo.grads[e];
         let w = geo.volumes[e];
         let f = gradient(&corners(x, t), g);
-        let m = material(e);
         if !m.admissible(&f) {
             return Err(AssemblyError::Inadmissible {
                 element: e,

@@ -6,10 +6,11 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::assembly::{
-    Geometry, Tangent, check_len, check_positions, corners, for_each_element, gather_vertex_vectors,
+    Geometry, Tangent, check_len, check_positions, corners, for_each_element_with_model,
+    gather_vertex_vectors,
 };
 use crate::kernel::{gradient, stiffness_blocks};
-use crate::{Assembly, AssemblyError, MaterialField};
+use crate::{Assembly, AssemblyError};
 
 /// The element tangents `W_e dP/dF(F_e)` at one configuration: a matrix-free `K`.
 ///
@@ -58,14 +59,7 @@ impl Assembly {
             *out = c * geo.volumes[e];
             Ok(())
         };
-        match &self.materials {
-            MaterialField::Uniform(m) => for_each_element(&mut tangents, |e, out| body(e, out, m))?,
-            MaterialField::PerElement { models, index } => {
-                for_each_element(&mut tangents, |e, out| {
-                    body(e, out, &models[index[e] as usize])
-                })?
-            }
-        }
+        for_each_element_with_model(&self.materials, &mut tangents, body)?;
         Ok(ElementTangents {
             geometry: geo,
             tangents,
@@ -102,16 +96,7 @@ impl Assembly {
             *out = corner_products(&dp, g, -geo.volumes[e]);
             Ok(())
         };
-        match &self.materials {
-            MaterialField::Uniform(m) => {
-                for_each_element(&mut corner_forces, |e, out| body(e, out, m))?
-            }
-            MaterialField::PerElement { models, index } => {
-                for_each_element(&mut corner_forces, |e, out| {
-                    body(e, out, &models[index[e] as usize])
-                })?
-            }
-        }
+        for_each_element_with_model(&self.materials, &mut corner_forces, body)?;
         gather_vertex_vectors(geo, |slot| corner_forces[slot / 4][slot % 4], df);
         finite_or_first_vertex(df)
     }

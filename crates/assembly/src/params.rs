@@ -10,9 +10,11 @@ use deform_materials::{Material, Model, mat3, vec9};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use crate::assembly::{check_len, check_positions, corners, for_each_element, vertex_chunks};
+use crate::assembly::{
+    check_len, check_positions, corners, for_each_element_with_model, vertex_chunks,
+};
 use crate::kernel::gradient;
-use crate::{Assembly, AssemblyError, MaterialField};
+use crate::{Assembly, AssemblyError};
 
 /// Which elements share coefficients.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -153,16 +155,7 @@ impl Assembly {
             Ok(())
         };
         if terms > 0 {
-            match &self.materials {
-                MaterialField::Uniform(m) => {
-                    for_each_element(&mut elements, |e, out| body(e, out, m))?
-                }
-                MaterialField::PerElement { models, index } => {
-                    for_each_element(&mut elements, |e, out| {
-                        body(e, out, &models[index[e] as usize])
-                    })?
-                }
-            }
+            for_each_element_with_model(&self.materials, &mut elements, body)?;
         }
         drop(elements);
         let mut data = vec![0.0; self.num_dofs() * cols];
