@@ -294,11 +294,10 @@ impl Assembly {
         if let Some(e) = out.energy {
             *e = sum_energy(&self.work);
         }
-        if let Some(f) = out.forces {
-            gather_forces(&self.geometry, &self.work, f);
-        }
-        if let Some(k) = out.stiffness {
-            gather_stiffness(&self.geometry, &self.work, k.data_mut());
+        match (out.forces, out.stiffness) {
+            (f, Some(k)) => gather_rows(&self.geometry, &self.work, k.data_mut(), f),
+            (Some(f), None) => gather_forces(&self.geometry, &self.work, f),
+            (None, None) => {}
         }
         Ok(())
     }
@@ -502,36 +501,48 @@ pub(crate) fn gather_vertex_vectors(
 }
 
 /// Refills K's values: each block is the sum of its element blocks, in element order.
-fn gather_stiffness(geo: &Geometry, work: &[ElementOut], values: &mut [f64]) {
-    gather_blocks(geo, |slot| work[slot / 10].blocks[slot % 10], values);
-}
-
-/// Sums element blocks into CSR values row by row: for each vertex, its elements (in element
-/// order) add their four blocks of that row into a row accumulator, read together from the
-/// element's buffer; each block is therefore summed in element order whatever the threads.
-pub(crate) fn gather_blocks(
+/// Refills K's values row by row and, when asked, the forces of the same vertices in the
+/// same pass (the element slots are read once for both). For each vertex, its elements (in
+/// element order) add their four blocks of that row into a row accumulator, read together
+/// from the element's buffer; each block and each force is therefore summed in element
+/// order whatever the threads.
+fn gather_rows(
     geo: &Geometry,
-    block: impl Fn(usize) -> Matrix3<f64> + Sync,
+    work: &[ElementOut],
     values: &mut [f64],
+    forces: Option<&mut [f64]>,
 ) {
     let offsets = geo.pattern.offsets();
-    vertex_chunks(values, |v| 9 * offsets[v], geo.num_vertices)
-        .into_par_iter()
-        .for_each(|(v0, out)| {
+    let n = geo.num_vertices;
+    let rows = vertex_chunks(values, |v| 9 * offsets[v], n);
+    // Both outputs split at the same vertex boundaries.
+    let force_chunks: Vec<Option<&mut [f64]>> = match forces {
+        Some(f) => vertex_chunks(f, |v| 3 * v, n)
+            .into_iter()
+            .map(|(_, c)| Some(c))
+            .collect(),
+        None => (0..rows.len()).map(|_| None).collect(),
+    };
+    rows.into_par_iter()
+        .zip(force_chunks)
+        .for_each(|((v0, out), mut force_out)| {
             let base = 9 * offsets[v0];
             let mut acc: Vec<Matrix3<f64>> = Vec::new();
             let mut v = v0;
-            while v < geo.num_vertices && 9 * offsets[v] - base < out.len() {
+            while v < n && 9 * offsets[v] - base < out.len() {
                 let (row_start, row_end) = (offsets[v], offsets[v + 1]);
                 let len = row_end - row_start;
                 acc.clear();
                 acc.resize(len, Matrix3::zeros());
+                let mut force = Vector3::zeros();
                 for j in geo.vertex_ptr[v]..geo.vertex_ptr[v + 1] {
                     let slot = geo.vertex_slots[j] as usize;
                     let (e, a) = (slot / 4, slot % 4);
+                    let element = &work[e];
+                    force += element.forces[a];
                     for b in 0..4 {
                         let (u, transposed) = upper_slot(a, b);
-                        let m = block(10 * e + u);
+                        let m = &element.blocks[u];
                         let target = &mut acc[geo.row_targets[4 * j + b] as usize];
                         if transposed {
                             *target += m.transpose();
@@ -546,6 +557,10 @@ pub(crate) fn gather_blocks(
                         let at = 3 * len * r + 3 * k;
                         row[at..at + 3].copy_from_slice(&[m[(r, 0)], m[(r, 1)], m[(r, 2)]]);
                     }
+                }
+                if let Some(fo) = force_out.as_deref_mut() {
+                    let at = 3 * (v - v0);
+                    fo[at..at + 3].copy_from_slice(force.as_slice());
                 }
                 v += 1;
             }
