@@ -34,12 +34,14 @@
 
 pub mod benchmark;
 mod integrator;
+mod matrix_free;
 mod policy;
 mod report;
 pub mod scene;
 mod state;
 
 pub use integrator::{Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions};
+pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy, spec_name,
 };

@@ -592,3 +592,66 @@ fn cantilever_tip_deflection_approaches_beam_theory_under_refinement() {
     }
     assert!(errors[3] < 0.1, "finest error {:.3}", errors[3]);
 }
+
+#[test]
+fn matrix_free_force_differentials_drive_cg_like_the_assembled_matrix() {
+    use deform_assembly::Tangent;
+    use deform_solvers::{LinearOperator, SolverSpec};
+    let mesh = beam();
+    let mut s = sim(
+        &mesh,
+        vec![],
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let x: Vec<f64> = mesh
+        .rest_positions()
+        .iter()
+        .flat_map(|p| [p.x, p.y + 0.05 * p.x * p.x, p.z])
+        .collect();
+    let (c_m, c_k) = (1.0, 1e-4);
+    let mass = s.mass().clone();
+    let asm = s.assembly_mut();
+    let mut k = asm.stiffness_matrix();
+    asm.stiffness(&x, Tangent::Projected, &mut k).unwrap();
+    let mut a = asm.stiffness_matrix();
+    asm.combine(c_m, &mass, c_k, &k, &mut a).unwrap();
+    let asm = s.assembly();
+    let op = deform_integrator::MatrixFreeNewton::new(
+        asm,
+        asm.tangents(&x, Tangent::Projected).unwrap(),
+        &mass,
+        c_m,
+        c_k,
+    );
+    let b: Vec<f64> = (0..x.len()).map(|i| (i as f64 * 0.7).sin()).collect();
+    // Same products, then the same CG solution.
+    let (mut y1, mut y2) = (vec![0.0; b.len()], vec![0.0; b.len()]);
+    a.apply(&b, &mut y1);
+    op.apply(&b, &mut y2);
+    let scale = y1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(
+        y1.iter()
+            .zip(&y2)
+            .all(|(p, q)| (p - q).abs() <= 1e-10 * scale)
+    );
+    let solve = |operator: &dyn LinearOperator| {
+        let mut solver = ron::from_str::<SolverSpec>(
+            "Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-10))",
+        )
+        .unwrap()
+        .build()
+        .unwrap();
+        solver.factorize(operator).unwrap();
+        let mut sol = vec![0.0; b.len()];
+        solver.solve(operator, &b, &mut sol).unwrap();
+        sol
+    };
+    let (s1, s2) = (solve(&a), solve(&op));
+    let norm = s1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(
+        s1.iter()
+            .zip(&s2)
+            .all(|(p, q)| (p - q).abs() <= 1e-8 * norm)
+    );
+}
