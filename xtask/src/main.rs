@@ -3,6 +3,7 @@
 //! Tasks are plain Rust (no make, no shell scripts); each lives in its own module.
 
 mod bench;
+mod experiment;
 mod mesh;
 mod simulate;
 
@@ -24,6 +25,8 @@ enum Task {
     /// Quick measurements on the benchmark beams, as JSON lines (see bench/peers/).
     #[command(subcommand)]
     Bench(bench::BenchTask),
+    /// Run an experiment (RON): dataset, fits, report.md, CSV and SVG plots.
+    Experiment(experiment::ExperimentArgs),
     /// Run a scene (RON): progress bar, .vtu/.pvd frames, per-step CSV, summary.
     Simulate(simulate::SimulateArgs),
 }
@@ -34,6 +37,7 @@ fn main() -> std::process::ExitCode {
         Task::Mesh(task) => mesh::run(task),
         Task::Simulate(args) => simulate::run(args),
         Task::Bench(task) => bench::run(task),
+        Task::Experiment(args) => experiment::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -8,6 +8,7 @@
 
 pub mod dataset;
 pub mod ensemble;
+pub mod experiment;
 pub mod fit;
 pub mod npy;
 pub mod output;

@@ -1,0 +1,132 @@
+//! Experiments as RON documents (unknown fields rejected): a base scene, how to make the
+//! dataset, and what to learn from it. The runner (`cargo xtask experiment`) adds progress
+//! bars, reports and plots; this module holds the configuration and the evaluation helpers.
+
+use std::path::{Path, PathBuf};
+
+use deform_integrator::{Integrator, State};
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::{Noise, Trajectory, Variations};
+use crate::fit::EquationErrorOptions;
+use crate::output::OutputErrorOptions;
+
+/// How to make the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetSpec {
+    /// Number of trajectories.
+    pub trajectories: usize,
+    /// Steps per trajectory.
+    pub steps: usize,
+    /// Seed of the initial-condition variations.
+    pub seed: u64,
+    /// Initial-condition variations.
+    #[serde(default)]
+    pub variations: Variations,
+    /// Train and validation fractions (the rest is test).
+    #[serde(default = "default_split")]
+    pub split: (f64, f64),
+    /// Noise added to the data.
+    #[serde(default)]
+    pub noise: Option<Noise>,
+}
+
+fn default_split() -> (f64, f64) {
+    (0.6, 0.2)
+}
+
+/// What to learn.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum Task {
+    /// Force-model optimisation: the scene's material family, its Lame pair by equation
+    /// error, then (optionally) by output error.
+    FitMaterial {
+        /// Stage 1 options.
+        #[serde(default)]
+        equation_error: EquationErrorOptions,
+        /// Stage 2 options; `None` stops after stage 1.
+        #[serde(default)]
+        output_error: Option<OutputErrorOptions>,
+    },
+    /// Model selection: an ensemble of these models (names of `ensemble::MEMBERS`).
+    SelectModel {
+        /// The candidate models.
+        members: Vec<String>,
+    },
+}
+
+/// An experiment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Experiment {
+    /// Name (results folder).
+    pub name: String,
+    /// The base model's scene file, relative to the experiment file.
+    pub scene: PathBuf,
+    /// The dataset.
+    pub dataset: DatasetSpec,
+    /// What to learn.
+    pub task: Task,
+}
+
+impl Experiment {
+    /// Reads an experiment file; the scene path is made relative to its directory.
+    ///
+    /// # Errors
+    /// A message naming the file (and line and column for syntax errors).
+    pub fn load(path: &Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut e: Experiment =
+            ron::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        if e.scene.is_relative() {
+            e.scene = path.parent().unwrap_or(Path::new(".")).join(&e.scene);
+        }
+        if e.dataset.trajectories < 3 {
+            return Err(format!(
+                "{}: dataset.trajectories must be at least 3 (train, validation, test)",
+                path.display()
+            ));
+        }
+        if e.dataset.steps == 0 {
+            return Err(format!(
+                "{}: dataset.steps must be at least 1",
+                path.display()
+            ));
+        }
+        let (a, b) = e.dataset.split;
+        if !(a > 0.0 && b >= 0.0 && a + b < 1.0) {
+            return Err(format!(
+                "{}: dataset.split ({a}, {b}) must leave room for a test split",
+                path.display()
+            ));
+        }
+        Ok(e)
+    }
+}
+
+/// Root-mean-square position error per step of a free rollout of `sim` from the
+/// trajectory's first state against the trajectory (entry 0 is the start, error 0).
+///
+/// # Errors
+/// The step error, as text, when the rollout fails.
+pub fn rollout_error(sim: &mut Integrator, t: &Trajectory) -> Result<Vec<f64>, String> {
+    let mut state = State {
+        x: t.x[0].clone(),
+        v: t.v[0].clone(),
+        t: 0.0,
+    };
+    let mut errors = vec![0.0];
+    for n in 1..t.x.len() {
+        sim.step(&mut state).map_err(|e| format!("step {n}: {e}"))?;
+        let sq: f64 = state
+            .x
+            .iter()
+            .zip(&t.x[n])
+            .map(|(a, b)| (a - b).powi(2))
+            .sum();
+        errors.push((sq / (state.x.len() / 3) as f64).sqrt());
+    }
+    Ok(errors)
+}

@@ -1,0 +1,431 @@
+//! `cargo xtask experiment EXPERIMENT.ron [--out DIR]`: makes the dataset of an experiment,
+//! learns from it, and writes a results folder: `report.md`, CSV files, SVG plots and the
+//! dataset itself.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, anyhow};
+use clap::Args;
+use deform_integrator::Scene;
+use deform_learn::experiment::{Experiment, Task, rollout_error};
+use deform_learn::{Dataset, Split, dataset, fit_ensemble, fit_equation_error, fit_output_error};
+use deform_materials::{Lame, MaterialSpec, Moduli};
+use deform_mesh::io::write_atomic;
+use indicatif::{ProgressBar, ProgressStyle};
+use plotters::prelude::*;
+
+/// Arguments of `experiment`.
+#[derive(Debug, Args)]
+pub struct ExperimentArgs {
+    /// The experiment file (RON).
+    pub experiment: PathBuf,
+    /// Results folder (default `target/deform/experiments/<name>`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+    let b = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(len)
+    };
+    b.set_style(
+        ProgressStyle::with_template(&format!(
+            "{what:>10} {{bar:30}} {{pos}}/{{len}} {{msg}} [{{elapsed_precise}}]"
+        ))
+        .expect("a valid template"),
+    );
+    b
+}
+
+fn write_text(path: &Path, text: &str) -> Result<()> {
+    write_atomic(path, |w| w.write_all(text.as_bytes()))
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// A line plot of named series against their index, log-scaled when asked.
+fn plot(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(String, Vec<f64>)],
+    log: bool,
+) -> Result<()> {
+    let points: Vec<f64> = series
+        .iter()
+        .flat_map(|(_, v)| v.iter().copied())
+        .filter(|v| v.is_finite() && (!log || *v > 0.0))
+        .collect();
+    if points.is_empty() {
+        return Ok(());
+    }
+    let (lo, hi) = points
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(*v), b.max(*v))
+        });
+    let len = series
+        .iter()
+        .map(|(_, v)| v.len())
+        .max()
+        .unwrap_or(1)
+        .max(2);
+    let tmp = path.with_extension("svg.tmp");
+    {
+        let root = SVGBackend::new(&tmp, (800, 500)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+        let mut builder = ChartBuilder::on(&root);
+        let chart = builder
+            .caption(title, ("sans-serif", 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70);
+        let colors = [&BLUE, &RED, &GREEN, &MAGENTA, &CYAN, &BLACK];
+        if log {
+            let mut c = chart
+                .build_cartesian_2d(0f64..(len - 1) as f64, (lo * 0.8..hi * 1.25).log_scale())
+                .map_err(|e| anyhow!("{e}"))?;
+            c.configure_mesh()
+                .x_desc(x_label)
+                .y_desc(y_label)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            for (k, (name, v)) in series.iter().enumerate() {
+                let color = colors[k % colors.len()];
+                c.draw_series(LineSeries::new(
+                    v.iter()
+                        .enumerate()
+                        .filter(|(_, y)| **y > 0.0)
+                        .map(|(i, y)| (i as f64, *y)),
+                    color,
+                ))
+                .map_err(|e| anyhow!("{e}"))?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+            }
+            c.configure_series_labels()
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+        } else {
+            let pad = 0.05 * (hi - lo).max(1e-30);
+            let mut c = chart
+                .build_cartesian_2d(0f64..(len - 1) as f64, (lo - pad)..(hi + pad))
+                .map_err(|e| anyhow!("{e}"))?;
+            c.configure_mesh()
+                .x_desc(x_label)
+                .y_desc(y_label)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+            for (k, (name, v)) in series.iter().enumerate() {
+                let color = colors[k % colors.len()];
+                c.draw_series(LineSeries::new(
+                    v.iter().enumerate().map(|(i, y)| (i as f64, *y)),
+                    color,
+                ))
+                .map_err(|e| anyhow!("{e}"))?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+            }
+            c.configure_series_labels()
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| anyhow!("{e}"))?;
+        }
+        root.present().map_err(|e| anyhow!("{e}"))?;
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// The scene with its material's moduli replaced by a Lame pair.
+fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene> {
+    let moduli = Moduli::Lame { mu, lambda };
+    let material = match &scene.material {
+        MaterialSpec::LinearElastic(_) => MaterialSpec::LinearElastic(moduli),
+        MaterialSpec::CorotatedLinear {
+            lagged_rotation, ..
+        } => MaterialSpec::CorotatedLinear {
+            moduli,
+            lagged_rotation: *lagged_rotation,
+        },
+        MaterialSpec::FixedCorotated(_) => MaterialSpec::FixedCorotated(moduli),
+        MaterialSpec::StVenantKirchhoff(_) => MaterialSpec::StVenantKirchhoff(moduli),
+        MaterialSpec::NeoHookean(_) => MaterialSpec::NeoHookean(moduli),
+        MaterialSpec::StableNeoHookean(_) => MaterialSpec::StableNeoHookean(moduli),
+        other => {
+            return Err(anyhow!(
+                "fitting a material needs a single model, the scene has {other:?}"
+            ));
+        }
+    };
+    let mut s = scene.clone();
+    s.material = material;
+    Ok(s)
+}
+
+/// Mean over test trajectories of the rollout error per step, for a scene variant.
+fn test_rollout(scene: &Scene, origin: &Path, data: &Dataset) -> Result<Vec<f64>> {
+    let mut sim = scene.build(origin)?.integrator;
+    let tests = data.split(Split::Test);
+    let mut mean = vec![0.0; tests.first().map_or(0, |t| t.x.len())];
+    for t in &tests {
+        let e = rollout_error(&mut sim, t).map_err(anyhow::Error::msg)?;
+        for (m, v) in mean.iter_mut().zip(e) {
+            *m += v / tests.len() as f64;
+        }
+    }
+    Ok(mean)
+}
+
+pub fn run(args: ExperimentArgs) -> Result<()> {
+    let experiment = Experiment::load(&args.experiment).map_err(anyhow::Error::msg)?;
+    let scene = Scene::load(&experiment.scene)?;
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| Path::new("target/deform/experiments").join(&experiment.name));
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let spec = &experiment.dataset;
+    let started = Instant::now();
+
+    // The dataset.
+    let total = (spec.trajectories * spec.steps) as u64;
+    let b = bar(args.quiet, total, "dataset");
+    let mut data = dataset::generate(
+        &scene,
+        &experiment.scene,
+        spec.trajectories,
+        spec.steps,
+        spec.seed,
+        &spec.variations,
+        spec.split,
+        |_, _| b.inc(1),
+    )?;
+    b.finish_and_clear();
+    let base = scene.build(&experiment.scene)?;
+    if let Some(noise) = spec.noise {
+        data.add_noise(noise, &base.integrator.dofs().constrained_vertices());
+    }
+    data.save(&out.join("dataset"))?;
+    let train = data.split(Split::Train);
+    let mut report = format!(
+        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\nDataset: {} trajectories x {} steps (seed {}), split {:?} train/validation (rest test), noise {:?}. Saved in `dataset/` (RON + .npy, see docs/experiments.md).\n\n",
+        experiment.name,
+        experiment.scene.display(),
+        base.mesh.num_vertices(),
+        base.mesh.num_tets(),
+        scene.material,
+        spec.trajectories,
+        spec.steps,
+        spec.seed,
+        spec.split,
+        spec.noise
+    );
+
+    match &experiment.task {
+        Task::FitMaterial {
+            equation_error,
+            output_error,
+        } => {
+            let t1 = Instant::now();
+            let stage1 = fit_equation_error(&base.integrator, &train, *equation_error)?;
+            let stage1_seconds = t1.elapsed().as_secs_f64();
+            let (mu1, lambda1) = (stage1.coefficients[0], stage1.coefficients[1]);
+            let truth = scene.material.build()?;
+            let true_lame = truth
+                .lame()
+                .ok_or_else(|| anyhow!("the scene's model has no single Lame pair"))?;
+            let young = |mu: f64, lambda: f64| {
+                Lame::try_new(mu, lambda)
+                    .map(|l| l.to_young())
+                    .unwrap_or((f64::NAN, f64::NAN))
+            };
+            let (e0, nu0) = true_lame.to_young();
+            let (e1, nu1) = young(mu1, lambda1);
+            let mut rows = vec![
+                ("truth".to_owned(), e0, nu0, f64::NAN),
+                ("equation error".to_owned(), e1, nu1, stage1_seconds),
+            ];
+            let mut fitted = (mu1, lambda1);
+            let mut csv = String::from("iteration,loss,mu,lambda\n");
+            let mut losses = Vec::new();
+            if let Some(options) = output_error {
+                let mut sim = base.integrator;
+                let b = bar(args.quiet, options.max_iterations, "fit");
+                let t2 = Instant::now();
+                let fit = fit_output_error(
+                    &mut sim,
+                    &train,
+                    &stage1.coefficients,
+                    *options,
+                    |k, loss| {
+                        b.set_message(format!("evaluation {k}, loss {loss:.3e}"));
+                    },
+                )?;
+                b.finish_and_clear();
+                let (e2, nu2) = young(fit.coefficients[0], fit.coefficients[1]);
+                rows.push((
+                    "output error".to_owned(),
+                    e2,
+                    nu2,
+                    t2.elapsed().as_secs_f64(),
+                ));
+                fitted = (fit.coefficients[0], fit.coefficients[1]);
+                for it in &fit.iterations {
+                    writeln!(
+                        csv,
+                        "{},{:e},{:e},{:e}",
+                        it.iteration, it.loss, it.coefficients[0], it.coefficients[1]
+                    )?;
+                    losses.push(it.loss);
+                }
+                writeln!(
+                    report,
+                    "Output error: {} iterations, {} loss evaluations, loss {:.4e} -> {:.4e}, termination {:?}.\n",
+                    fit.iterations.len(),
+                    fit.evaluations,
+                    fit.initial_loss,
+                    fit.loss,
+                    fit.termination
+                )?;
+            }
+            write_text(&out.join("iterations.csv"), &csv)?;
+            plot(
+                &out.join("loss.svg"),
+                "output-error loss per iteration",
+                "iteration",
+                "loss",
+                &[("loss".into(), losses)],
+                true,
+            )?;
+            report.push_str("| parameters | E (Pa) | nu | E error | nu error | fit time |\n|---|---|---|---|---|---|\n");
+            for (name, e, nu, s) in &rows {
+                writeln!(
+                    report,
+                    "| {name} | {e:.5e} | {nu:.5} | {:.3} % | {:.3} % | {} |",
+                    100.0 * (e - e0).abs() / e0,
+                    100.0 * (nu - nu0).abs() / nu0,
+                    if s.is_nan() {
+                        "-".to_owned()
+                    } else {
+                        format!("{s:.2} s")
+                    }
+                )?;
+            }
+            // Rollouts on the test trajectories with each parameter set.
+            let b = bar(args.quiet, 3, "rollouts");
+            let mut series = Vec::new();
+            for (name, (mu, lambda)) in [
+                ("true parameters", (true_lame.mu, true_lame.lambda)),
+                ("equation error", (mu1, lambda1)),
+                ("fitted", fitted),
+            ] {
+                let errors =
+                    test_rollout(&with_lame(&scene, mu, lambda)?, &experiment.scene, &data)?;
+                series.push((name.to_owned(), errors));
+                b.inc(1);
+            }
+            b.finish_and_clear();
+            let mut rcsv = String::from("step");
+            for (name, _) in &series {
+                write!(rcsv, ",{name}")?;
+            }
+            rcsv.push('\n');
+            for n in 0..series[0].1.len() {
+                write!(rcsv, "{n}")?;
+                for (_, e) in &series {
+                    write!(rcsv, ",{:e}", e[n])?;
+                }
+                rcsv.push('\n');
+            }
+            write_text(&out.join("rollout_error.csv"), &rcsv)?;
+            plot(
+                &out.join("rollout_error.svg"),
+                "test rollout RMS position error",
+                "step",
+                "m",
+                &series,
+                false,
+            )?;
+            writeln!(
+                report,
+                "\nMean final RMS rollout error on the test trajectories: {}.\n\nFiles: `iterations.csv`, `loss.svg`, `rollout_error.csv`, `rollout_error.svg`.",
+                series
+                    .iter()
+                    .map(|(n, e)| format!("{n} {:.3e} m", e.last().copied().unwrap_or(0.0)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )?;
+        }
+        Task::SelectModel { members } => {
+            let names: Vec<&str> = members.iter().map(String::as_str).collect();
+            let fit = fit_ensemble(
+                &scene,
+                &experiment.scene,
+                &names,
+                &train,
+                &data.split(Split::Test),
+            )?;
+            report.push_str("| member | effective mu | effective lambda | energy share (test) |\n|---|---|---|---|\n");
+            let mut csv = String::from("model,mu,lambda,energy_share\n");
+            for m in &fit.members {
+                writeln!(
+                    report,
+                    "| {} | {:.5e} | {:.5e} | {:.2} % |",
+                    m.model,
+                    m.mu,
+                    m.lambda,
+                    100.0 * m.energy_share
+                )?;
+                writeln!(
+                    csv,
+                    "{},{:e},{:e},{:e}",
+                    m.model, m.mu, m.lambda, m.energy_share
+                )?;
+            }
+            writeln!(
+                report,
+                "\nEquation-error residual {:.3e}.",
+                fit.relative_residual
+            )?;
+            write_text(&out.join("members.csv"), &csv)?;
+            // Test rollouts of the ensemble and of the base scene.
+            let mut series = vec![(
+                "base model".to_owned(),
+                test_rollout(&scene, &experiment.scene, &data)?,
+            )];
+            if let Some(spec) = fit.spec() {
+                let mut s = scene.clone();
+                s.material = spec;
+                series.push((
+                    "fitted ensemble".to_owned(),
+                    test_rollout(&s, &experiment.scene, &data)?,
+                ));
+            }
+            plot(
+                &out.join("rollout_error.svg"),
+                "test rollout RMS position error",
+                "step",
+                "m",
+                &series,
+                false,
+            )?;
+        }
+    }
+    writeln!(
+        report,
+        "\nTotal time {:.1} s.",
+        started.elapsed().as_secs_f64()
+    )?;
+    write_text(&out.join("report.md"), &report)?;
+    println!("{report}");
+    println!("results: {}", out.display());
+    Ok(())
+}
