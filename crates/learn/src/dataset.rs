@@ -283,6 +283,23 @@ impl Dataset {
             .collect()
     }
 
+    /// Keeps every `k`-th state of every trajectory: data of a fine time step seen at the
+    /// coarse step `k dt` (the setting where a cheap model learns from an accurate one).
+    ///
+    /// # Panics
+    /// If `k == 0`.
+    pub fn subsample(&self, k: usize) -> Dataset {
+        assert!(k > 0, "the subsampling factor must be at least 1");
+        let mut out = self.clone();
+        for (t, m) in out.trajectories.iter_mut().zip(&mut out.meta.trajectories) {
+            t.x = t.x.iter().step_by(k).cloned().collect();
+            t.v = t.v.iter().step_by(k).cloned().collect();
+            m.steps = t.steps();
+        }
+        out.meta.dt *= k as f64;
+        out
+    }
+
     /// Adds Gaussian noise to positions and velocities (not to constrained vertices, whose
     /// motion is known), scaled per trajectory by the RMS displacement and RMS velocity.
     pub fn add_noise(&mut self, noise: Noise, constrained: &[usize]) {

@@ -30,6 +30,15 @@ pub struct DatasetSpec {
     /// Noise added to the data.
     #[serde(default)]
     pub noise: Option<Noise>,
+    /// Learn a model that steps `subsample` times coarser than the base: the data keep every
+    /// `subsample`-th state and the learned scene uses `subsample x dt` (the seed's accuracy
+    /// claim: a cheap model fitted to an accurate one). 1 learns at the base's own step.
+    #[serde(default = "one")]
+    pub subsample: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 fn default_split() -> (f64, f64) {
@@ -86,6 +95,12 @@ impl Experiment {
         if e.dataset.trajectories < 3 {
             return Err(format!(
                 "{}: dataset.trajectories must be at least 3 (train, validation, test)",
+                path.display()
+            ));
+        }
+        if e.dataset.subsample == 0 || e.dataset.steps < 2 * e.dataset.subsample {
+            return Err(format!(
+                "{}: dataset.subsample must be at least 1 and leave two coarse steps",
                 path.display()
             ));
         }

@@ -13,7 +13,7 @@
 //! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
 //!
 //! The parameters are the logarithms of the Lame pair (positive by construction); the
-//! optimiser is argmin's L-BFGS with a More-Thuente line search, behind [`fit_output_error`],
+//! optimiser is argmin's L-BFGS with a More-Thuente line search and an evaluation budget, behind [`fit_output_error`],
 //! which reports every iteration and ends with a typed [`Termination`].
 //!
 //! The gradient is exact for `gamma = 0`; with stiffness damping it neglects the term
@@ -52,6 +52,9 @@ pub struct OutputErrorOptions {
     pub max_iterations: u64,
     /// Stop when the gradient norm (in log-parameters) is below this.
     pub tolerance: f64,
+    /// Stop after this many loss evaluations (each simulates every pair); the best iterate
+    /// so far is kept.
+    pub max_evaluations: usize,
 }
 
 impl Default for OutputErrorOptions {
@@ -61,6 +64,7 @@ impl Default for OutputErrorOptions {
             rollout: 1,
             max_iterations: 50,
             tolerance: 1e-10,
+            max_evaluations: 200,
         }
     }
 }
@@ -156,6 +160,15 @@ impl<'a> OutputError<'a> {
             && cached == c
         {
             return Ok((*loss, grad.clone()));
+        }
+        if *self.evaluations.borrow() >= self.options.max_evaluations {
+            return Err(FitError::Data {
+                index: 0,
+                reason: format!(
+                    "the budget of {} loss evaluations is spent",
+                    self.options.max_evaluations
+                ),
+            });
         }
         let mut sim = self.sim.borrow_mut();
         let MaterialField::Uniform(model) = sim.assembly().materials() else {
@@ -376,6 +389,8 @@ pub fn fit_output_error(
     let objective = OutputError::new(sim, trajectories, options, progress)?;
     let (initial_loss, _) = objective.evaluate(initial)?;
     let records = Arc::new(Mutex::new(Vec::new()));
+    // More-Thuente finds good first steps where L-BFGS has no curvature yet; the evaluation
+    // budget guards against line searches that thrash on a non-smooth loss.
     let solver = LBFGS::new(MoreThuenteLineSearch::new(), 7)
         .with_tolerance_grad(options.tolerance)
         .and_then(|s| s.with_tolerance_cost(0.0))
@@ -389,14 +404,24 @@ pub fn fit_output_error(
         .add_observer(Recorder(records.clone()), ObserverMode::Always)
         .run();
     let evaluations = *objective.evaluations.borrow();
+    let best_record = || {
+        let recs = records.lock().expect("not poisoned");
+        recs.iter()
+            .filter(|r| {
+                r.loss.is_finite()
+                    && r.coefficients.len() == initial.len()
+                    && r.loss <= initial_loss
+            })
+            .min_by(|a, b| a.loss.total_cmp(&b.loss))
+            .cloned()
+    };
     let (coefficients, loss, termination) = match result {
-        Ok(res) => {
+        Ok(res) if res.state().get_best_param().is_some() => {
             let state = res.state();
             let best: Vec<f64> = state
                 .get_best_param()
-                .cloned()
-                .unwrap_or_default()
-                .iter()
+                .into_iter()
+                .flatten()
                 .map(|v| v.exp())
                 .collect();
             let termination = match state.get_termination_reason() {
@@ -407,24 +432,20 @@ pub fn fit_output_error(
             };
             (best, state.get_best_cost(), termination)
         }
-        Err(e) => {
+        other => {
             // Keep the best iterate seen before the optimiser stopped.
-            let recs = records.lock().expect("not poisoned");
-            let best = recs
-                .iter()
-                .min_by(|a, b| a.loss.total_cmp(&b.loss))
-                .cloned();
-            match best {
-                Some(b) => (b.coefficients, b.loss, Termination::Stopped(e.to_string())),
-                None => (
-                    initial.to_vec(),
-                    initial_loss,
-                    Termination::Stopped(e.to_string()),
-                ),
+            let why = match other {
+                Err(e) => e.to_string(),
+                Ok(_) => "no iterate was accepted".to_owned(),
+            };
+            match best_record() {
+                Some(b) => (b.coefficients, b.loss, Termination::Stopped(why)),
+                None => (initial.to_vec(), initial_loss, Termination::Stopped(why)),
             }
         }
     };
-    // Leave the best coefficients in the integrator.
+    // Leave the best coefficients in the integrator (outside the evaluation budget).
+    *objective.evaluations.borrow_mut() = 0;
     objective.evaluate(&coefficients)?;
     let iterations = records.lock().expect("not poisoned").clone();
     Ok(OutputErrorFit {
