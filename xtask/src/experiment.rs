@@ -245,6 +245,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         Task::FitMaterial {
             equation_error,
             output_error,
+            start,
         } => {
             let t1 = Instant::now();
             let stage1 = fit_equation_error(&base.integrator, &train, *equation_error)?;
@@ -272,15 +273,29 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 let mut sim = base.integrator;
                 let b = bar(args.quiet, options.max_iterations, "fit");
                 let t2 = Instant::now();
-                let fit = fit_output_error(
-                    &mut sim,
-                    &train,
-                    &stage1.coefficients,
-                    *options,
-                    |k, loss| {
-                        b.set_message(format!("evaluation {k}, loss {loss:.3e}"));
-                    },
-                )?;
+                // Start from the stage-1 estimate, or from the prior when it fits better (or
+                // the estimate cannot even be simulated).
+                let mut initial = stage1.coefficients.clone();
+                if let Some(prior) = start {
+                    let lame = prior.to_lame()?;
+                    let prior = vec![lame.mu, lame.lambda];
+                    let mut loss_at = |c: &[f64]| {
+                        deform_learn::OutputError::new(&mut sim, &train, *options, |_, _| {})
+                            .and_then(|o| o.evaluate(c))
+                            .map_or(f64::INFINITY, |(l, _)| l)
+                    };
+                    let (l1, l0) = (loss_at(&initial), loss_at(&prior));
+                    if l0 < l1 {
+                        writeln!(
+                            report,
+                            "Stage 2 starts from the prior (loss {l0:.3e}) rather than the stage-1 estimate (loss {l1:.3e}).\n"
+                        )?;
+                        initial = prior;
+                    }
+                }
+                let fit = fit_output_error(&mut sim, &train, &initial, *options, |k, loss| {
+                    b.set_message(format!("evaluation {k}, loss {loss:.3e}"));
+                })?;
                 b.finish_and_clear();
                 let (e2, nu2) = young(fit.coefficients[0], fit.coefficients[1]);
                 rows.push((

@@ -58,6 +58,10 @@ pub enum Task {
         /// Stage 2 options; `None` stops after stage 1.
         #[serde(default)]
         output_error: Option<OutputErrorOptions>,
+        /// A prior guess for stage 2, used when it explains the data better than the stage-1
+        /// estimate (equation error degrades with noise on fine meshes).
+        #[serde(default)]
+        start: Option<deform_materials::Moduli>,
     },
     /// Model selection: an ensemble of these models (names of `ensemble::MEMBERS`).
     SelectModel {
