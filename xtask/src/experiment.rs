@@ -172,8 +172,13 @@ fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene> {
 
 /// Mean over test trajectories of the rollout error per step, for a scene variant.
 fn test_rollout(scene: &Scene, origin: &Path, data: &Dataset) -> Result<Vec<f64>> {
+    split_rollout(scene, origin, data, Split::Test)
+}
+
+/// Mean over a split's trajectories of the rollout error per step.
+fn split_rollout(scene: &Scene, origin: &Path, data: &Dataset, split: Split) -> Result<Vec<f64>> {
     let mut sim = scene.build(origin)?.integrator;
-    let tests = data.split(Split::Test);
+    let tests = data.split(split);
     let mut mean = vec![0.0; tests.first().map_or(0, |t| t.x.len())];
     for t in &tests {
         let e = rollout_error(&mut sim, t).map_err(anyhow::Error::msg)?;
@@ -427,6 +432,46 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 "\nEquation-error residual {:.3e}.",
                 fit.relative_residual
             )?;
+            // Each model alone against the ensemble, by rollout error on validation (to
+            // select) and test (to report), averaged over the rollouts.
+            let mean = |e: &[f64]| e.iter().sum::<f64>() / e.len().max(1) as f64;
+            let evaluate = |spec: Option<MaterialSpec>| -> (f64, f64) {
+                let Some(spec) = spec else {
+                    return (f64::INFINITY, f64::INFINITY);
+                };
+                let mut s = scene.clone();
+                s.material = spec;
+                let run = |split| {
+                    split_rollout(&s, &experiment.scene, &data, split)
+                        .map_or(f64::INFINITY, |e| mean(&e))
+                };
+                (run(Split::Validation), run(Split::Test))
+            };
+            report.push_str("\n| model | validation rollout error (m) | test rollout error (m) |\n|---|---|---|\n");
+            let mut best: Option<(String, f64, f64)> = None;
+            for name in &names {
+                let single = fit_ensemble(
+                    &scene,
+                    &experiment.scene,
+                    &[name],
+                    &train,
+                    &data.split(Split::Validation),
+                )?;
+                let (val, test) = evaluate(single.spec());
+                writeln!(report, "| {name} alone | {val:.4e} | {test:.4e} |")?;
+                if best.as_ref().is_none_or(|b| val < b.1) {
+                    best = Some(((*name).to_owned(), val, test));
+                }
+            }
+            let (val, test) = evaluate(fit.spec());
+            writeln!(report, "| ensemble | {val:.4e} | {test:.4e} |")?;
+            if let Some((name, _, btest)) = best {
+                writeln!(
+                    report,
+                    "\nBest single model by validation error: {name} (test {btest:.4e} m). Ensemble test error / best single model's: {:.3}.",
+                    test / btest.max(f64::MIN_POSITIVE)
+                )?;
+            }
             write_text(&out.join("members.csv"), &csv)?;
             // Test rollouts of the ensemble and of the base scene.
             let mut series = vec![(
