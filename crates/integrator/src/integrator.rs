@@ -6,14 +6,18 @@ use deform_assembly::{
     Assembly, AssemblyError, DofMap, Mass, MaterialField, Outputs, ReducedMatrix, Tangent,
 };
 use deform_mesh::TetMesh;
-use deform_solvers::{Indefinite, LinearSolver, Ordering, SolveStats, SolverError, SolverSpec};
+use deform_solvers::{
+    Indefinite, LinearSolver, Ordering, SetupStats, SolveStats, SolverError, SolverSpec,
+};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use sprs::CsMat;
 use thiserror::Error;
 
 use crate::policy::{PolicyContext, SolverPolicy, spec_name};
-use crate::report::{IterationReport, NoObserver, Observer, StepError, StepReport};
+use crate::report::{
+    CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport,
+};
 use crate::state::{Constraint, State};
 
 /// Lumped or consistent mass.
@@ -175,6 +179,8 @@ pub struct Integrator {
     a: CsMat<f64>,
     a_free: ReducedMatrix,
     solvers: Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    /// Counterfactual candidates, each with its own kept instance.
+    candidates: Vec<(SolverSpec, Box<dyn LinearSolver>)>,
     policy: Box<dyn SolverPolicy>,
     observer: Box<dyn Observer>,
     steps_taken: usize,
@@ -260,6 +266,7 @@ impl Integrator {
             a,
             a_free,
             solvers: Vec::new(),
+            candidates: Vec::new(),
             policy,
             observer: Box::new(NoObserver),
             steps_taken: 0,
@@ -309,6 +316,21 @@ impl Integrator {
     /// The policy.
     pub fn policy(&self) -> &dyn SolverPolicy {
         self.policy.as_ref()
+    }
+
+    /// Solver configurations to run, besides the policy's choice, on the same linear system
+    /// at every Newton iteration (counterfactual logging for learning solver policies). Each
+    /// keeps its own instance, so stale factors age as if it were in use; their outcomes go
+    /// to [`IterationReport::candidates`] and never change the trajectory.
+    ///
+    /// # Errors
+    /// The first configuration that does not build.
+    pub fn set_candidates(&mut self, specs: &[SolverSpec]) -> Result<(), SolverError> {
+        self.candidates = specs
+            .iter()
+            .map(|s| s.build().map(|b| (s.clone(), b)))
+            .collect::<Result<_, _>>()?;
+        Ok(())
     }
 
     /// Replaces the observer.
@@ -583,6 +605,11 @@ impl Integrator {
                     });
                 }
             };
+            let candidates = if self.candidates.is_empty() {
+                Vec::new()
+            } else {
+                self.run_candidates(&rhs, &du_free)
+            };
             du.iter_mut().for_each(|v| *v = 0.0);
             self.dofs.scatter(&du_free, &mut du).expect("sizes match");
             // Backtracking line search on the merit function, K frozen at this iterate.
@@ -646,6 +673,7 @@ impl Integrator {
                 step_length,
                 update,
                 seconds: started.elapsed().as_secs_f64(),
+                candidates,
             };
             self.observer.iteration(&it);
             let context = PolicyContext {
@@ -722,25 +750,91 @@ impl Integrator {
         refresh: bool,
         rhs: &[f64],
         x: &mut [f64],
-    ) -> Result<(deform_solvers::SetupStats, SolveStats), SolverError> {
-        let index = match self.solvers.iter().position(|(s, _)| s == spec) {
-            Some(i) => i,
-            None => {
-                self.solvers.push((spec.clone(), spec.build()?));
-                self.solvers.len() - 1
-            }
-        };
-        let solver = &mut self.solvers[index].1;
-        if refresh {
-            solver.refresh();
-        }
-        if let Some(rel) = rel_tolerance {
-            solver.set_relative_tolerance(rel)?;
-        }
-        let setup = solver.factorize(&self.a_free.matrix)?;
-        let stats = solver.solve(&self.a_free.matrix, rhs, x)?;
-        Ok((setup, stats))
+    ) -> Result<(SetupStats, SolveStats), SolverError> {
+        solve_with(
+            &mut self.solvers,
+            &self.a_free.matrix,
+            spec,
+            rel_tolerance,
+            refresh,
+            rhs,
+            x,
+        )
     }
+
+    /// Runs every counterfactual candidate on the current system.
+    fn run_candidates(&mut self, rhs: &[f64], chosen: &[f64]) -> Vec<CandidateOutcome> {
+        let specs: Vec<SolverSpec> = self.candidates.iter().map(|(s, _)| s.clone()).collect();
+        let chosen_norm = chosen.iter().map(|v| v * v).sum::<f64>().sqrt();
+        specs
+            .iter()
+            .map(|spec| {
+                let mut x = vec![0.0; rhs.len()];
+                match solve_with(
+                    &mut self.candidates,
+                    &self.a_free.matrix,
+                    spec,
+                    None,
+                    false,
+                    rhs,
+                    &mut x,
+                ) {
+                    Ok((setup, solve)) => {
+                        let diff = x
+                            .iter()
+                            .zip(chosen)
+                            .map(|(a, b)| (a - b).powi(2))
+                            .sum::<f64>()
+                            .sqrt();
+                        CandidateOutcome {
+                            solver: spec_name(spec),
+                            setup: Some(setup),
+                            solve: Some(solve),
+                            error: None,
+                            distance: diff / chosen_norm.max(f64::MIN_POSITIVE),
+                        }
+                    }
+                    Err(e) => CandidateOutcome {
+                        solver: spec_name(spec),
+                        setup: None,
+                        solve: None,
+                        error: Some(e.to_string()),
+                        distance: f64::INFINITY,
+                    },
+                }
+            })
+            .collect()
+    }
+}
+
+/// Factorises (or sets up) and solves with the instance of `spec` kept in `list` (built on
+/// first use).
+fn solve_with(
+    list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    a: &CsMat<f64>,
+    spec: &SolverSpec,
+    rel_tolerance: Option<f64>,
+    refresh: bool,
+    rhs: &[f64],
+    x: &mut [f64],
+) -> Result<(SetupStats, SolveStats), SolverError> {
+    let index = match list.iter().position(|(s, _)| s == spec) {
+        Some(i) => i,
+        None => {
+            list.push((spec.clone(), spec.build()?));
+            list.len() - 1
+        }
+    };
+    let solver = &mut list[index].1;
+    if refresh {
+        solver.refresh();
+    }
+    if let Some(rel) = rel_tolerance {
+        solver.set_relative_tolerance(rel)?;
+    }
+    let setup = solver.factorize(a)?;
+    let stats = solver.solve(a, rhs, x)?;
+    Ok((setup, stats))
 }
 
 fn retryable(e: &StepError) -> bool {

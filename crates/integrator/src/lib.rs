@@ -45,6 +45,6 @@ pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy, spec_name,
 };
-pub use report::{IterationReport, NoObserver, Observer, StepError, StepReport};
+pub use report::{CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport};
 pub use scene::{Scene, SceneError};
 pub use state::{Constraint, Motion, State};

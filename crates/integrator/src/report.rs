@@ -28,6 +28,25 @@ pub struct IterationReport {
     pub update: f64,
     /// Wall time of the iteration (assembly, solve, line search), seconds.
     pub seconds: f64,
+    /// Outcomes of the counterfactual candidates on the same system (empty unless
+    /// `Integrator::set_candidates` was called).
+    #[serde(default)]
+    pub candidates: Vec<CandidateOutcome>,
+}
+
+/// What a counterfactual candidate solver did on an iteration's linear system.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CandidateOutcome {
+    /// Its configuration's short name.
+    pub solver: String,
+    /// Its set-up cost (`None` when it failed there).
+    pub setup: Option<SetupStats>,
+    /// Its solve statistics (`None` when it failed).
+    pub solve: Option<SolveStats>,
+    /// Why it failed, if it did.
+    pub error: Option<String>,
+    /// `||x - x_chosen|| / ||x_chosen||`: distance to the solution the step used.
+    pub distance: f64,
 }
 
 /// One time step (or quasi-static solve).

@@ -655,3 +655,67 @@ fn matrix_free_force_differentials_drive_cg_like_the_assembled_matrix() {
             .all(|(p, q)| (p - q).abs() <= 1e-8 * norm)
     );
 }
+
+#[test]
+fn counterfactual_candidates_are_logged_without_changing_the_trajectory() {
+    use deform_solvers::SolverSpec;
+    let mesh = beam();
+    let run = |candidates: bool| {
+        let mut s = sim(
+            &mesh,
+            clamp(&mesh),
+            IntegratorOptions::default(),
+            "Fixed(Direct())",
+        );
+        if candidates {
+            let specs: Vec<SolverSpec> = [
+                "Direct()",
+                "Cg(tolerance: (rel: 1e-8))",
+                "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8))",
+                "Pcg(preconditioner: StaleCholesky(max_age: 5), tolerance: (rel: 1e-8))",
+                "Jacobi(tolerance: (rel: 1e-8, max_iterations: 3))",
+            ]
+            .iter()
+            .map(|t| ron::from_str(t).unwrap())
+            .collect();
+            s.set_candidates(&specs).unwrap();
+        }
+        let mut state = s.rest_state();
+        let reports: Vec<StepReport> = (0..3).map(|_| s.step(&mut state).unwrap()).collect();
+        (state, reports)
+    };
+    let (plain, _) = run(false);
+    let (logged, reports) = run(true);
+    assert_eq!(plain, logged, "candidates must not change the trajectory");
+    for it in reports.iter().flat_map(|r| &r.iterations) {
+        assert_eq!(it.candidates.len(), 5);
+        let direct = &it.candidates[0];
+        assert!(
+            direct.distance < 1e-12,
+            "direct vs the chosen direct solve: {}",
+            direct.distance
+        );
+        for c in &it.candidates[1..4] {
+            let stats = c
+                .solve
+                .as_ref()
+                .unwrap_or_else(|| panic!("{}: {:?}", c.solver, c.error));
+            assert!(
+                stats.relative_residual() <= 1e-8 && c.distance < 1e-5,
+                "{}: {}",
+                c.solver,
+                c.distance
+            );
+        }
+        // Three Jacobi sweeps cannot reach 1e-8: the failure is recorded, not raised.
+        let jacobi = &it.candidates[4];
+        assert!(jacobi.error.is_some() && jacobi.distance.is_infinite());
+    }
+    // The stale factor is reused in later iterations and steps.
+    let reused = reports
+        .iter()
+        .flat_map(|r| &r.iterations)
+        .filter(|i| i.candidates[3].setup.is_some_and(|s| s.reused))
+        .count();
+    assert!(reused > 0);
+}
