@@ -13,6 +13,7 @@ pub mod fit;
 pub mod npy;
 pub mod output;
 pub mod rng;
+pub mod solver_data;
 
 pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
 pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble};

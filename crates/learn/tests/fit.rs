@@ -411,3 +411,35 @@ fn the_generating_model_carries_the_ensemble() {
         assert!(fit.spec().is_some());
     }
 }
+
+#[test]
+fn solver_datasets_log_every_candidate_and_round_trip() {
+    let s = scene("", "Beam(1)");
+    let specs: Vec<deform_solvers::SolverSpec> = [
+        "Direct()",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))",
+        "Jacobi(tolerance: (rel: 1e-8, max_iterations: 2))",
+    ]
+    .iter()
+    .map(|t| ron::from_str(t).unwrap())
+    .collect();
+    let data = deform_learn::solver_data::collect(&s, Path::new("t"), &specs, 3, |_| {}).unwrap();
+    assert!(data.len() >= 3, "{} samples", data.len());
+    for (f, o) in data.features.iter().zip(&data.outcomes) {
+        assert_eq!(f.len(), deform_learn::solver_data::FEATURES.len());
+        assert!(f.iter().all(|v| v.is_finite()), "{f:?}");
+        assert!(o[0].ok && o[0].flops > 0.0 && o[0].relative_residual < 1e-10);
+        assert!(o[1].ok);
+        assert!(!o[2].ok && o[2].relative_residual.is_infinite());
+    }
+    let dir = tempfile::tempdir().unwrap();
+    data.save(dir.path()).unwrap();
+    assert_eq!(
+        deform_learn::solver_data::SolverDataset::load(dir.path()).unwrap(),
+        data
+    );
+    assert_eq!(
+        npy::read(&dir.path().join("flops.npy")).unwrap().shape,
+        vec![data.len(), 3]
+    );
+}

@@ -1,0 +1,290 @@
+//! Data for learning solver policies (issue: solver selection): at every Newton iteration of
+//! a scene, features of the situation and the outcome of every candidate solver
+//! configuration run on the same linear system (counterfactual logging through
+//! `Integrator::set_candidates`).
+//!
+//! On disk, like trajectory datasets: `meta.ron` (feature names, candidate configurations,
+//! the scene) and `.npy` arrays numpy loads directly: `features.npy` (samples x features),
+//! `flops.npy`, `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance) and
+//! `relative_residual.npy`, each samples x candidates.
+
+use std::path::{Path, PathBuf};
+
+use deform_integrator::{IterationReport, Scene};
+use deform_mesh::io::write_atomic;
+use deform_solvers::SolverSpec;
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::DatasetError;
+use crate::npy;
+
+/// The features of a Newton iteration, in column order.
+pub const FEATURES: [&str; 9] = [
+    "step",
+    "iteration",
+    "log10_residual",
+    "log10_residual_over_initial",
+    "log10_residual_decrease",
+    "dt",
+    "log10_free_dofs",
+    "log10_youngs_modulus",
+    "previous_linear_iterations",
+];
+
+/// One candidate's outcome on one system.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Outcome {
+    /// Deterministic work: set-up plus solve flops.
+    pub flops: f64,
+    /// Wall time, set-up plus solve.
+    pub seconds: f64,
+    /// Whether it met its tolerance.
+    pub ok: bool,
+    /// Relative residual reached (infinite on failure).
+    pub relative_residual: f64,
+}
+
+/// The metadata of a solver dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolverMeta {
+    /// Feature names (columns of `features.npy`).
+    pub features: Vec<String>,
+    /// Candidate configurations (columns of the outcome arrays).
+    pub candidates: Vec<SolverSpec>,
+    /// The scene the systems came from.
+    pub scene: Scene,
+    /// Steps simulated.
+    pub steps: usize,
+}
+
+/// Samples: one per Newton iteration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolverDataset {
+    /// Metadata.
+    pub meta: SolverMeta,
+    /// Features per sample.
+    pub features: Vec<Vec<f64>>,
+    /// Outcomes per sample, one per candidate.
+    pub outcomes: Vec<Vec<Outcome>>,
+}
+
+/// Features of iteration `k` of a step, from the step's iterations so far.
+fn features(
+    step: usize,
+    history: &[IterationReport],
+    k: usize,
+    dt: f64,
+    free: usize,
+    young: f64,
+) -> Vec<f64> {
+    let it = &history[k];
+    let initial = history[0].residual.max(f64::MIN_POSITIVE);
+    let r = it.residual.max(f64::MIN_POSITIVE);
+    let decrease = if k > 0 {
+        r / history[k - 1].residual.max(f64::MIN_POSITIVE)
+    } else {
+        1.0
+    };
+    let previous = if k > 0 {
+        history[k - 1].solve.iterations as f64
+    } else {
+        0.0
+    };
+    vec![
+        step as f64,
+        k as f64,
+        r.log10(),
+        (r / initial).log10(),
+        decrease.log10(),
+        dt,
+        (free.max(1) as f64).log10(),
+        young.max(f64::MIN_POSITIVE).log10(),
+        previous,
+    ]
+}
+
+/// Simulates `steps` steps of `scene` with every candidate logged at every Newton iteration.
+///
+/// # Errors
+/// [`DatasetError`] when the scene does not build or a step fails.
+pub fn collect(
+    scene: &Scene,
+    origin: &Path,
+    candidates: &[SolverSpec],
+    steps: usize,
+    mut progress: impl FnMut(usize),
+) -> Result<SolverDataset, DatasetError> {
+    let built = scene.build(origin)?;
+    let (mut sim, mut state) = (built.integrator, built.state);
+    sim.set_candidates(candidates)
+        .map_err(|e| DatasetError::Inconsistent(format!("candidates: {e}")))?;
+    let young = scene
+        .material
+        .build()
+        .ok()
+        .and_then(|m| m.lame())
+        .map_or(f64::NAN, |l| l.to_young().0);
+    let (dt, free) = (sim.options().dt, sim.dofs().num_free());
+    let mut data = SolverDataset {
+        meta: SolverMeta {
+            features: FEATURES.iter().map(|s| (*s).to_owned()).collect(),
+            candidates: candidates.to_vec(),
+            scene: scene.clone(),
+            steps,
+        },
+        features: Vec::new(),
+        outcomes: Vec::new(),
+    };
+    for step in 0..steps {
+        let report = sim.step(&mut state).map_err(|e| DatasetError::Step {
+            trajectory: 0,
+            step,
+            source: Box::new(e),
+        })?;
+        for k in 0..report.iterations.len() {
+            data.features
+                .push(features(step, &report.iterations, k, dt, free, young));
+            data.outcomes.push(
+                report.iterations[k]
+                    .candidates
+                    .iter()
+                    .map(|c| Outcome {
+                        flops: (c.setup.map_or(0, |s| s.flops)
+                            + c.solve.as_ref().map_or(0, |s| s.flops))
+                            as f64,
+                        seconds: c.setup.map_or(0.0, |s| s.seconds)
+                            + c.solve.as_ref().map_or(0.0, |s| s.seconds),
+                        ok: c.error.is_none(),
+                        relative_residual: c
+                            .solve
+                            .as_ref()
+                            .map_or(f64::INFINITY, |s| s.relative_residual()),
+                    })
+                    .collect(),
+            );
+        }
+        progress(step);
+    }
+    Ok(data)
+}
+
+impl SolverDataset {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.features.len()
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.features.is_empty()
+    }
+
+    /// Writes `meta.ron` and the arrays (atomically) into `dir`.
+    ///
+    /// # Errors
+    /// [`DatasetError`] naming the file.
+    pub fn save(&self, dir: &Path) -> Result<(), DatasetError> {
+        std::fs::create_dir_all(dir).map_err(|e| DatasetError::Meta {
+            path: dir.to_owned(),
+            reason: e.to_string(),
+        })?;
+        let (n, f, c) = (
+            self.len(),
+            self.meta.features.len(),
+            self.meta.candidates.len(),
+        );
+        npy::write(&dir.join("features.npy"), &[n, f], &self.features.concat())?;
+        let column = |g: &dyn Fn(&Outcome) -> f64| -> Vec<f64> {
+            self.outcomes.iter().flatten().map(g).collect()
+        };
+        npy::write(&dir.join("flops.npy"), &[n, c], &column(&|o| o.flops))?;
+        npy::write(&dir.join("seconds.npy"), &[n, c], &column(&|o| o.seconds))?;
+        npy::write(
+            &dir.join("ok.npy"),
+            &[n, c],
+            &column(&|o| f64::from(u8::from(o.ok))),
+        )?;
+        // Infinite residuals (failures) are stored as NaN-free large numbers for numpy users.
+        npy::write(
+            &dir.join("relative_residual.npy"),
+            &[n, c],
+            &column(&|o| o.relative_residual.min(f64::MAX)),
+        )?;
+        let path: PathBuf = dir.join("meta.ron");
+        let text = ron::ser::to_string_pretty(&self.meta, ron::ser::PrettyConfig::default())
+            .map_err(|e| DatasetError::Meta {
+                path: path.clone(),
+                reason: e.to_string(),
+            })?;
+        write_atomic(&path, |w| w.write_all(text.as_bytes())).map_err(|e| DatasetError::Meta {
+            path: path.clone(),
+            reason: e.to_string(),
+        })
+    }
+
+    /// Reads a folder written by [`SolverDataset::save`].
+    ///
+    /// # Errors
+    /// [`DatasetError`] naming the file and what does not match.
+    pub fn load(dir: &Path) -> Result<Self, DatasetError> {
+        let path = dir.join("meta.ron");
+        let text = std::fs::read_to_string(&path).map_err(|e| DatasetError::Meta {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
+        let meta: SolverMeta = ron::from_str(&text).map_err(|e| DatasetError::Meta {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
+        let (f, c) = (meta.features.len(), meta.candidates.len());
+        let read = |name: &str, cols: usize| -> Result<Vec<Vec<f64>>, DatasetError> {
+            let p = dir.join(name);
+            let a = npy::read(&p)?;
+            if a.shape.len() != 2 || a.shape[1] != cols {
+                return Err(DatasetError::Inconsistent(format!(
+                    "{}: shape {:?}, meta.ron says (samples, {cols})",
+                    p.display(),
+                    a.shape
+                )));
+            }
+            Ok(a.data.chunks(cols.max(1)).map(<[f64]>::to_vec).collect())
+        };
+        let features = read("features.npy", f)?;
+        let (flops, seconds, ok, res) = (
+            read("flops.npy", c)?,
+            read("seconds.npy", c)?,
+            read("ok.npy", c)?,
+            read("relative_residual.npy", c)?,
+        );
+        if [flops.len(), seconds.len(), ok.len(), res.len()]
+            .iter()
+            .any(|&l| l != features.len())
+        {
+            return Err(DatasetError::Inconsistent(format!(
+                "{}: arrays disagree on the number of samples",
+                dir.display()
+            )));
+        }
+        let outcomes = (0..features.len())
+            .map(|i| {
+                (0..c)
+                    .map(|j| Outcome {
+                        flops: flops[i][j],
+                        seconds: seconds[i][j],
+                        ok: ok[i][j] != 0.0,
+                        relative_residual: if res[i][j] >= f64::MAX {
+                            f64::INFINITY
+                        } else {
+                            res[i][j]
+                        },
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            meta,
+            features,
+            outcomes,
+        })
+    }
+}
