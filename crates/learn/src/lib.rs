@@ -12,6 +12,7 @@ pub mod experiment;
 pub mod fit;
 pub mod npy;
 pub mod output;
+pub mod policy;
 pub mod rng;
 pub mod solver_data;
 

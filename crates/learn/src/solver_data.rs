@@ -68,6 +68,35 @@ pub struct SolverDataset {
     pub outcomes: Vec<Vec<Outcome>>,
 }
 
+/// The feature vector (in [`FEATURES`] order) of a Newton iteration.
+#[allow(clippy::too_many_arguments)]
+pub fn feature_vector(
+    step: usize,
+    iteration: usize,
+    residual: f64,
+    initial_residual: f64,
+    previous_residual: Option<f64>,
+    previous_linear_iterations: usize,
+    dt: f64,
+    free_dofs: usize,
+    young: f64,
+) -> Vec<f64> {
+    let tiny = f64::MIN_POSITIVE;
+    let r = residual.max(tiny);
+    let decrease = previous_residual.map_or(1.0, |p| r / p.max(tiny));
+    vec![
+        step as f64,
+        iteration as f64,
+        r.log10(),
+        (r / initial_residual.max(tiny)).log10(),
+        decrease.log10(),
+        dt,
+        (free_dofs.max(1) as f64).log10(),
+        young.max(tiny).log10(),
+        previous_linear_iterations as f64,
+    ]
+}
+
 /// Features of iteration `k` of a step, from the step's iterations so far.
 fn features(
     step: usize,
@@ -77,30 +106,17 @@ fn features(
     free: usize,
     young: f64,
 ) -> Vec<f64> {
-    let it = &history[k];
-    let initial = history[0].residual.max(f64::MIN_POSITIVE);
-    let r = it.residual.max(f64::MIN_POSITIVE);
-    let decrease = if k > 0 {
-        r / history[k - 1].residual.max(f64::MIN_POSITIVE)
-    } else {
-        1.0
-    };
-    let previous = if k > 0 {
-        history[k - 1].solve.iterations as f64
-    } else {
-        0.0
-    };
-    vec![
-        step as f64,
-        k as f64,
-        r.log10(),
-        (r / initial).log10(),
-        decrease.log10(),
+    feature_vector(
+        step,
+        k,
+        history[k].residual,
+        history[0].residual,
+        k.checked_sub(1).map(|j| history[j].residual),
+        k.checked_sub(1).map_or(0, |j| history[j].solve.iterations),
         dt,
-        (free.max(1) as f64).log10(),
-        young.max(f64::MIN_POSITIVE).log10(),
-        previous,
-    ]
+        free,
+        young,
+    )
 }
 
 /// Simulates `steps` steps of `scene` with every candidate logged at every Newton iteration.

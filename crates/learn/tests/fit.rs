@@ -443,3 +443,57 @@ fn solver_datasets_log_every_candidate_and_round_trip() {
         vec![data.len(), 3]
     );
 }
+
+#[test]
+fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
+    // Learn on one release, test on another (different initial velocity).
+    let mut s = scene("", "Beam(2)");
+    s.integrator.newton.rel = 1e-9;
+    let specs: Vec<deform_solvers::SolverSpec> = [
+        "Direct()",
+        "Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-10))",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))",
+        "Cg(tolerance: (rel: 1e-10))",
+    ]
+    .iter()
+    .map(|t| ron::from_str(t).unwrap())
+    .collect();
+    let data = deform_learn::solver_data::collect(&s, Path::new("t"), &specs, 6, |_| {}).unwrap();
+    let young = 1e5;
+    let mut test_scene = s.clone();
+    test_scene.initial.velocity = [0.0, 0.5, -1.0];
+    let run = |policy: Box<dyn deform_integrator::SolverPolicy>| {
+        let mut built = test_scene.build(Path::new("t")).unwrap();
+        built.integrator.set_policy(policy);
+        let mut flops = 0u64;
+        for _ in 0..6 {
+            flops += built.integrator.step(&mut built.state).unwrap().flops();
+        }
+        (flops, built.state.x)
+    };
+    let (_, reference) = run(Box::new(deform_integrator::Fixed(specs[0].clone())));
+    let fixed: Vec<u64> = specs
+        .iter()
+        .map(|sp| run(Box::new(deform_integrator::Fixed(sp.clone()))).0)
+        .collect();
+    let learned = deform_learn::policy::LearnedPolicy::train(&data, 5, 0.9, young);
+    let (flops, x) = run(Box::new(learned));
+    let best = *fixed.iter().min().unwrap();
+    let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let error = x
+        .iter()
+        .zip(&reference)
+        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+        / scale;
+    eprintln!(
+        "flops: fixed {fixed:?}, learned {flops} ({:.3} of the best fixed), position error vs direct {error:.1e}",
+        flops as f64 / best as f64
+    );
+    assert!(error < 1e-6, "{error}");
+    // Deterministic flop counts: today 1.197x the best fixed solver (direct) on this small
+    // mesh; the cost model does not yet see whether a factor exists (next step).
+    assert!(
+        (flops as f64) <= 1.25 * best as f64,
+        "learned {flops} vs best fixed {best}"
+    );
+}
