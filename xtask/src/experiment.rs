@@ -49,7 +49,8 @@ fn write_text(path: &Path, text: &str) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// A line plot of named series against their index, log-scaled when asked.
+/// A line plot of named series against their index; with `log`, of their base-10
+/// logarithms (non-positive values are left out).
 fn plot(
     path: &Path,
     title: &str,
@@ -58,87 +59,74 @@ fn plot(
     series: &[(String, Vec<f64>)],
     log: bool,
 ) -> Result<()> {
-    let points: Vec<f64> = series
+    let series: Vec<(String, Vec<(f64, f64)>)> = series
         .iter()
-        .flat_map(|(_, v)| v.iter().copied())
-        .filter(|v| v.is_finite() && (!log || *v > 0.0))
+        .map(|(name, v)| {
+            let points = v
+                .iter()
+                .enumerate()
+                .filter(|(_, y)| y.is_finite() && (!log || **y > 0.0))
+                .map(|(i, y)| (i as f64, if log { y.log10() } else { *y }))
+                .collect();
+            (name.clone(), points)
+        })
         .collect();
-    if points.is_empty() {
+    let ys: Vec<f64> = series
+        .iter()
+        .flat_map(|(_, p)| p.iter().map(|q| q.1))
+        .collect();
+    if ys.is_empty() {
         return Ok(());
     }
-    let (lo, hi) = points
+    let (lo, hi) = ys
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
             (a.min(*v), b.max(*v))
         });
+    let pad = 0.05 * (hi - lo).max(1e-30);
     let len = series
         .iter()
-        .map(|(_, v)| v.len())
+        .map(|(_, p)| p.len())
         .max()
         .unwrap_or(1)
         .max(2);
+    let y_desc = if log {
+        format!("log10 {y_label}")
+    } else {
+        y_label.to_owned()
+    };
     let tmp = path.with_extension("svg.tmp");
     {
         let root = SVGBackend::new(&tmp, (800, 500)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
         let mut builder = ChartBuilder::on(&root);
-        let chart = builder
+        let mut chart = builder
             .caption(title, ("sans-serif", 22))
             .margin(12)
             .x_label_area_size(40)
-            .y_label_area_size(70);
+            .y_label_area_size(70)
+            .build_cartesian_2d(0f64..(len - 1) as f64, (lo - pad)..(hi + pad))
+            .map_err(|e| anyhow!("{e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_desc)
+            .draw()
+            .map_err(|e| anyhow!("{e}"))?;
         let colors = [&BLUE, &RED, &GREEN, &MAGENTA, &CYAN, &BLACK];
-        if log {
-            let mut c = chart
-                .build_cartesian_2d(0f64..(len - 1) as f64, (lo * 0.8..hi * 1.25).log_scale())
-                .map_err(|e| anyhow!("{e}"))?;
-            c.configure_mesh()
-                .x_desc(x_label)
-                .y_desc(y_label)
-                .draw()
-                .map_err(|e| anyhow!("{e}"))?;
-            for (k, (name, v)) in series.iter().enumerate() {
-                let color = colors[k % colors.len()];
-                c.draw_series(LineSeries::new(
-                    v.iter()
-                        .enumerate()
-                        .filter(|(_, y)| **y > 0.0)
-                        .map(|(i, y)| (i as f64, *y)),
-                    color,
-                ))
+        for (k, (name, points)) in series.iter().enumerate() {
+            let color = colors[k % colors.len()];
+            chart
+                .draw_series(LineSeries::new(points.iter().copied(), color))
                 .map_err(|e| anyhow!("{e}"))?
                 .label(name.as_str())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
-            }
-            c.configure_series_labels()
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| anyhow!("{e}"))?;
-        } else {
-            let pad = 0.05 * (hi - lo).max(1e-30);
-            let mut c = chart
-                .build_cartesian_2d(0f64..(len - 1) as f64, (lo - pad)..(hi + pad))
-                .map_err(|e| anyhow!("{e}"))?;
-            c.configure_mesh()
-                .x_desc(x_label)
-                .y_desc(y_label)
-                .draw()
-                .map_err(|e| anyhow!("{e}"))?;
-            for (k, (name, v)) in series.iter().enumerate() {
-                let color = colors[k % colors.len()];
-                c.draw_series(LineSeries::new(
-                    v.iter().enumerate().map(|(i, y)| (i as f64, *y)),
-                    color,
-                ))
-                .map_err(|e| anyhow!("{e}"))?
-                .label(name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
-            }
-            c.configure_series_labels()
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| anyhow!("{e}"))?;
         }
+        chart
+            .configure_series_labels()
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| anyhow!("{e}"))?;
         root.present().map_err(|e| anyhow!("{e}"))?;
     }
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
