@@ -56,6 +56,9 @@ pub struct SolversArgs {
     /// Repetitions (medians are reported).
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
+    /// Skip the direct solver (its factor needs several GB at n = 32).
+    #[arg(long)]
+    pub no_direct: bool,
 }
 
 /// `bench step`.
@@ -158,6 +161,9 @@ fn solvers(args: SolversArgs) -> Result<()> {
         );
     };
     for parallel in [false, true] {
+        if args.no_direct {
+            break;
+        }
         let (mut analyze, mut factor, mut solve) = (Vec::new(), Vec::new(), Vec::new());
         let mut nnz = 0;
         for _ in 0..args.repeats.max(1) {
