@@ -15,6 +15,7 @@ pub mod output;
 pub mod policy;
 pub mod rng;
 pub mod solver_data;
+pub mod tuning;
 
 pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
 pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble};

@@ -497,3 +497,34 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         "learned {flops} vs best fixed {best}"
     );
 }
+
+#[test]
+fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
+    let mut s = scene("", "Beam(2)");
+    s.integrator.newton.rel = 1e-8;
+    let solver: deform_solvers::SolverSpec =
+        ron::from_str("Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))").unwrap();
+    let accuracy = 1e-6;
+    let tuned =
+        deform_learn::tuning::tune_relative_tolerance(&s, Path::new("t"), &solver, 5, accuracy, 20)
+            .unwrap();
+    let tight = tuned
+        .samples
+        .iter()
+        .find(|x| (x.log10_rel + 8.0).abs() < 1e-12)
+        .unwrap();
+    eprintln!(
+        "tuned rel = 1e{:.2}: {:.3e} flops, error {:.1e}; rel = 1e-8: {:.3e} flops; {} evaluations",
+        tuned.log10_rel,
+        tuned.best.flops,
+        tuned.best.error,
+        tight.flops,
+        tuned.samples.len()
+    );
+    assert!(tuned.best.error <= accuracy, "{}", tuned.best.error);
+    assert!(tuned.best.flops <= tight.flops);
+    assert!(
+        tuned.log10_rel > -8.0,
+        "a looser tolerance than 1e-8 suffices"
+    );
+}
