@@ -483,6 +483,204 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 false,
             )?;
         }
+        Task::SelectSolver {
+            candidates,
+            neighbours,
+            min_success,
+        } => {
+            let steps = data.meta.trajectories.first().map_or(0, |t| t.steps);
+            let variant = |initial: &deform_integrator::scene::Initial| {
+                let mut s = scene.clone();
+                s.initial = initial.clone();
+                s
+            };
+            // Counterfactual logs from the training trajectories' initial conditions.
+            let b = bar(args.quiet, (train.len() * steps) as u64, "logging");
+            let mut logged: Option<deform_learn::solver_data::SolverDataset> = None;
+            for m in data
+                .meta
+                .trajectories
+                .iter()
+                .filter(|m| m.split == Split::Train)
+            {
+                let d = deform_learn::solver_data::collect(
+                    &variant(&m.initial),
+                    &experiment.scene,
+                    candidates,
+                    steps,
+                    |_| b.inc(1),
+                )?;
+                match &mut logged {
+                    None => logged = Some(d),
+                    Some(all) => {
+                        all.features.extend(d.features);
+                        all.outcomes.extend(d.outcomes);
+                    }
+                }
+            }
+            b.finish_and_clear();
+            let logged = logged.ok_or_else(|| anyhow!("no training trajectory"))?;
+            logged.save(&out.join("solver_data"))?;
+            let young = scene
+                .material
+                .build()?
+                .lame()
+                .map_or(1.0, |l| l.to_young().0);
+            // Policies compared on the test trajectories.
+            let mut policies: Vec<(
+                String,
+                Box<dyn Fn() -> Box<dyn deform_integrator::SolverPolicy>>,
+            )> = Vec::new();
+            for c in candidates {
+                let c = c.clone();
+                policies.push((
+                    format!("fixed {}", deform_integrator::spec_name(&c)),
+                    Box::new(move || Box::new(deform_integrator::Fixed(c.clone()))),
+                ));
+            }
+            if let Some(iterative) = candidates
+                .iter()
+                .find(|c| !matches!(c, deform_solvers::SolverSpec::Direct { .. }))
+            {
+                let c = iterative.clone();
+                policies.push((
+                    format!("Eisenstat-Walker {}", deform_integrator::spec_name(&c)),
+                    Box::new(move || Box::new(deform_integrator::EisenstatWalker::new(c.clone()))),
+                ));
+            }
+            let learned = deform_learn::policy::LearnedPolicy::train(
+                &logged,
+                *neighbours,
+                *min_success,
+                young,
+            );
+            policies.push((
+                "learned".to_owned(),
+                Box::new(move || Box::new(learned.clone())),
+            ));
+            let tests: Vec<_> = data
+                .meta
+                .trajectories
+                .iter()
+                .filter(|m| m.split == Split::Test)
+                .collect();
+            // References: direct solves at a tight Newton tolerance.
+            let mut references = Vec::new();
+            for m in &tests {
+                let mut s = variant(&m.initial);
+                s.integrator.newton.rel = 1e-12;
+                s.integrator.newton.abs = 0.0;
+                let mut built = s.build(&experiment.scene)?;
+                let mut xs = Vec::new();
+                for _ in 0..steps {
+                    built.integrator.step(&mut built.state)?;
+                    xs.push(built.state.x.clone());
+                }
+                references.push(xs);
+            }
+            report.push_str("| policy | flops (test) | solver seconds | max relative position error | fallbacks |\n|---|---|---|---|---|\n");
+            let mut csv = String::from("policy,flops,solver_seconds,error,fallbacks\n");
+            let b = bar(args.quiet, policies.len() as u64, "policies");
+            for (name, make) in &policies {
+                let (mut flops, mut seconds, mut error, mut fallbacks) =
+                    (0u64, 0.0, 0.0f64, 0usize);
+                let mut failed = false;
+                for (m, reference) in tests.iter().zip(&references) {
+                    let mut built = variant(&m.initial).build(&experiment.scene)?;
+                    built.integrator.set_policy(make());
+                    let scale = reference
+                        .iter()
+                        .flatten()
+                        .fold(0.0f64, |a, v| a.max(v.abs()))
+                        .max(f64::MIN_POSITIVE);
+                    for xr in reference {
+                        match built.integrator.step(&mut built.state) {
+                            Ok(r) => {
+                                flops += r.flops();
+                                seconds += r.solver_seconds();
+                                fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
+                            }
+                            Err(_) => {
+                                failed = true;
+                                break;
+                            }
+                        }
+                        let e = built
+                            .state
+                            .x
+                            .iter()
+                            .zip(xr)
+                            .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
+                        error = error.max(e / scale);
+                    }
+                }
+                let shown_error = if failed {
+                    "failed".to_owned()
+                } else {
+                    format!("{error:.1e}")
+                };
+                writeln!(
+                    report,
+                    "| {name} | {:.4e} | {seconds:.3} | {shown_error} | {fallbacks} |",
+                    flops as f64
+                )?;
+                writeln!(csv, "{name},{flops},{seconds},{error:e},{fallbacks}")?;
+                b.inc(1);
+            }
+            b.finish_and_clear();
+            write_text(&out.join("policies.csv"), &csv)?;
+            writeln!(
+                report,
+                "\n{} logged Newton iterations from {} training trajectories; data in `solver_data/`.",
+                logged.len(),
+                train.len()
+            )?;
+        }
+        Task::TuneSolver {
+            solver,
+            accuracy,
+            max_iterations,
+        } => {
+            let steps = data.meta.trajectories.first().map_or(0, |t| t.steps);
+            let tuned = deform_learn::tuning::tune_relative_tolerance(
+                &scene,
+                &experiment.scene,
+                solver,
+                steps,
+                *accuracy,
+                *max_iterations,
+            )?;
+            let mut csv = String::from("log10_rel,flops,error,cost\n");
+            for sample in &tuned.samples {
+                writeln!(
+                    csv,
+                    "{},{:e},{:e},{:e}",
+                    sample.log10_rel, sample.flops, sample.error, sample.cost
+                )?;
+            }
+            write_text(&out.join("tuning.csv"), &csv)?;
+            writeln!(
+                report,
+                "Tuned `{}`: relative tolerance 1e{:.2}, {:.4e} flops over {steps} steps, trajectory error {:.1e} (bound {accuracy:e}); {} evaluations (`tuning.csv`).",
+                deform_integrator::spec_name(solver),
+                tuned.log10_rel,
+                tuned.best.flops,
+                tuned.best.error,
+                tuned.samples.len()
+            )?;
+            if let Some(default) = tuned
+                .samples
+                .iter()
+                .find(|x| (x.log10_rel + 8.0).abs() < 1e-9)
+            {
+                writeln!(
+                    report,
+                    "At 1e-8: {:.4e} flops; tuned / 1e-8: {:.3}.",
+                    default.flops,
+                    tuned.best.flops / default.flops
+                )?;
+            }
+        }
     }
     writeln!(
         report,

@@ -68,6 +68,47 @@ pub enum Task {
         /// The candidate models.
         members: Vec<String>,
     },
+    /// Solver selection: log every candidate at every Newton iteration of the training
+    /// trajectories, learn a policy, and compare it with each fixed candidate and the
+    /// Eisenstat-Walker rule on the test trajectories (work, time, accuracy).
+    SelectSolver {
+        /// The candidate configurations.
+        candidates: Vec<deform_solvers::SolverSpec>,
+        /// Neighbours of the learned model.
+        #[serde(default = "five")]
+        neighbours: usize,
+        /// Minimum predicted success rate of a chosen candidate.
+        #[serde(default = "success")]
+        min_success: f64,
+    },
+    /// Solver optimisation: tune an iterative solver's relative tolerance for least work
+    /// with the trajectory within `accuracy` of the direct solver's.
+    TuneSolver {
+        /// The iterative configuration.
+        solver: deform_solvers::SolverSpec,
+        /// Relative max-norm position accuracy to keep.
+        #[serde(default = "accuracy")]
+        accuracy: f64,
+        /// Nelder-Mead iterations.
+        #[serde(default = "twenty")]
+        max_iterations: u64,
+    },
+}
+
+fn five() -> usize {
+    5
+}
+
+fn success() -> f64 {
+    0.9
+}
+
+fn accuracy() -> f64 {
+    1e-6
+}
+
+fn twenty() -> u64 {
+    20
 }
 
 /// An experiment.
