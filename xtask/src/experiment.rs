@@ -16,6 +16,9 @@ use deform_mesh::io::write_atomic;
 use indicatif::{ProgressBar, ProgressStyle};
 use plotters::prelude::*;
 
+/// Makes a fresh policy for each test trajectory.
+type PolicyMaker = Box<dyn Fn() -> Box<dyn deform_integrator::SolverPolicy>>;
+
 /// Arguments of `experiment`.
 #[derive(Debug, Args)]
 pub struct ExperimentArgs {
@@ -527,10 +530,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 .lame()
                 .map_or(1.0, |l| l.to_young().0);
             // Policies compared on the test trajectories.
-            let mut policies: Vec<(
-                String,
-                Box<dyn Fn() -> Box<dyn deform_integrator::SolverPolicy>>,
-            )> = Vec::new();
+            let mut policies: Vec<(String, PolicyMaker)> = Vec::new();
             for c in candidates {
                 let c = c.clone();
                 policies.push((
