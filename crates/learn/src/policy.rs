@@ -3,18 +3,39 @@
 //!
 //! Deliberately simple and inspectable: a k-nearest-neighbour model on standardised
 //! features (the policy-independent ones: Newton iteration, residual level and decrease,
-//! dt, size, stiffness). For each candidate it predicts the success rate and the mean
-//! log-flops of the neighbours, and picks the cheapest whose success rate reaches
-//! `min_success`; when none does, the safest. The integrator's direct fallback covers
-//! mispredictions. Costs are the deterministic flop counts, so the policy is reproducible.
+//! dt, size, stiffness). For each candidate it predicts the success rate, the solve flops
+//! and the set-up flops of the neighbours, and picks the cheapest whose success rate reaches
+//! `min_success`; when none does, the safest. The set-up cost depends on the policy's own
+//! state: a stale-Cholesky candidate whose factor the policy holds (younger than its
+//! `max_age`) costs no factorisation, one without a factor costs a full one, so the policy
+//! can factorise once and reuse. The integrator's direct fallback covers mispredictions.
+//! Costs are deterministic flop counts, so the policy is reproducible.
 
-use deform_integrator::{Decision, PolicyContext, SolverPolicy, spec_name};
-use deform_solvers::SolverSpec;
+use deform_integrator::{Decision, IterationReport, PolicyContext, SolverPolicy, spec_name};
+use deform_solvers::{PreconditionerSpec, SolverSpec};
 
 use crate::solver_data::{SolverDataset, feature_vector};
 
 /// Feature columns the neighbours are found on (the others depend on the policy that ran).
 const USED: [usize; 7] = [1, 2, 3, 4, 5, 6, 7];
+
+#[derive(Debug, Clone, Copy)]
+struct Target {
+    ok: bool,
+    solve: f64,
+    setup: f64,
+}
+
+/// `max_age` of a stale-Cholesky candidate.
+fn max_age(spec: &SolverSpec) -> Option<usize> {
+    match spec {
+        SolverSpec::Pcg {
+            preconditioner: PreconditionerSpec::StaleCholesky { max_age, .. },
+            ..
+        } => Some(*max_age),
+        _ => None,
+    }
+}
 
 /// A k-nearest-neighbour cost model over a [`SolverDataset`].
 #[derive(Debug, Clone)]
@@ -22,8 +43,14 @@ pub struct LearnedPolicy {
     candidates: Vec<SolverSpec>,
     /// Standardised training features (used columns only).
     points: Vec<Vec<f64>>,
-    /// Per sample and candidate: (success, log10 flops).
-    targets: Vec<Vec<(bool, f64)>>,
+    /// Per sample and candidate: success, solve flops, set-up flops, set-up reused.
+    targets: Vec<Vec<Target>>,
+    /// Mean factorisation (non-reused set-up) flops per candidate over all samples.
+    fresh_setup: Vec<f64>,
+    /// Age of the factor the policy's own instance of each stale-Cholesky candidate holds.
+    ages: Vec<Option<usize>>,
+    /// The candidate chosen last.
+    last: Option<usize>,
     mean: Vec<f64>,
     scale: Vec<f64>,
     k: usize,
@@ -59,15 +86,42 @@ impl LearnedPolicy {
             .iter()
             .map(|r| (0..d).map(|j| (r[j] - mean[j]) / scale[j]).collect())
             .collect();
-        let targets = data
+        let targets: Vec<Vec<Target>> = data
             .outcomes
             .iter()
-            .map(|o| o.iter().map(|c| (c.ok, c.flops.max(1.0).log10())).collect())
+            .map(|o| {
+                o.iter()
+                    .map(|c| Target {
+                        ok: c.ok,
+                        solve: (c.flops - c.setup_flops).max(0.0),
+                        setup: c.setup_flops,
+                    })
+                    .collect()
+            })
+            .collect();
+        let c = data.meta.candidates.len();
+        let fresh_setup = (0..c)
+            .map(|j| {
+                let fresh: Vec<f64> = data
+                    .outcomes
+                    .iter()
+                    .filter(|o| !o[j].reused)
+                    .map(|o| o[j].setup_flops)
+                    .collect();
+                if fresh.is_empty() {
+                    0.0
+                } else {
+                    fresh.iter().sum::<f64>() / fresh.len() as f64
+                }
+            })
             .collect();
         Self {
             candidates: data.meta.candidates.clone(),
             points,
             targets,
+            fresh_setup,
+            ages: vec![None; c],
+            last: None,
             mean,
             scale,
             k: k.max(1),
@@ -99,18 +153,23 @@ impl LearnedPolicy {
         let near = &order[..self.k.min(order.len())];
         let stats: Vec<(f64, f64)> = (0..self.candidates.len())
             .map(|c| {
-                let ok: Vec<f64> = near
+                let ok: Vec<&Target> = near
                     .iter()
-                    .filter(|(_, i)| self.targets[*i][c].0)
-                    .map(|(_, i)| self.targets[*i][c].1)
+                    .map(|(_, i)| &self.targets[*i][c])
+                    .filter(|t| t.ok)
                     .collect();
                 let rate = ok.len() as f64 / near.len() as f64;
-                let cost = if ok.is_empty() {
-                    f64::INFINITY
-                } else {
-                    ok.iter().sum::<f64>() / ok.len() as f64
+                if ok.is_empty() {
+                    return (rate, f64::INFINITY);
+                }
+                let solve = ok.iter().map(|t| t.solve).sum::<f64>() / ok.len() as f64;
+                let setup = match (max_age(&self.candidates[c]), self.ages[c]) {
+                    // The policy holds a young enough factor: reused, no factorisation.
+                    (Some(max), Some(age)) if age < max => 0.0,
+                    (Some(_), _) => self.fresh_setup[c],
+                    (None, _) => ok.iter().map(|t| t.setup).sum::<f64>() / ok.len() as f64,
                 };
-                (rate, cost)
+                (rate, (solve + setup).max(1.0).log10())
             })
             .collect();
         let acceptable = (0..stats.len()).filter(|&c| stats[c].0 >= self.min_success);
@@ -148,6 +207,25 @@ impl SolverPolicy for LearnedPolicy {
             c.num_free,
             self.young,
         );
-        Decision::solver(self.candidates[self.choose_index(&features)].clone())
+        let chosen = self.choose_index(&features);
+        // Mirror the chosen instance's factor age (see `Iterative::factorize`).
+        if let Some(max) = max_age(&self.candidates[chosen]) {
+            self.ages[chosen] = match self.ages[chosen] {
+                Some(age) if age < max => Some(age + 1),
+                _ => Some(0),
+            };
+        }
+        self.last = Some(chosen);
+        Decision::solver(self.candidates[chosen].clone())
+    }
+
+    fn observe(&mut self, _context: &PolicyContext<'_>, outcome: &IterationReport) {
+        // A fallback means the chosen instance failed; its factor state is unknown, so
+        // assume it must be recomputed.
+        if outcome.fallback
+            && let Some(last) = self.last
+        {
+            self.ages[last] = None;
+        }
     }
 }

@@ -5,7 +5,8 @@
 //!
 //! On disk, like trajectory datasets: `meta.ron` (feature names, candidate configurations,
 //! the scene) and `.npy` arrays numpy loads directly: `features.npy` (samples x features),
-//! `flops.npy`, `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance) and
+//! `flops.npy`, `setup_flops.npy`, `reused.npy` (1 when a stale factor was reused),
+//! `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance) and
 //! `relative_residual.npy`, each samples x candidates.
 
 use std::path::{Path, PathBuf};
@@ -36,6 +37,10 @@ pub const FEATURES: [&str; 9] = [
 pub struct Outcome {
     /// Deterministic work: set-up plus solve flops.
     pub flops: f64,
+    /// The set-up's share of `flops` (factorisation or preconditioner).
+    pub setup_flops: f64,
+    /// The set-up reused an earlier factor (stale Cholesky) instead of computing one.
+    pub reused: bool,
     /// Wall time, set-up plus solve.
     pub seconds: f64,
     /// Whether it met its tolerance.
@@ -168,6 +173,8 @@ pub fn collect(
                         flops: (c.setup.map_or(0, |s| s.flops)
                             + c.solve.as_ref().map_or(0, |s| s.flops))
                             as f64,
+                        setup_flops: c.setup.map_or(0, |s| s.flops) as f64,
+                        reused: c.setup.is_some_and(|s| s.reused),
                         seconds: c.setup.map_or(0.0, |s| s.seconds)
                             + c.solve.as_ref().map_or(0.0, |s| s.seconds),
                         ok: c.error.is_none(),
@@ -215,6 +222,16 @@ impl SolverDataset {
         };
         npy::write(&dir.join("flops.npy"), &[n, c], &column(&|o| o.flops))?;
         npy::write(&dir.join("seconds.npy"), &[n, c], &column(&|o| o.seconds))?;
+        npy::write(
+            &dir.join("setup_flops.npy"),
+            &[n, c],
+            &column(&|o| o.setup_flops),
+        )?;
+        npy::write(
+            &dir.join("reused.npy"),
+            &[n, c],
+            &column(&|o| f64::from(u8::from(o.reused))),
+        )?;
         npy::write(
             &dir.join("ok.npy"),
             &[n, c],
@@ -272,9 +289,17 @@ impl SolverDataset {
             read("ok.npy", c)?,
             read("relative_residual.npy", c)?,
         );
-        if [flops.len(), seconds.len(), ok.len(), res.len()]
-            .iter()
-            .any(|&l| l != features.len())
+        let (setup, reused) = (read("setup_flops.npy", c)?, read("reused.npy", c)?);
+        if [
+            flops.len(),
+            seconds.len(),
+            ok.len(),
+            res.len(),
+            setup.len(),
+            reused.len(),
+        ]
+        .iter()
+        .any(|&l| l != features.len())
         {
             return Err(DatasetError::Inconsistent(format!(
                 "{}: arrays disagree on the number of samples",
@@ -286,6 +311,8 @@ impl SolverDataset {
                 (0..c)
                     .map(|j| Outcome {
                         flops: flops[i][j],
+                        setup_flops: setup[i][j],
+                        reused: reused[i][j] != 0.0,
                         seconds: seconds[i][j],
                         ok: ok[i][j] != 0.0,
                         relative_residual: if res[i][j] >= f64::MAX {
