@@ -135,6 +135,18 @@ fn plot(
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
+/// `rollout_error.svg`: RMS position error per step of each series.
+fn plot_rollouts(out: &Path, series: &[(String, Vec<f64>)]) -> Result<()> {
+    plot(
+        &out.join("rollout_error.svg"),
+        "test rollout RMS position error",
+        "step",
+        "m",
+        series,
+        false,
+    )
+}
+
 /// The scene with its material's moduli replaced by a Lame pair.
 fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene> {
     let moduli = Moduli::Lame { mu, lambda };
@@ -372,14 +384,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 rcsv.push('\n');
             }
             write_text(&out.join("rollout_error.csv"), &rcsv)?;
-            plot(
-                &out.join("rollout_error.svg"),
-                "test rollout RMS position error",
-                "step",
-                "m",
-                &series,
-                false,
-            )?;
+            plot_rollouts(&out, &series)?;
             let mean = |e: &[f64]| e.iter().sum::<f64>() / e.len().max(1) as f64;
             writeln!(
                 report,
@@ -477,14 +482,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                     test_rollout(&s, &experiment.scene, &data)?,
                 ));
             }
-            plot(
-                &out.join("rollout_error.svg"),
-                "test rollout RMS position error",
-                "step",
-                "m",
-                &series,
-                false,
-            )?;
+            plot_rollouts(&out, &series)?;
         }
         Task::SelectSolver {
             candidates,
