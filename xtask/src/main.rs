@@ -3,6 +3,7 @@
 //! Tasks are plain Rust (no make, no shell scripts); each lives in its own module.
 
 mod bench;
+mod demo;
 mod experiment;
 mod mesh;
 mod simulate;
@@ -22,6 +23,8 @@ enum Task {
     /// Inspect, convert and generate tetrahedral meshes.
     #[command(subcommand)]
     Mesh(mesh::MeshTask),
+    /// The whole idea end to end: simulate, fit, select, learn solver policies, report.
+    Demo(demo::DemoArgs),
     /// Quick measurements on the benchmark beams, as JSON lines (see bench/peers/).
     #[command(subcommand)]
     Bench(bench::BenchTask),
@@ -37,6 +40,7 @@ fn main() -> std::process::ExitCode {
         Task::Mesh(task) => mesh::run(task),
         Task::Simulate(args) => simulate::run(args),
         Task::Bench(task) => bench::run(task),
+        Task::Demo(args) => demo::run(args),
         Task::Experiment(args) => experiment::run(args),
     };
     match result {

@@ -1,0 +1,118 @@
+//! `cargo xtask demo`: the whole idea end to end on the bundled scenes, in about a minute:
+//! simulate the default scene, then the experiments (fit a material to noisy data, select an
+//! energy model, let a 4x coarser model learn from the base, learn which linear solver runs
+//! when, tune a solver's tolerance). Writes `target/deform/demo/report.md` gathering every
+//! experiment's report, with each one's folder (CSV, SVG plots, datasets) beside it.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use deform_mesh::io::write_atomic;
+
+use crate::experiment::{self, ExperimentArgs};
+use crate::simulate;
+
+/// Arguments of `demo`.
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Output folder.
+    #[arg(long, default_value = "target/deform/demo")]
+    pub out: PathBuf,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+const EXPERIMENTS: [(&str, &str); 5] = [
+    (
+        "fit_material",
+        "force-model optimisation: E and nu from trajectories with 1 % position noise",
+    ),
+    (
+        "select_model",
+        "model selection: which energy made the data",
+    ),
+    (
+        "coarse_dt",
+        "accuracy: a 4x coarser time step learns from the base model",
+    ),
+    (
+        "select_solver",
+        "solver selection: a learned policy against fixed solvers and Eisenstat-Walker",
+    ),
+    (
+        "tune_solver",
+        "solver optimisation: the least-work tolerance that keeps the trajectory",
+    ),
+];
+
+pub fn run(args: DemoArgs) -> Result<()> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let started = Instant::now();
+    let mut rows = Vec::new();
+    let mut report = String::from(
+        "# deform demo\n\nThe base model is a Backward-Euler simulation (Newton, Rayleigh damping) of linear tetrahedra; data are its trajectories. Each section below is one experiment's report; its folder holds the CSV files, SVG plots and the dataset.\n\n",
+    );
+
+    let t = Instant::now();
+    let sim = simulate::simulate(
+        &root.join("assets/scenes/cantilever.ron"),
+        None,
+        Some(&args.out.join("cantilever")),
+        args.quiet,
+    )?;
+    rows.push((
+        "simulate cantilever".to_owned(),
+        t.elapsed().as_secs_f64(),
+        format!(
+            "{} steps, {} Newton iterations; ParaView: cantilever/series.pvd",
+            sim.steps, sim.newton
+        ),
+    ));
+    writeln!(
+        report,
+        "## The base model: `assets/scenes/cantilever.ron`\n\n{} steps, {} Newton iterations, {:.2} s; frames in `cantilever/series.pvd` (open in ParaView), per-step data in `cantilever/steps.csv`.\n",
+        sim.steps, sim.newton, sim.seconds
+    )?;
+
+    for (name, what) in EXPERIMENTS {
+        let t = Instant::now();
+        let out = args.out.join(name);
+        experiment::run(ExperimentArgs {
+            experiment: root.join(format!("assets/experiments/{name}.ron")),
+            out: Some(out.clone()),
+            quiet: args.quiet,
+        })?;
+        let text = std::fs::read_to_string(out.join("report.md"))
+            .with_context(|| format!("reading {}", out.join("report.md").display()))?;
+        // Demote the experiment's title under the demo's.
+        writeln!(
+            report,
+            "## {what}\n\nFolder `{name}/`.\n\n{}",
+            text.replacen("# ", "### ", 1)
+        )?;
+        rows.push((
+            name.to_owned(),
+            t.elapsed().as_secs_f64(),
+            format!("{name}/report.md"),
+        ))
+    }
+    let mut table = String::from("| stage | time | results |\n|---|---|---|\n");
+    for (stage, seconds, note) in &rows {
+        writeln!(table, "| {stage} | {seconds:.1} s | {note} |")?;
+    }
+    let text = format!(
+        "{report}\n## Summary\n\n{table}\nTotal {:.1} s.\n",
+        started.elapsed().as_secs_f64()
+    );
+    let path = args.out.join("report.md");
+    write_atomic(&path, |w| w.write_all(text.as_bytes()))
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!("\n{table}\nreport: {}", path.display());
+    Ok(())
+}
