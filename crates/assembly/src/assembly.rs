@@ -14,7 +14,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use sprs::CsMat;
 
-use crate::kernel::{element_forces, gradient, stiffness_blocks, upper_slot};
+use crate::kernel::{corner_products, gradient, stiffness_blocks, upper_slot};
 use crate::{AssemblyError, MaterialField};
 
 /// Elements per parallel task.
@@ -371,6 +371,26 @@ pub(crate) fn for_each_element<T: Send>(
     first_error.into_iter().next().map_or(Ok(()), Err)
 }
 
+/// `F` of element `e` at positions `x`, or the typed error when it is outside the model's
+/// domain (e.g. inverted for Neo-Hookean).
+pub(crate) fn admissible_gradient(
+    geo: &Geometry,
+    x: &[f64],
+    e: usize,
+    m: &Model,
+) -> Result<Matrix3<f64>, AssemblyError> {
+    let f = gradient(&corners(x, &geo.tets[e]), &geo.grads[e]);
+    if m.admissible(&f) {
+        Ok(f)
+    } else {
+        Err(AssemblyError::Inadmissible {
+            element: e,
+            det: f.determinant(),
+            model: m.name(),
+        })
+    }
+}
+
 /// [`for_each_element`] with each element's model: the one place that dispatches on the
 /// material field (a uniform field needs no per-element lookup).
 pub(crate) fn for_each_element_with_model<T: Send>(
@@ -394,17 +414,9 @@ fn element_phase(
     work: &mut [ElementOut],
 ) -> Result<(), AssemblyError> {
     for_each_element_with_model(materials, work, |e, out, m| {
-        let t = &geo.tets[e];
         let g = &geo.grads[e];
         let w = geo.volumes[e];
-        let f = gradient(&corners(x, t), g);
-        if !m.admissible(&f) {
-            return Err(AssemblyError::Inadmissible {
-                element: e,
-                det: f.determinant(),
-                model: m.name(),
-            });
-        }
+        let f = admissible_gradient(geo, x, e, m)?;
         if need.energy {
             out.energy = w * m.psi(&f);
             if !out.energy.is_finite() {
@@ -425,10 +437,10 @@ fn element_phase(
                 }
                 stiffness_blocks(&c, g, w, &mut out.blocks);
                 if need.forces {
-                    out.forces = element_forces(&p, g, w);
+                    out.forces = corner_products(&p, g, -w);
                 }
             }
-            None if need.forces => out.forces = element_forces(&m.first_piola(&f), g, w),
+            None if need.forces => out.forces = corner_products(&m.first_piola(&f), g, -w),
             None => {}
         }
         if need.forces && !out.forces.iter().all(|v| v.iter().all(|c| c.is_finite())) {

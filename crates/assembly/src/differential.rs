@@ -6,10 +6,10 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::assembly::{
-    Geometry, Tangent, check_len, check_positions, corners, for_each_element_with_model,
-    gather_vertex_vectors,
+    Geometry, Tangent, admissible_gradient, check_len, check_positions, corners,
+    for_each_element_with_model, gather_vertex_vectors,
 };
-use crate::kernel::{gradient, stiffness_blocks};
+use crate::kernel::{corner_products, gradient, stiffness_blocks};
 use crate::{Assembly, AssemblyError};
 
 /// The element tangents `W_e dP/dF(F_e)` at one configuration: a matrix-free `K`.
@@ -37,14 +37,7 @@ impl Assembly {
         let mut tangents = vec![Matrix9::zeros(); self.num_elements()];
         let project = tangent == Tangent::Projected;
         let body = |e: usize, out: &mut Matrix9, m: &deform_materials::Model| {
-            let f = gradient(&corners(x, &geo.tets[e]), &geo.grads[e]);
-            if !m.admissible(&f) {
-                return Err(AssemblyError::Inadmissible {
-                    element: e,
-                    det: f.determinant(),
-                    model: m.name(),
-                });
-            }
+            let f = admissible_gradient(geo, x, e, m)?;
             let c = if project {
                 m.dp_df_projected(&f)
             } else {
@@ -84,14 +77,7 @@ impl Assembly {
         let mut corner_forces = vec![[Vector3::zeros(); 4]; self.num_elements()];
         let body = |e: usize, out: &mut [Vector3<f64>; 4], m: &deform_materials::Model| {
             let (t, g) = (&geo.tets[e], &geo.grads[e]);
-            let f = gradient(&corners(x, t), g);
-            if !m.admissible(&f) {
-                return Err(AssemblyError::Inadmissible {
-                    element: e,
-                    det: f.determinant(),
-                    model: m.name(),
-                });
-            }
+            let f = admissible_gradient(geo, x, e, m)?;
             let dp = m.dp(&f, &gradient(&corners(dx, t), g));
             *out = corner_products(&dp, g, -geo.volumes[e]);
             Ok(())
@@ -100,14 +86,6 @@ impl Assembly {
         gather_vertex_vectors(geo, |slot| corner_forces[slot / 4][slot % 4], df);
         finite_or_first_vertex(df)
     }
-}
-
-/// `s dP g_a` for the four corners, with `g_0 = -(g_1 + g_2 + g_3)`.
-fn corner_products(dp: &Matrix3<f64>, g: &[Vector3<f64>; 4], s: f64) -> [Vector3<f64>; 4] {
-    let f1 = s * (dp * g[1]);
-    let f2 = s * (dp * g[2]);
-    let f3 = s * (dp * g[3]);
-    [-(f1 + f2 + f3), f1, f2, f3]
 }
 
 fn finite_or_first_vertex(v: &[f64]) -> Result<(), AssemblyError> {

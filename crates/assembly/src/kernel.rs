@@ -79,12 +79,17 @@ pub(crate) fn stiffness_blocks(
     ];
 }
 
-/// Element forces `f_a = -w P g_a`.
+/// `s P g_a` for the four corners, with `g_0 = -(g_1 + g_2 + g_3)`: element forces
+/// (`s = -W`, `P` the stress), force differentials (`P = dP`) and term forces.
 #[inline]
-pub(crate) fn element_forces(p: &Matrix3<f64>, g: &[Vector3<f64>; 4], w: f64) -> [Vector3<f64>; 4] {
-    let f1 = -w * (p * g[1]);
-    let f2 = -w * (p * g[2]);
-    let f3 = -w * (p * g[3]);
+pub(crate) fn corner_products(
+    p: &Matrix3<f64>,
+    g: &[Vector3<f64>; 4],
+    s: f64,
+) -> [Vector3<f64>; 4] {
+    let f1 = s * (p * g[1]);
+    let f2 = s * (p * g[2]);
+    let f3 = s * (p * g[3]);
     [-(f1 + f2 + f3), f1, f2, f3]
 }
 

@@ -1,5 +1,7 @@
 //! Mass matrices and Rayleigh damping on K's pattern.
 
+use deform_mesh::topology::BlockPattern;
+use deform_mesh::{ConsistentMass, TetMesh};
 use sprs::CsMat;
 
 use crate::assembly::check_len;
@@ -7,45 +9,32 @@ use crate::{Assembly, AssemblyError};
 
 /// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
 /// (`M_ab = rho W (1 + delta_ab) / 20` per element, one scalar per 3x3 block of K's pattern).
+/// Both are the mesh crate's ([`TetMesh::lumped_mass`], [`TetMesh::consistent_mass`]).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Mass {
     /// One mass per vertex.
     Lumped(Vec<f64>),
     /// One scalar per block of the stiffness pattern (block `(i, j)` is `m_k I3`).
-    Consistent(Vec<f64>),
+    Consistent(ConsistentMass),
+}
+
+impl Mass {
+    /// The lumped mass of `mesh` for `density` (kg/m^3).
+    pub fn lumped(mesh: &TetMesh, density: f64) -> Self {
+        Mass::Lumped(mesh.lumped_mass(density))
+    }
+
+    /// The consistent mass of `mesh` for `density` on the block pattern of its assembly.
+    ///
+    /// # Panics
+    /// If `pattern` is not the pattern of `mesh` (use [`Assembly::pattern`]).
+    #[track_caller]
+    pub fn consistent(mesh: &TetMesh, density: f64, pattern: &BlockPattern) -> Self {
+        Mass::Consistent(mesh.consistent_mass(density, pattern))
+    }
 }
 
 impl Assembly {
-    /// The lumped mass for `density` (kg/m^3).
-    pub fn lumped_mass(&self, density: f64) -> Mass {
-        let geo = &self.geometry;
-        let mut m = vec![0.0; geo.num_vertices];
-        for (t, w) in geo.tets.iter().zip(&geo.volumes) {
-            for &i in t {
-                m[i] += density * w / 4.0;
-            }
-        }
-        Mass::Lumped(m)
-    }
-
-    /// The consistent mass for `density` on K's block pattern.
-    pub fn consistent_mass(&self, density: f64) -> Mass {
-        let geo = &self.geometry;
-        let mut m = vec![0.0; geo.pattern.num_blocks()];
-        for (t, w) in geo.tets.iter().zip(&geo.volumes) {
-            for a in 0..4 {
-                for b in 0..4 {
-                    let k = geo
-                        .pattern
-                        .find(t[a], t[b])
-                        .expect("element pairs are in the pattern");
-                    m[k] += density * w * if a == b { 2.0 } else { 1.0 } / 20.0;
-                }
-            }
-        }
-        Mass::Consistent(m)
-    }
-
     /// `y = M x`.
     ///
     /// # Errors
@@ -61,19 +50,7 @@ impl Assembly {
                     *yi = m[i / 3] * x[i];
                 }
             }
-            Mass::Consistent(m) => {
-                let p = &self.geometry.pattern;
-                for v in 0..p.num_rows() {
-                    let mut acc = [0.0; 3];
-                    for k in p.offsets()[v]..p.offsets()[v + 1] {
-                        let j = p.columns()[k];
-                        for c in 0..3 {
-                            acc[c] += m[k] * x[3 * j + c];
-                        }
-                    }
-                    y[3 * v..3 * v + 3].copy_from_slice(&acc);
-                }
-            }
+            Mass::Consistent(m) => m.apply(&self.geometry.pattern, x, y),
         }
         Ok(())
     }
@@ -82,12 +59,7 @@ impl Assembly {
     pub fn vertex_masses(&self, mass: &Mass) -> Vec<f64> {
         match mass {
             Mass::Lumped(m) => m.clone(),
-            Mass::Consistent(m) => {
-                let p = &self.geometry.pattern;
-                (0..p.num_rows())
-                    .map(|v| m[p.offsets()[v]..p.offsets()[v + 1]].iter().sum())
-                    .collect()
-            }
+            Mass::Consistent(m) => m.row_sums(&self.geometry.pattern),
         }
     }
 
@@ -96,7 +68,7 @@ impl Assembly {
             Mass::Lumped(m) => check_len("lumped mass", m.len(), self.num_vertices()),
             Mass::Consistent(m) => check_len(
                 "consistent mass",
-                m.len(),
+                m.values.len(),
                 self.geometry.pattern.num_blocks(),
             ),
         }
@@ -132,7 +104,7 @@ impl Assembly {
                 let m = match mass {
                     Mass::Lumped(m) if p.columns()[blk] == v => m[v],
                     Mass::Lumped(_) => continue,
-                    Mass::Consistent(m) => m[blk],
+                    Mass::Consistent(m) => m.values[blk],
                 };
                 for r in 0..3 {
                     values[9 * start + 3 * len * r + 3 * (blk - start) + r] += c_m * m;

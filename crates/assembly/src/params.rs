@@ -11,9 +11,10 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use crate::assembly::{
-    check_len, check_positions, corners, for_each_element_with_model, vertex_chunks,
+    admissible_gradient, check_len, check_positions, corners, for_each_element_with_model,
+    vertex_chunks,
 };
-use crate::kernel::gradient;
+use crate::kernel::{corner_products, gradient};
 use crate::{Assembly, AssemblyError};
 
 /// Which elements share coefficients.
@@ -131,14 +132,7 @@ impl Assembly {
         let mut elements: Vec<&mut [[Vector3<f64>; 4]]> = corner.chunks_mut(terms.max(1)).collect();
         let body = |e: usize, out: &mut &mut [[Vector3<f64>; 4]], m: &Model| {
             let (t, g) = (&geo.tets[e], &geo.grads[e]);
-            let f = gradient(&corners(x, t), g);
-            if !m.admissible(&f) {
-                return Err(AssemblyError::Inadmissible {
-                    element: e,
-                    det: f.determinant(),
-                    model: m.name(),
-                });
-            }
+            let f = admissible_gradient(geo, x, e, m)?;
             let df = dx.map(|d| gradient(&corners(d, t), g));
             let w = geo.volumes[e];
             for k in 0..m.num_terms() {
@@ -147,10 +141,7 @@ impl Assembly {
                     None => -w * m.term_first_piola(k, &f),
                     Some(df) => w * mat3(&(m.term_dp_df(k, &f) * vec9(df))),
                 };
-                let f1 = p * g[1];
-                let f2 = p * g[2];
-                let f3 = p * g[3];
-                out[k] = [-(f1 + f2 + f3), f1, f2, f3];
+                out[k] = corner_products(&p, g, 1.0);
             }
             Ok(())
         };

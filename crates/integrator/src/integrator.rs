@@ -238,8 +238,8 @@ impl Integrator {
         }
         let asm = Assembly::new(mesh, materials)?;
         let mass = match options.mass {
-            MassKind::Lumped => asm.lumped_mass(density),
-            MassKind::Consistent => asm.consistent_mass(density),
+            MassKind::Lumped => Mass::lumped(mesh, density),
+            MassKind::Consistent => Mass::consistent(mesh, density, asm.pattern()),
         };
         let constrained: Vec<usize> = constraints
             .iter()
@@ -566,16 +566,22 @@ impl Integrator {
                 .restrict_matrix(&self.a, &mut self.a_free)
                 .map_err(|e| fail_assembly(e, &report))?;
             let rhs: Vec<f64> = r_free.iter().map(|v| -v).collect();
-            let context = PolicyContext {
-                step: self.steps_taken,
+            // What the policy sees, before the solve and (with its outcome) after it.
+            let (step, num_free, initial) = (
+                self.steps_taken,
+                self.dofs.num_free(),
+                report.initial_residual,
+            );
+            let context = |history| PolicyContext {
+                step,
                 iteration,
                 dt,
-                num_free: self.dofs.num_free(),
+                num_free,
                 residual: rn,
-                initial_residual: report.initial_residual,
-                history: &report.iterations,
+                initial_residual: initial,
+                history,
             };
-            let decision = self.policy.choose(&context);
+            let decision = self.policy.choose(&context(&report.iterations));
             du_free.iter_mut().for_each(|v| *v = 0.0);
             let (setup, solve, fallback) = match self.linear_solve(
                 &decision.solver,
@@ -676,16 +682,7 @@ impl Integrator {
                 candidates,
             };
             self.observer.iteration(&it);
-            let context = PolicyContext {
-                step: self.steps_taken,
-                iteration,
-                dt,
-                num_free: self.dofs.num_free(),
-                residual: rn,
-                initial_residual: report.initial_residual,
-                history: &report.iterations,
-            };
-            self.policy.observe(&context, &it);
+            self.policy.observe(&context(&report.iterations), &it);
             report.iterations.push(it);
         }
         Err(StepError::NotConverged {

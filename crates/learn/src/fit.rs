@@ -115,7 +115,6 @@ pub fn fit_equation_error(
     let mut h = DVector::<f64>::zeros(p);
     let mut bb = 0.0;
     let mut equations = 0;
-    let mut column = vec![0.0; n];
     for (ti, t) in trajectories.iter().enumerate() {
         if t.x.iter().chain(&t.v).any(|f| f.len() != n) {
             return Err(FitError::Data {
@@ -167,10 +166,7 @@ pub fn fit_equation_error(
             }
             // Accumulate the normal equations on the free DOFs.
             for a in 0..p {
-                for &i in free {
-                    column[i] = cols[a][i];
-                }
-                h[a] += free.iter().map(|&i| column[i] * b[i]).sum::<f64>();
+                h[a] += free.iter().map(|&i| cols[a][i] * b[i]).sum::<f64>();
                 for c in a..p {
                     let v: f64 = free.iter().map(|&i| cols[a][i] * cols[c][i]).sum();
                     g[(a, c)] += v;

@@ -190,6 +190,13 @@ impl<'a> OutputError<'a> {
         let n = sim.assembly().num_dofs();
         let grouping = Grouping::global(sim.assembly());
         let mass = sim.mass().clone();
+        // The adjoint's matrices, allocated once and refilled at every step.
+        let mut kmat = sim.assembly().stiffness_matrix();
+        let mut a = sim.assembly().stiffness_matrix();
+        let mut reduced = sim.dofs().reduced_matrix(&a).map_err(|e| FitError::Data {
+            index: 0,
+            reason: e.to_string(),
+        })?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
         let mut grad = vec![0.0; c.len()];
@@ -239,14 +246,11 @@ impl<'a> OutputError<'a> {
                         source: e,
                     };
                     let asm = sim.assembly_mut();
-                    let mut kmat = asm.stiffness_matrix();
                     asm.stiffness(&next.x, Tangent::Exact, &mut kmat)
                         .map_err(fail)?;
-                    let mut a = asm.stiffness_matrix();
                     asm.combine(1.0 + dt * alpha, &mass, dt * gamma + dt * dt, &kmat, &mut a)
                         .map_err(fail)?;
                     let dofs = sim.dofs();
-                    let mut reduced = dofs.reduced_matrix(&a).map_err(fail)?;
                     dofs.restrict_matrix(&a, &mut reduced).map_err(fail)?;
                     // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
                     let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
