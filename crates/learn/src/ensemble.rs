@@ -2,7 +2,8 @@
 //! a weighted sum of linear, corotated, StVK, Neo-Hookean and stable Neo-Hookean energies,
 //! fitted by the equation error with non-negative coefficients. Each member `m` contributes
 //! the term pair `w_m (mu_m, lambda_m)`, so the fit finds every member's effective Lame pair
-//! at once; a member the data do not support gets zero. The report gives each member's share
+//! at once; a member the data do not support gets zero. Stage 2 ([`refine_ensemble`]) then
+//! refines the kept members' pairs by the output error, as for a single model. The report gives each member's share
 //! of the ensemble's elastic energy on given states.
 
 use std::path::Path;
@@ -10,10 +11,12 @@ use std::path::Path;
 use deform_assembly::{Assembly, MaterialField};
 use deform_integrator::Scene;
 use deform_materials::{EnsembleMember, Lame, MaterialSpec, Model, Moduli};
+use deform_mesh::TetMesh;
 use serde::{Deserialize, Serialize};
 
 use crate::dataset::Trajectory;
 use crate::fit::{EquationErrorOptions, FitError, fit_equation_error};
+use crate::output::{OutputErrorFit, OutputErrorOptions, fit_output_error, term_coefficients};
 
 /// The candidate members, by name.
 pub const MEMBERS: [&str; 5] = [
@@ -50,6 +53,13 @@ pub struct FittedMember {
     pub energy_share: f64,
 }
 
+impl FittedMember {
+    /// Whether the member carries a valid pair (and so appears in [`EnsembleFit::spec`]).
+    pub fn kept(&self) -> bool {
+        self.mu > 0.0 && self.mu + 2.0 * self.lambda / 3.0 > 0.0
+    }
+}
+
 /// The fitted ensemble.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EnsembleFit {
@@ -66,7 +76,7 @@ impl EnsembleFit {
         let members: Vec<EnsembleMember> = self
             .members
             .iter()
-            .filter(|m| m.mu > 0.0 && m.mu + 2.0 * m.lambda / 3.0 > 0.0)
+            .filter(|m| m.kept())
             .map(|m| EnsembleMember {
                 weight: 1.0,
                 model: member_spec(
@@ -125,8 +135,59 @@ pub fn fit_ensemble(
             energy_share: 0.0,
         })
         .collect();
-    // Energy of each member on the evaluation states.
-    let mesh = &built.mesh;
+    energy_shares(&built.mesh, &mut members, evaluate)?;
+    Ok(EnsembleFit {
+        members,
+        relative_residual: fit.relative_residual,
+    })
+}
+
+/// Stage 2 for an ensemble: the output error refines every kept member's effective pair
+/// (members stage 1 dropped stay dropped), starting from `fit`; the energy shares are
+/// recomputed on `evaluate`. `progress(evaluation, loss)` sees every loss evaluation.
+///
+/// # Errors
+/// [`FitError`]; [`FitError::NoData`] when `fit` kept no member.
+pub fn refine_ensemble(
+    fit: &EnsembleFit,
+    scene: &Scene,
+    origin: &Path,
+    train: &[&Trajectory],
+    evaluate: &[&Trajectory],
+    options: OutputErrorOptions,
+    progress: impl FnMut(usize, f64),
+) -> Result<(EnsembleFit, OutputErrorFit), FitError> {
+    let spec = fit.spec().ok_or(FitError::NoData)?;
+    let kept: Vec<usize> = (0..fit.members.len())
+        .filter(|&m| fit.members[m].kept())
+        .collect();
+    let mut variant = scene.clone();
+    variant.material = spec;
+    let mut built = variant.build(origin).map_err(|e| FitError::Data {
+        index: 0,
+        reason: e.to_string(),
+    })?;
+    let MaterialField::Uniform(model) = built.integrator.assembly().materials() else {
+        unreachable!("an ensemble specification builds one uniform model")
+    };
+    let start = term_coefficients(model);
+    let stage2 = fit_output_error(&mut built.integrator, train, &start, options, progress)?;
+    let mut refined = fit.clone();
+    for (k, &m) in kept.iter().enumerate() {
+        refined.members[m].mu = stage2.coefficients[2 * k];
+        refined.members[m].lambda = stage2.coefficients[2 * k + 1];
+    }
+    energy_shares(&built.mesh, &mut refined.members, evaluate)?;
+    Ok((refined, stage2))
+}
+
+/// Each member's share of the ensemble's elastic energy summed over the states of
+/// `evaluate`.
+fn energy_shares(
+    mesh: &TetMesh,
+    members: &mut [FittedMember],
+    evaluate: &[&Trajectory],
+) -> Result<(), FitError> {
     let mut energy = vec![0.0; members.len()];
     for (m, member) in members.iter().enumerate() {
         let Some(model) = model_of(&member.model, member.mu, member.lambda) else {
@@ -151,10 +212,7 @@ pub fn fit_ensemble(
     for (member, e) in members.iter_mut().zip(&energy) {
         member.energy_share = if total > 0.0 { e / total } else { 0.0 };
     }
-    Ok(EnsembleFit {
-        members,
-        relative_residual: fit.relative_residual,
-    })
+    Ok(())
 }
 
 /// A member with its effective Lame pair, or `None` when it carries nothing. The pair may

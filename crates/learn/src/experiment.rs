@@ -67,6 +67,9 @@ pub enum Task {
     SelectModel {
         /// The candidate models.
         members: Vec<String>,
+        /// Stage 2 for the ensemble and each single model; `None` stops after stage 1.
+        #[serde(default)]
+        output_error: Option<OutputErrorOptions>,
     },
     /// Solver selection: log every candidate at every Newton iteration of the training
     /// trajectories, learn a policy, and compare it with each fixed candidate and the

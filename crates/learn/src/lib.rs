@@ -18,6 +18,9 @@ pub mod solver_data;
 pub mod tuning;
 
 pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
-pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble};
+pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble, refine_ensemble};
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
-pub use output::{OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error};
+pub use output::{
+    OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error,
+    term_coefficients, with_term_coefficients,
+};

@@ -12,9 +12,12 @@
 //! `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
 //! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
 //!
-//! The parameters are the logarithms of the Lame pair (positive by construction); the
-//! optimiser is argmin's L-BFGS with a More-Thuente line search and an evaluation budget, behind [`fit_output_error`],
-//! which reports every iteration and ends with a typed [`Termination`].
+//! The coefficients are the material's term coefficients: the Lame pair of a single model,
+//! or every member's effective `(mu, lambda)` (weight folded in) of an ensemble, so model
+//! selection runs through the same stage 2. The optimiser sees their logarithms (signs kept,
+//! zero coefficients stay zero: a member stage 1 dropped stays dropped); it is argmin's
+//! L-BFGS with a More-Thuente line search and an evaluation budget, behind
+//! [`fit_output_error`], which reports every iteration and ends with a typed [`Termination`].
 //!
 //! The gradient is exact for `gamma = 0`; with stiffness damping it neglects the term
 //! `dt^2 gamma (dK/dx) v` of `A` (as Newton does), an `O(dt^2 gamma)` relative error.
@@ -31,7 +34,7 @@ use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 use deform_assembly::{Grouping, MaterialField, Tangent};
 use deform_integrator::{Integrator, State};
-use deform_materials::Parametric;
+use deform_materials::{MaterialError, Model, Parametric};
 use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
 
@@ -123,11 +126,12 @@ pub struct OutputError<'a> {
 }
 
 impl<'a> OutputError<'a> {
-    /// The objective on `sim`'s mesh, constraints and options, whose material (a single
-    /// uniform model) gets the coefficients being evaluated. `progress` sees each evaluation.
+    /// The objective on `sim`'s mesh, constraints and options, whose material (one uniform
+    /// model or ensemble) gets the term coefficients being evaluated (see
+    /// [`term_coefficients`]). `progress` sees each evaluation.
     ///
     /// # Errors
-    /// [`FitError::Data`] when the material is not one uniform model.
+    /// [`FitError::Data`] when the material is not uniform.
     pub fn new(
         sim: &'a mut Integrator,
         trajectories: &[&'a Trajectory],
@@ -137,7 +141,7 @@ impl<'a> OutputError<'a> {
         if !matches!(sim.assembly().materials(), MaterialField::Uniform(_)) {
             return Err(FitError::Data {
                 index: 0,
-                reason: "the output-error fit needs one uniform material".into(),
+                reason: "the output-error fit needs a uniform material".into(),
             });
         }
         Ok(Self {
@@ -174,8 +178,7 @@ impl<'a> OutputError<'a> {
         let MaterialField::Uniform(model) = sim.assembly().materials() else {
             unreachable!("checked in new")
         };
-        let mut model = model.clone();
-        model.set_params(c).map_err(|e| FitError::Data {
+        let model = with_term_coefficients(model, c).map_err(|e| FitError::Data {
             index: 0,
             reason: format!("coefficients {c:?}: {e}"),
         })?;
@@ -330,16 +333,68 @@ impl<'a> OutputError<'a> {
     }
 }
 
-/// argmin sees log-coefficients.
-struct LogProblem<'p, 'a>(&'p OutputError<'a>);
+/// The term coefficients of a material model, in the order of the assembly's parameter
+/// Jacobians: `[mu, lambda]` for a single model, each member's `w (mu, lambda)` for an
+/// ensemble.
+pub fn term_coefficients(model: &Model) -> Vec<f64> {
+    match model {
+        Model::Ensemble(e) => e
+            .members()
+            .iter()
+            .flat_map(|(w, m)| m.params().into_iter().map(move |p| w * p))
+            .collect(),
+        m => m.params(),
+    }
+}
+
+/// `model` with term coefficients `c` (ensemble weights become 1).
+///
+/// # Errors
+/// [`MaterialError`] when `c` has the wrong length or an invalid pair.
+pub fn with_term_coefficients(model: &Model, c: &[f64]) -> Result<Model, MaterialError> {
+    let mut model = model.clone();
+    match &mut model {
+        Model::Ensemble(e) => {
+            let mut p = vec![1.0; e.members().len()];
+            p.extend_from_slice(c);
+            model.set_params(&p)?;
+        }
+        m => m.set_params(c)?,
+    }
+    Ok(model)
+}
+
+/// argmin sees `p_i = ln |c_i|` of the non-zero coefficients; signs and zeros are kept.
+struct LogProblem<'p, 'a> {
+    objective: &'p OutputError<'a>,
+    /// The starting coefficients (their signs and zeros).
+    start: Vec<f64>,
+}
+
+impl LogProblem<'_, '_> {
+    fn active(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..self.start.len()).filter(|&i| self.start[i] != 0.0)
+    }
+
+    fn coefficients(&self, p: &[f64]) -> Vec<f64> {
+        let mut c = self.start.clone();
+        for (i, v) in self.active().zip(p) {
+            c[i] = self.start[i].signum() * v.exp();
+        }
+        c
+    }
+
+    fn parameters(&self) -> Vec<f64> {
+        self.active().map(|i| self.start[i].abs().ln()).collect()
+    }
+}
 
 impl CostFunction for LogProblem<'_, '_> {
     type Param = Vec<f64>;
     type Output = f64;
 
     fn cost(&self, p: &Vec<f64>) -> Result<f64, ArgminError> {
-        let c: Vec<f64> = p.iter().map(|v| v.exp()).collect();
-        Ok(self.0.evaluate(&c)?.0)
+        Ok(self.objective.evaluate(&self.coefficients(p))?.0)
     }
 }
 
@@ -348,14 +403,17 @@ impl Gradient for LogProblem<'_, '_> {
     type Gradient = Vec<f64>;
 
     fn gradient(&self, p: &Vec<f64>) -> Result<Vec<f64>, ArgminError> {
-        let c: Vec<f64> = p.iter().map(|v| v.exp()).collect();
-        let (_, g) = self.0.evaluate(&c)?;
-        Ok(g.iter().zip(&c).map(|(gi, ci)| gi * ci).collect())
+        let c = self.coefficients(p);
+        let (_, g) = self.objective.evaluate(&c)?;
+        Ok(self.active().map(|i| g[i] * c[i]).collect())
     }
 }
 
 /// Records every iteration (argmin wants a `'static` observer, hence the shared vector).
-struct Recorder(Arc<Mutex<Vec<FitIteration>>>);
+struct Recorder {
+    records: Arc<Mutex<Vec<FitIteration>>>,
+    start: Vec<f64>,
+}
 
 impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
     fn observe_iter(
@@ -365,19 +423,30 @@ impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
     ) -> Result<(), ArgminError> {
         let coefficients = state
             .get_param()
-            .map(|p| p.iter().map(|v| v.exp()).collect())
+            .map(|p| {
+                let mut c = self.start.clone();
+                let active = (0..c.len()).filter(|&i| self.start[i] != 0.0);
+                for (i, v) in active.zip(p) {
+                    c[i] = self.start[i].signum() * v.exp();
+                }
+                c
+            })
             .unwrap_or_default();
-        self.0.lock().expect("not poisoned").push(FitIteration {
-            iteration: state.get_iter(),
-            loss: state.get_cost(),
-            coefficients,
-        });
+        self.records
+            .lock()
+            .expect("not poisoned")
+            .push(FitIteration {
+                iteration: state.get_iter(),
+                loss: state.get_cost(),
+                coefficients,
+            });
         Ok(())
     }
 }
 
-/// Fits the Lame pair of `sim`'s (uniform, single-model) material to the one-step
-/// predictions of `trajectories`, starting from `initial` (`mu, lambda`), with L-BFGS.
+/// Fits the term coefficients of `sim`'s uniform material (the Lame pair of a single model,
+/// each member's effective pair of an ensemble; see [`term_coefficients`]) to the rollout
+/// predictions of `trajectories`, starting from `initial`, with L-BFGS.
 /// `progress(evaluation, loss)` is called after every loss evaluation. The fitted material
 /// is left in `sim`.
 ///
@@ -402,10 +471,20 @@ pub fn fit_output_error(
             index: 0,
             reason: e.to_string(),
         })?;
-    let start: Vec<f64> = initial.iter().map(|c| c.ln()).collect();
-    let result = Executor::new(LogProblem(&objective), solver)
+    let problem = LogProblem {
+        objective: &objective,
+        start: initial.to_vec(),
+    };
+    let start = problem.parameters();
+    let result = Executor::new(problem, solver)
         .configure(|s| s.param(start).max_iters(options.max_iterations))
-        .add_observer(Recorder(records.clone()), ObserverMode::Always)
+        .add_observer(
+            Recorder {
+                records: records.clone(),
+                start: initial.to_vec(),
+            },
+            ObserverMode::Always,
+        )
         .run();
     let evaluations = *objective.evaluations.borrow();
     let best_record = || {
@@ -422,12 +501,11 @@ pub fn fit_output_error(
     let (coefficients, loss, termination) = match result {
         Ok(res) if res.state().get_best_param().is_some() => {
             let state = res.state();
-            let best: Vec<f64> = state
-                .get_best_param()
-                .into_iter()
-                .flatten()
-                .map(|v| v.exp())
-                .collect();
+            let best = LogProblem {
+                objective: &objective,
+                start: initial.to_vec(),
+            }
+            .coefficients(state.get_best_param().expect("checked above"));
             let termination = match state.get_termination_reason() {
                 Some(TerminationReason::MaxItersReached) => Termination::MaxIterations,
                 Some(TerminationReason::SolverConverged | TerminationReason::TargetCostReached)

@@ -317,6 +317,90 @@ fn output_error_gradient_equals_finite_differences() {
 }
 
 #[test]
+fn output_error_gradient_of_an_ensemble_equals_finite_differences() {
+    // Stage 2 of model selection: the coefficients are every member's effective pair,
+    // including a negative lambda (allowed while 3 lambda + 2 mu > 0).
+    let mut s = scene("", "Beam(1)");
+    let data = make(&s, 1, 4);
+    s.material = ron::from_str(
+        "Ensemble([(weight: 1.0, model: StVenantKirchhoff(Lame(mu: 1e4, lambda: -2e3))), \
+         (weight: 2.0, model: NeoHookean(Lame(mu: 1e4, lambda: 4e4)))])",
+    )
+    .unwrap();
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
+        panic!("uniform");
+    };
+    let c0 = deform_learn::term_coefficients(model);
+    assert_eq!(c0, vec![1e4, -2e3, 2e4, 8e4]);
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 2,
+        velocity_weight: 0.5,
+        ..Default::default()
+    };
+    let objective =
+        deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
+    let (loss, grad) = objective.evaluate(&c0).unwrap();
+    assert!(loss > 0.0);
+    for j in 0..c0.len() {
+        let h = 1e-4 * c0[j].abs();
+        let (mut cp, mut cm) = (c0.clone(), c0.clone());
+        cp[j] += h;
+        cm[j] -= h;
+        let fd =
+            (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0) / (2.0 * h);
+        eprintln!("dL/dc[{j}] = {:.6e}, finite difference {fd:.6e}", grad[j]);
+        assert!(
+            (grad[j] - fd).abs()
+                <= 1e-4
+                    * fd.abs()
+                        .max(1e-3 * grad.iter().map(|g| g.abs()).fold(0.0, f64::max)),
+            "component {j}: {} vs {fd}",
+            grad[j]
+        );
+    }
+}
+
+#[test]
+fn output_error_refines_an_ensemble_keeping_signs_and_zeros() {
+    // Data from Neo-Hookean; the ensemble starts off the truth with a dropped (zero) member
+    // pair. Stage 2 lowers the loss, keeps the zero and moves the Neo-Hookean pair to truth.
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 2, 6);
+    let mut e = s.clone();
+    e.material = ron::from_str(
+        "Ensemble([(weight: 1.0, model: LinearElastic(Lame(mu: 1e3, lambda: 0.0))), \
+         (weight: 1.0, model: NeoHookean(Young(e: 1.3e5, nu: 0.35)))])",
+    )
+    .unwrap();
+    let mut sim = e.build(Path::new("test")).unwrap().integrator;
+    let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
+        panic!("uniform");
+    };
+    let c0 = deform_learn::term_coefficients(model);
+    let train = data.split(Split::Train);
+    let fit = deform_learn::fit_output_error(
+        &mut sim,
+        &train,
+        &c0,
+        deform_learn::OutputErrorOptions::default(),
+        |_, _| {},
+    )
+    .unwrap();
+    eprintln!(
+        "ensemble stage 2: {:?} loss {:.3e} -> {:.3e}",
+        fit.coefficients, fit.initial_loss, fit.loss
+    );
+    assert!(fit.loss < 1e-3 * fit.initial_loss);
+    assert_eq!(fit.coefficients[1], 0.0);
+    let truth = deform_materials::Lame::from_young(1e5, 0.4).unwrap();
+    let mu = fit.coefficients[0] + fit.coefficients[2];
+    assert!(relative(mu, truth.mu) < 0.02, "mu {mu} vs {}", truth.mu);
+    assert!(relative(fit.coefficients[3], truth.lambda) < 0.02);
+}
+
+#[test]
 fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
     let s = scene("", "Beam(2)");
     let mut data = make(&s, 5, 20);
