@@ -43,7 +43,8 @@ mod state;
 pub use integrator::{Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions};
 pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
-    Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy, spec_name,
+    Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,
+    StaleFactor, is_stale_cholesky, spec_name,
 };
 pub use report::{CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport};
 pub use scene::{Scene, SceneError};

@@ -170,6 +170,63 @@ impl SolverPolicy for EisenstatWalker {
     }
 }
 
+/// The hand schedule of stale-factor reuse: PCG preconditioned by a kept Cholesky factor
+/// (factorised at the first solve), refactorised before the next solve whenever the last one
+/// needed more than `refactor_above` iterations or fell back to the direct solver. The factor
+/// then serves later Newton iterations and time steps while it stays a good preconditioner.
+#[derive(Debug, Clone)]
+pub struct StaleFactor {
+    /// PCG with a `StaleCholesky` preconditioner (its `max_age` caps the reuse).
+    pub solver: SolverSpec,
+    /// Refactorise after a solve that took more iterations than this.
+    pub refactor_above: usize,
+    refresh: bool,
+}
+
+impl StaleFactor {
+    /// `solver` must precondition with a stale Cholesky factor (see [`PolicySpec::build`]).
+    pub fn new(solver: SolverSpec, refactor_above: usize) -> Self {
+        Self {
+            solver,
+            refactor_above,
+            refresh: false,
+        }
+    }
+}
+
+impl SolverPolicy for StaleFactor {
+    fn name(&self) -> String {
+        format!(
+            "stale-factor({}, refactor above {})",
+            spec_name(&self.solver),
+            self.refactor_above
+        )
+    }
+
+    fn choose(&mut self, _: &PolicyContext<'_>) -> Decision {
+        Decision {
+            solver: self.solver.clone(),
+            rel_tolerance: None,
+            refresh: std::mem::take(&mut self.refresh),
+        }
+    }
+
+    fn observe(&mut self, _: &PolicyContext<'_>, outcome: &IterationReport) {
+        self.refresh = outcome.fallback || outcome.solve.iterations > self.refactor_above;
+    }
+}
+
+/// Whether `spec` is PCG preconditioned by a stale Cholesky factor.
+pub fn is_stale_cholesky(spec: &SolverSpec) -> bool {
+    matches!(
+        spec,
+        SolverSpec::Pcg {
+            preconditioner: deform_solvers::PreconditionerSpec::StaleCholesky { .. },
+            ..
+        }
+    )
+}
+
 /// A policy as a configuration states it. Unknown fields are rejected.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -191,6 +248,18 @@ pub enum PolicySpec {
         #[serde(default = "default_eta_max")]
         eta_max: f64,
     },
+    /// Stale-factor reuse ([`StaleFactor`]).
+    StaleFactor {
+        /// PCG with a `StaleCholesky` preconditioner.
+        solver: SolverSpec,
+        /// Refactorise after a solve that took more iterations than this.
+        #[serde(default = "default_refactor_above")]
+        refactor_above: usize,
+    },
+}
+
+fn default_refactor_above() -> usize {
+    20
 }
 
 fn default_eta_max() -> f64 {
@@ -244,6 +313,18 @@ impl PolicySpec {
                 p.eta_max = *eta_max;
                 p.last_eta = *eta_max;
                 Box::new(p)
+            }
+            PolicySpec::StaleFactor {
+                solver,
+                refactor_above,
+            } => {
+                check(solver)?;
+                if !is_stale_cholesky(solver) {
+                    return Err(
+                        "solver: StaleFactor needs Pcg(preconditioner: StaleCholesky(..))".into(),
+                    );
+                }
+                Box::new(StaleFactor::new(solver.clone(), *refactor_above))
             }
         })
     }

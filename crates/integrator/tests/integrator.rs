@@ -212,6 +212,7 @@ fn every_policy_gives_the_same_trajectory() {
         "Fixed(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12)))",
         "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-12)))",
         "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+        "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-12)), refactor_above: 6)",
     ] {
         let (state, reports) = run(p);
         let diff = state
@@ -242,6 +243,27 @@ fn every_policy_gives_the_same_trajectory() {
                 .filter(|i| i.setup.reused)
                 .count();
             assert!(reused > 0);
+        }
+        if p.starts_with("StaleFactor") {
+            // A fresh factor exactly when the previous solve took more than 6 iterations.
+            let its: Vec<&IterationReport> = reports.iter().flat_map(|r| &r.iterations).collect();
+            assert!(!its[0].setup.reused);
+            for w in its.windows(2) {
+                assert_eq!(
+                    w[1].setup.reused,
+                    w[0].solve.iterations <= 6,
+                    "{} then reused = {}",
+                    w[0].solve.iterations,
+                    w[1].setup.reused
+                );
+            }
+            let reused = its.iter().filter(|i| i.setup.reused).count();
+            assert!(
+                reused > its.len() / 2,
+                "{reused} of {}: {:?}",
+                its.len(),
+                its.iter().map(|i| i.solve.iterations).collect::<Vec<_>>()
+            );
         }
         if p.starts_with("EisenstatWalker") {
             let tolerances: Vec<f64> = reports[0]
