@@ -67,6 +67,9 @@ pub struct StepArgs {
     /// Beam size parameter (n = 8: 12,288 tets; n = 16: 98,304 tets).
     #[arg(long, default_value_t = 8)]
     pub n: usize,
+    /// Time steps per policy.
+    #[arg(long, default_value_t = 1)]
+    pub steps: usize,
 }
 
 pub fn run(task: BenchTask) -> Result<()> {
@@ -252,6 +255,11 @@ fn step(args: StepArgs) -> Result<()> {
             "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20), tolerance: (rel: 1e-8)))",
         ),
         (
+            // The hand schedule: refactorise after a solve needing more than 20 iterations.
+            "stale_factor_20",
+            "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-8)), refactor_above: 20)",
+        ),
+        (
             "pcg_ic0",
             "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8)))",
         ),
@@ -279,16 +287,20 @@ fn step(args: StepArgs) -> Result<()> {
             policy,
         )?;
         let mut state = sim.rest_state();
-        let (report, seconds) = time(|| sim.step(&mut state));
-        let report = report?;
-        let solve = report.solver_seconds();
-        println!(
-            r#"{{"what": "step", "impl": "deform", "policy": "{name}", "tets": {}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}}}"#,
-            mesh.num_tets(),
-            report.newton_iterations(),
-            report.linear_iterations(),
-            seconds - solve
-        );
+        for step in 0..args.steps {
+            let (report, seconds) = time(|| sim.step(&mut state));
+            let report = report?;
+            let solve = report.solver_seconds();
+            let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
+            println!(
+                r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {step}, "tets": {}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}}}"#,
+                mesh.num_tets(),
+                report.newton_iterations(),
+                report.linear_iterations(),
+                seconds - solve,
+                report.flops()
+            );
+        }
     }
     Ok(())
 }

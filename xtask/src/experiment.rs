@@ -19,7 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use plotters::prelude::*;
 
 /// Makes a fresh policy for each test trajectory.
-type PolicyMaker = Box<dyn Fn() -> Box<dyn deform_integrator::SolverPolicy>>;
+use crate::policies::{self, PolicyMaker};
 
 /// Arguments of `experiment`.
 #[derive(Debug, Args)]
@@ -519,6 +519,12 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             candidates,
             neighbours,
             min_success,
+            factor_weight,
+            held_out,
+            also_train,
+            repeats,
+            forcing,
+            refactor_above,
         } => {
             let steps = data.meta.trajectories.first().map_or(0, |t| t.steps);
             let variant = |initial: &deform_integrator::scene::Initial| {
@@ -550,6 +556,20 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                     }
                 }
             }
+            for run in also_train {
+                let s = Scene::load(&run.scene)?;
+                let d = deform_learn::solver_data::collect(
+                    &s,
+                    &run.scene,
+                    candidates,
+                    run.steps,
+                    |_| {},
+                )?;
+                if let Some(all) = &mut logged {
+                    all.features.extend(d.features);
+                    all.outcomes.extend(d.outcomes);
+                }
+            }
             b.finish_and_clear();
             let logged = logged.ok_or_else(|| anyhow!("no training trajectory"))?;
             logged.save(&out.join("solver_data"))?;
@@ -558,7 +578,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 .build()?
                 .lame()
                 .map_or(1.0, |l| l.to_young().0);
-            // Policies compared on the test trajectories.
+            // Policies compared on the test trajectories and the held-out scenes.
             let mut policies: Vec<(String, PolicyMaker)> = Vec::new();
             for c in candidates {
                 let c = c.clone();
@@ -567,94 +587,156 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                     Box::new(move || Box::new(deform_integrator::Fixed(c.clone()))),
                 ));
             }
-            if let Some(iterative) = candidates
-                .iter()
-                .find(|c| !matches!(c, deform_solvers::SolverSpec::Direct { .. }))
-            {
+            let fixed = policies.len();
+            if let Some(iterative) = candidates.iter().find(|c| {
+                !matches!(c, deform_solvers::SolverSpec::Direct { .. })
+                    && !deform_integrator::is_stale_cholesky(c)
+            }) {
                 let c = iterative.clone();
                 policies.push((
                     format!("Eisenstat-Walker {}", deform_integrator::spec_name(&c)),
                     Box::new(move || Box::new(deform_integrator::EisenstatWalker::new(c.clone()))),
                 ));
             }
+            if let Some(stale) = candidates
+                .iter()
+                .find(|c| deform_integrator::is_stale_cholesky(c))
+            {
+                let (c, above) = (stale.clone(), *refactor_above);
+                policies.push((
+                    format!("hand schedule: refactorise above {above} iterations"),
+                    Box::new(move || {
+                        Box::new(deform_integrator::StaleFactor::new(c.clone(), above))
+                    }),
+                ));
+            }
             let learned = deform_learn::policy::LearnedPolicy::train(
                 &logged,
-                *neighbours,
-                *min_success,
-                young,
+                deform_learn::policy::PolicyOptions {
+                    neighbours: *neighbours,
+                    min_success: *min_success,
+                    factor_weight: *factor_weight,
+                    young,
+                    forcing: *forcing,
+                },
             );
             policies.push((
                 "learned".to_owned(),
                 Box::new(move || Box::new(learned.clone())),
             ));
-            let tests: Vec<_> = data
-                .meta
-                .trajectories
+            let held: Vec<(String, Scene)> = held_out
                 .iter()
-                .filter(|m| m.split == Split::Test)
-                .collect();
-            // References: direct solves at a tight Newton tolerance.
-            let mut references = Vec::new();
-            for m in &tests {
-                let mut s = variant(&m.initial);
-                s.integrator.newton.rel = 1e-12;
-                s.integrator.newton.abs = 0.0;
-                let mut built = s.build(&experiment.scene)?;
-                let mut xs = Vec::new();
-                for _ in 0..steps {
-                    built.integrator.step(&mut built.state)?;
-                    xs.push(built.state.x.clone());
-                }
-                references.push(xs);
+                .map(|h| {
+                    let s = Scene::load(&h.scene)?;
+                    Ok((s.name.clone(), s))
+                })
+                .collect::<Result<_>>()?;
+            let mut cases = vec![policies::Case {
+                label: format!("test trajectories of `{}`", scene.name),
+                runs: data
+                    .meta
+                    .trajectories
+                    .iter()
+                    .filter(|m| m.split == Split::Test)
+                    .map(|m| (variant(&m.initial), experiment.scene.as_path()))
+                    .collect(),
+                steps,
+            }];
+            for (h, (name, s)) in held_out.iter().zip(&held) {
+                cases.push(policies::Case {
+                    label: format!("held-out `{name}` ({} steps)", h.steps),
+                    runs: vec![(s.clone(), h.scene.as_path())],
+                    steps: h.steps,
+                });
             }
-            report.push_str("| policy | flops (test) | solver seconds | max relative position error | fallbacks |\n|---|---|---|---|---|\n");
-            let mut csv = String::from("policy,flops,solver_seconds,error,fallbacks\n");
-            let b = bar(args.quiet, policies.len() as u64, "policies");
-            for (name, make) in &policies {
-                let (mut flops, mut seconds, mut error, mut fallbacks) =
-                    (0u64, 0.0, 0.0f64, 0usize);
-                let mut failed = false;
-                for (m, reference) in tests.iter().zip(&references) {
-                    let mut built = variant(&m.initial).build(&experiment.scene)?;
-                    built.integrator.set_policy(make());
-                    let scale = reference
-                        .iter()
-                        .flatten()
-                        .fold(0.0f64, |a, v| a.max(v.abs()))
-                        .max(f64::MIN_POSITIVE);
-                    for xr in reference {
-                        match built.integrator.step(&mut built.state) {
-                            Ok(r) => {
-                                flops += r.flops();
-                                seconds += r.solver_seconds();
-                                fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
-                            }
-                            Err(_) => {
-                                failed = true;
-                                break;
-                            }
-                        }
-                        let e = built
-                            .state
-                            .x
-                            .iter()
-                            .zip(xr)
-                            .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
-                        error = error.max(e / scale);
-                    }
-                }
-                let shown_error = if failed {
-                    "failed".to_owned()
-                } else {
-                    format!("{error:.1e}")
-                };
+            let mut csv = String::from(
+                "case,policy,flops,work,solver_seconds,step_seconds,newton,linear,error,fallbacks,failed\n",
+            );
+            let b = bar(
+                args.quiet,
+                (cases.len() * (policies.len() * repeats.max(&1) + 1)) as u64,
+                "policies",
+            );
+            for case in &cases {
                 writeln!(
                     report,
-                    "| {name} | {:.4e} | {seconds:.3} | {shown_error} | {fallbacks} |",
-                    flops as f64
+                    "\n### {}\n\nWork = solve flops + {factor_weight} x factorisation flops; solver s / step s: median linear-solver / whole Newton-loop time over {} run(s); error: max position deviation from direct solves at Newton rel 1e-10, relative to the largest coordinate.\n\n| policy | flops | work | solver s | step s | Newton its | linear its | error | fallbacks |\n|---|---|---|---|---|---|---|---|---|",
+                    case.label,
+                    repeats.max(&1)
                 )?;
-                writeln!(csv, "{name},{flops},{seconds},{error:e},{fallbacks}")?;
+                let references = policies::references(case)?;
                 b.inc(1);
+                let mut rows = Vec::new();
+                for (name, make) in &policies {
+                    let row =
+                        policies::measure(case, &references, name, make, *factor_weight, *repeats)?;
+                    b.inc(repeats.max(&1).to_owned() as u64);
+                    let error = if row.failed {
+                        "failed".to_owned()
+                    } else {
+                        format!("{:.1e}", row.error)
+                    };
+                    writeln!(
+                        report,
+                        "| {name} | {:.4e} | {:.4e} | {:.3} | {:.3} | {} | {} | {error} | {} |",
+                        row.flops,
+                        row.work,
+                        row.seconds,
+                        row.step_seconds,
+                        row.newton,
+                        row.linear,
+                        row.fallbacks
+                    )?;
+                    writeln!(
+                        csv,
+                        "\"{}\",\"{name}\",{:e},{:e},{},{},{},{},{:e},{},{}",
+                        case.label,
+                        row.flops,
+                        row.work,
+                        row.seconds,
+                        row.step_seconds,
+                        row.newton,
+                        row.linear,
+                        row.error,
+                        row.fallbacks,
+                        row.failed
+                    )?;
+                    if !row.deterministic {
+                        writeln!(report, "(flops of `{name}` differed between repeats)")?;
+                    }
+                    rows.push(row);
+                }
+                // The best fixed solver in hindsight, by work and by time, against the others.
+                let ok = |r: &&policies::Row| !r.failed && r.error <= 1e-6;
+                let best_work = rows[..fixed]
+                    .iter()
+                    .filter(ok)
+                    .min_by(|a, b| a.work.total_cmp(&b.work));
+                let best_time = rows[..fixed]
+                    .iter()
+                    .filter(ok)
+                    .min_by(|a, b| a.step_seconds.total_cmp(&b.step_seconds));
+                if let (Some(bw), Some(bt)) = (best_work, best_time) {
+                    writeln!(
+                        report,
+                        "\nBest fixed solver in hindsight: by work `{}`, by whole-step time `{}`. Ratios to them (work, whole-step time):",
+                        bw.policy, bt.policy
+                    )?;
+                    for r in &rows[fixed..] {
+                        writeln!(
+                            report,
+                            "- {}: {:.3}, {:.3}{}",
+                            r.policy,
+                            r.work / bw.work,
+                            r.step_seconds / bt.step_seconds.max(f64::MIN_POSITIVE),
+                            if ok(&r) {
+                                ""
+                            } else {
+                                " (outside the 1e-6 accuracy bound)"
+                            }
+                        )?;
+                    }
+                }
             }
             b.finish_and_clear();
             write_text(&out.join("policies.csv"), &csv)?;

@@ -6,6 +6,7 @@ mod bench;
 mod demo;
 mod experiment;
 mod mesh;
+mod policies;
 mod simulate;
 
 use clap::{Parser, Subcommand};

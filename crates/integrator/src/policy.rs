@@ -142,6 +142,18 @@ impl EisenstatWalker {
     }
 }
 
+impl EisenstatWalker {
+    /// With a given upper clamp (also the first tolerance) and `gamma`.
+    pub fn with_constants(solver: SolverSpec, eta_max: f64, gamma: f64) -> Self {
+        Self {
+            eta_max,
+            gamma,
+            last_eta: eta_max,
+            ..Self::new(solver)
+        }
+    }
+}
+
 impl SolverPolicy for EisenstatWalker {
     fn name(&self) -> String {
         format!("eisenstat-walker({})", spec_name(&self.solver))
@@ -309,10 +321,11 @@ impl PolicySpec {
                 if matches!(solver, SolverSpec::Direct { .. }) {
                     return Err("solver: Eisenstat-Walker needs an iterative solver".into());
                 }
-                let mut p = EisenstatWalker::new(solver.clone());
-                p.eta_max = *eta_max;
-                p.last_eta = *eta_max;
-                Box::new(p)
+                Box::new(EisenstatWalker::with_constants(
+                    solver.clone(),
+                    *eta_max,
+                    0.9,
+                ))
             }
             PolicySpec::StaleFactor {
                 solver,

@@ -83,6 +83,28 @@ pub enum Task {
         /// Minimum predicted success rate of a chosen candidate.
         #[serde(default = "success")]
         min_success: f64,
+        /// Work of a factorisation flop relative to a solve flop (see `policy`); 1 counts
+        /// plain flops.
+        #[serde(default = "unit")]
+        factor_weight: f64,
+        /// Scenes the policy never saw (other mesh, stiffness, dt, motion), each measured
+        /// like the test trajectories.
+        #[serde(default)]
+        held_out: Vec<SceneRun>,
+        /// More scenes to log for training (other sizes and stiffnesses, so the work and
+        /// iteration models see how they scale), besides the training trajectories.
+        #[serde(default)]
+        also_train: Vec<SceneRun>,
+        /// Runs per policy and case; wall times are medians over them.
+        #[serde(default = "one")]
+        repeats: usize,
+        /// Inexact Newton for the learned policy: Eisenstat-Walker forcing terms
+        /// `(eta_max, gamma)` for its iterative solves; `None` keeps their tolerances.
+        #[serde(default)]
+        forcing: Option<(f64, f64)>,
+        /// Refactorisation threshold of the hand schedule baseline (`StaleFactor`).
+        #[serde(default = "twenty_usize")]
+        refactor_above: usize,
     },
     /// Solver optimisation: tune an iterative solver's relative tolerance for least work
     /// with the trajectory within `accuracy` of the direct solver's.
@@ -100,6 +122,24 @@ pub enum Task {
 
 fn five() -> usize {
     5
+}
+
+fn twenty_usize() -> usize {
+    20
+}
+
+/// A scene file and how many steps to simulate it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneRun {
+    /// Scene file, relative to the experiment file.
+    pub scene: PathBuf,
+    /// Steps to simulate.
+    pub steps: usize,
+}
+
+fn unit() -> f64 {
+    1.0
 }
 
 fn success() -> f64 {
@@ -137,8 +177,21 @@ impl Experiment {
         let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
         let mut e: Experiment =
             ron::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let dir = path.parent().unwrap_or(Path::new("."));
         if e.scene.is_relative() {
-            e.scene = path.parent().unwrap_or(Path::new(".")).join(&e.scene);
+            e.scene = dir.join(&e.scene);
+        }
+        if let Task::SelectSolver {
+            held_out,
+            also_train,
+            ..
+        } = &mut e.task
+        {
+            for h in held_out.iter_mut().chain(also_train) {
+                if h.scene.is_relative() {
+                    h.scene = dir.join(&h.scene);
+                }
+            }
         }
         if e.dataset.trajectories < 3 {
             return Err(format!(

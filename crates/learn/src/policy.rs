@@ -1,32 +1,149 @@
-//! A learned solver policy: from the features of a Newton iteration to the candidate
-//! configuration with the lowest predicted cost among those predicted to succeed.
+//! A learned solver policy: at every Newton iteration, the candidate configuration with the
+//! lowest predicted work, where holding a factorisation is valued over its lifetime.
 //!
-//! Deliberately simple and inspectable: a k-nearest-neighbour model on standardised
-//! features (the policy-independent ones: Newton iteration, residual level and decrease,
-//! dt, size, stiffness). For each candidate it predicts the success rate, the solve flops
-//! and the set-up flops of the neighbours, and picks the cheapest whose success rate reaches
-//! `min_success`; when none does, the safest. The set-up cost depends on the policy's own
-//! state: a stale-Cholesky candidate whose factor the policy holds (younger than its
-//! `max_age`) costs no factorisation, one without a factor costs a full one, so the policy
-//! can factorise once and reuse. The integrator's direct fallback covers mispredictions.
-//! Costs are deterministic flop counts, so the policy is reproducible.
+//! Three parts, each simple enough to inspect:
+//!
+//! - **Iterations** are learned: a k-nearest-neighbour model on standardised,
+//!   policy-independent features (Newton iteration, residual level and decrease, dt, size,
+//!   stiffness) predicts each candidate's success rate and iteration count from the
+//!   counterfactual logs; for a stale-factor candidate it predicts the count at each age of
+//!   the factor (solves since it was computed), the profile of how the factor degrades.
+//! - **Work per iteration and per set-up** is measured, not guessed: once a candidate has run
+//!   in the current simulation its exact flops per iteration and per set-up are known; before
+//!   that they are extrapolated from the training sizes by a power law in the number of free
+//!   DOFs (with the asymptotic exponents of 3D problems when the training data has one size).
+//!   Work is deterministic: solve flops plus `factor_weight` times factorisation flops (a
+//!   dense supernodal factorisation runs at many more flops per second than memory-bound
+//!   sparse solves; the weight is that ratio, measured by `cargo xtask bench step`).
+//! - **Holding a factor is a renewal problem.** A factor costs `F` once; the stale solves
+//!   after it cost `c_1 <= c_2 <= ...` as the matrix drifts. The average work per solve of a
+//!   cycle of `T` solves, `(F + c_0 + ... + c_{T-1}) / T`, is least when the next solve's
+//!   predicted cost first exceeds the cycle's average so far, so the policy keeps the factor
+//!   exactly while `c_next <= average` and otherwise compares a new cycle (its predicted
+//!   least average) with every other candidate's cost for this solve. The next stale cost is
+//!   calibrated online: the last observed iterations times the learned growth ratio.
+//!
+//! Iteration predictions of the candidates that have run are calibrated online as well (the
+//! running geometric mean of observed over predicted iterations), so a scene harder than the
+//! training scenes (a finer mesh needs more PCG iterations) corrects the model after one
+//! solve. The integrator's direct fallback covers mispredictions; a fallback ends the cycle.
+//! Everything is deterministic, so the policy is reproducible.
 
-use deform_integrator::{Decision, IterationReport, PolicyContext, SolverPolicy, spec_name};
+use deform_integrator::{
+    Decision, EisenstatWalker, IterationReport, PolicyContext, SolverPolicy, is_stale_cholesky,
+    spec_name,
+};
 use deform_solvers::{PreconditionerSpec, SolverSpec};
 
 use crate::solver_data::{SolverDataset, feature_vector};
 
 /// Feature columns the neighbours are found on (the others depend on the policy that ran).
 const USED: [usize; 7] = [1, 2, 3, 4, 5, 6, 7];
+/// Column of `log10_free_dofs` in `FEATURES`.
+const LOG_DOFS: usize = 6;
 
-#[derive(Debug, Clone, Copy)]
-struct Target {
-    ok: bool,
-    solve: f64,
-    setup: f64,
+/// Options of the learned policy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PolicyOptions {
+    /// Neighbours of the iteration model.
+    pub neighbours: usize,
+    /// Minimum predicted success rate of a chosen candidate.
+    pub min_success: f64,
+    /// Work of one factorisation flop relative to one solve flop.
+    pub factor_weight: f64,
+    /// Young's modulus of the material the policy runs on (a feature).
+    pub young: f64,
+    /// Inexact Newton: iterative solves stop at the Eisenstat-Walker forcing term (with
+    /// these `eta_max` and `gamma`) instead of their configured tolerance, never tighter.
+    /// Iteration predictions scale by `ln eta / ln rel` (CG's linear convergence).
+    pub forcing: Option<(f64, f64)>,
 }
 
-/// `max_age` of a stale-Cholesky candidate.
+/// Work per iteration and per set-up of a candidate, as `log10 w = a + b log10 n`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PowerLaw {
+    a: f64,
+    b: f64,
+}
+
+impl PowerLaw {
+    /// Least squares in log-log space; with one size, the exponent `default_b`.
+    fn fit(points: &[(f64, f64)], default_b: f64) -> Option<Self> {
+        if points.is_empty() {
+            return None;
+        }
+        let m = points.len() as f64;
+        let (mx, my) = points
+            .iter()
+            .fold((0.0, 0.0), |(a, b), (x, y)| (a + x / m, b + y / m));
+        let sxx: f64 = points.iter().map(|(x, _)| (x - mx).powi(2)).sum();
+        let b = if sxx > 1e-6 {
+            points.iter().map(|(x, y)| (x - mx) * (y - my)).sum::<f64>() / sxx
+        } else {
+            default_b
+        };
+        Some(Self { a: my - b * mx, b })
+    }
+
+    fn at(&self, log_n: f64) -> f64 {
+        10f64.powf(self.a + self.b * log_n)
+    }
+}
+
+/// What one candidate costs.
+#[derive(Debug, Clone, Default)]
+struct CostModel {
+    /// Work of a fresh set-up, by size.
+    setup: Option<PowerLaw>,
+    /// Work of one iteration, by size.
+    iteration: Option<PowerLaw>,
+    /// Measured in the current simulation.
+    observed_setup: Option<f64>,
+    observed_iteration: Option<f64>,
+}
+
+/// The factor the policy's stale-factor candidate holds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Cycle {
+    candidate: usize,
+    /// Solves since the factorisation (0 for the solve that computed it).
+    age: usize,
+    /// Work of the cycle so far (factorisation included).
+    work: f64,
+    /// Solves in the cycle so far.
+    solves: usize,
+    /// Iterations of the last solve with this factor, once observed.
+    last_iterations: Option<f64>,
+}
+
+/// A training sample: standardised features and, per candidate, success, iterations, age.
+#[derive(Debug, Clone)]
+struct Sample {
+    point: Vec<f64>,
+    outcomes: Vec<(bool, f64, usize)>,
+}
+
+/// The learned policy; see the module documentation.
+#[derive(Debug, Clone)]
+pub struct LearnedPolicy {
+    candidates: Vec<SolverSpec>,
+    samples: Vec<Sample>,
+    costs: Vec<CostModel>,
+    mean: Vec<f64>,
+    scale: Vec<f64>,
+    options: PolicyOptions,
+    cycle: Option<Cycle>,
+    /// The candidate chosen last and its uncalibrated predicted iterations.
+    last: Option<(usize, f64)>,
+    /// Per candidate: observed over predicted iterations in this simulation (geometric
+    /// running mean; `None` until the candidate has run).
+    calibration: Vec<Option<f64>>,
+    /// The forcing-term rule and this solve's factor on predicted iterations.
+    forcing: Option<EisenstatWalker>,
+    iteration_factor: f64,
+}
+
+/// The largest factor age a stale-Cholesky configuration allows.
 fn max_age(spec: &SolverSpec) -> Option<usize> {
     match spec {
         SolverSpec::Pcg {
@@ -37,34 +154,17 @@ fn max_age(spec: &SolverSpec) -> Option<usize> {
     }
 }
 
-/// A k-nearest-neighbour cost model over a [`SolverDataset`].
-#[derive(Debug, Clone)]
-pub struct LearnedPolicy {
-    candidates: Vec<SolverSpec>,
-    /// Standardised training features (used columns only).
-    points: Vec<Vec<f64>>,
-    /// Per sample and candidate: success, solve flops, set-up flops, set-up reused.
-    targets: Vec<Vec<Target>>,
-    /// Mean factorisation (non-reused set-up) flops per candidate over all samples.
-    fresh_setup: Vec<f64>,
-    /// Age of the factor the policy's own instance of each stale-Cholesky candidate holds.
-    ages: Vec<Option<usize>>,
-    /// The candidate chosen last.
-    last: Option<usize>,
-    mean: Vec<f64>,
-    scale: Vec<f64>,
-    k: usize,
-    min_success: f64,
-    young: f64,
+/// Whether a candidate's set-up is a sparse Cholesky factorisation.
+fn factorises(spec: &SolverSpec) -> bool {
+    matches!(spec, SolverSpec::Direct { .. }) || is_stale_cholesky(spec)
 }
 
 impl LearnedPolicy {
-    /// Trains on `data` (all of it) with `k` neighbours; `young` is the Young's modulus of
-    /// the material the policy will run on (a feature).
+    /// Learns from `data` (all of it).
     ///
     /// # Panics
     /// If `data` is empty.
-    pub fn train(data: &SolverDataset, k: usize, min_success: f64, young: f64) -> Self {
+    pub fn train(data: &SolverDataset, options: PolicyOptions) -> Self {
         assert!(!data.is_empty(), "no samples to learn from");
         let raw: Vec<Vec<f64>> = data
             .features
@@ -82,116 +182,251 @@ impl LearnedPolicy {
                 if var > 1e-24 { var.sqrt() } else { 1.0 }
             })
             .collect();
-        let points = raw
+        let samples = raw
             .iter()
-            .map(|r| (0..d).map(|j| (r[j] - mean[j]) / scale[j]).collect())
-            .collect();
-        let targets: Vec<Vec<Target>> = data
-            .outcomes
-            .iter()
-            .map(|o| {
-                o.iter()
-                    .map(|c| Target {
-                        ok: c.ok,
-                        solve: (c.flops - c.setup_flops).max(0.0),
-                        setup: c.setup_flops,
-                    })
-                    .collect()
+            .zip(&data.outcomes)
+            .map(|(r, o)| Sample {
+                point: (0..d).map(|j| (r[j] - mean[j]) / scale[j]).collect(),
+                outcomes: o
+                    .iter()
+                    .map(|c| (c.ok, c.iterations.max(1.0), c.age as usize))
+                    .collect(),
             })
             .collect();
-        let c = data.meta.candidates.len();
-        let fresh_setup = (0..c)
-            .map(|j| {
-                let fresh: Vec<f64> = data
-                    .outcomes
-                    .iter()
-                    .filter(|o| !o[j].reused)
-                    .map(|o| o[j].setup_flops)
-                    .collect();
-                if fresh.is_empty() {
-                    0.0
+        let candidates = data.meta.candidates.clone();
+        let costs = candidates
+            .iter()
+            .enumerate()
+            .map(|(c, spec)| {
+                let weight = if factorises(spec) {
+                    options.factor_weight
                 } else {
-                    fresh.iter().sum::<f64>() / fresh.len() as f64
+                    1.0
+                };
+                let (mut setup, mut iteration) = (Vec::new(), Vec::new());
+                for (f, o) in data.features.iter().zip(&data.outcomes) {
+                    let o = &o[c];
+                    if !o.ok {
+                        continue;
+                    }
+                    if !o.reused && o.setup_flops > 0.0 {
+                        setup.push((f[LOG_DOFS], (weight * o.setup_flops).log10()));
+                    }
+                    let solve = o.flops - o.setup_flops;
+                    if o.iterations > 0.0 && solve > 0.0 {
+                        iteration.push((f[LOG_DOFS], (solve / o.iterations).log10()));
+                    }
+                }
+                // 3D nested dissection: factorisation O(n^2), nnz(L) O(n^(4/3)); sparse
+                // iterations and incomplete factorisations O(n).
+                let (bs, bi) = if factorises(spec) {
+                    (2.0, 4.0 / 3.0)
+                } else {
+                    (1.0, 1.0)
+                };
+                CostModel {
+                    setup: PowerLaw::fit(&setup, bs),
+                    iteration: PowerLaw::fit(&iteration, bi),
+                    ..CostModel::default()
                 }
             })
             .collect();
         Self {
-            candidates: data.meta.candidates.clone(),
-            points,
-            targets,
-            fresh_setup,
-            ages: vec![None; c],
-            last: None,
+            candidates,
+            samples,
+            costs,
             mean,
             scale,
-            k: k.max(1),
-            min_success,
-            young,
+            options,
+            cycle: None,
+            last: None,
+            calibration: vec![None; data.meta.candidates.len()],
+            forcing: options.forcing.map(|(eta_max, gamma)| {
+                EisenstatWalker::with_constants(data.meta.candidates[0].clone(), eta_max, gamma)
+            }),
+            iteration_factor: 1.0,
         }
     }
 
-    /// The candidate index chosen for a feature vector (in `FEATURES` order).
-    pub fn choose_index(&self, features: &[f64]) -> usize {
+    /// The `k` samples nearest to `features` (in `FEATURES` order) among those `keep` accepts.
+    fn neighbours(&self, features: &[f64], keep: impl Fn(&Sample) -> bool) -> Vec<&Sample> {
         let q: Vec<f64> = USED
             .iter()
             .enumerate()
             .map(|(j, &c)| (features[c] - self.mean[j]) / self.scale[j])
             .collect();
         let mut order: Vec<(f64, usize)> = self
-            .points
+            .samples
             .iter()
             .enumerate()
-            .map(|(i, p)| {
-                (
-                    p.iter().zip(&q).map(|(a, b)| (a - b).powi(2)).sum::<f64>(),
-                    i,
-                )
+            .filter(|(_, s)| keep(s))
+            .map(|(i, s)| {
+                let d = s.point.iter().zip(&q).map(|(a, b)| (a - b).powi(2)).sum();
+                (d, i)
             })
             .collect();
         // Ties broken by sample index: deterministic.
         order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        let near = &order[..self.k.min(order.len())];
-        let stats: Vec<(f64, f64)> = (0..self.candidates.len())
-            .map(|c| {
-                let ok: Vec<&Target> = near
+        order
+            .iter()
+            .take(self.options.neighbours.max(1))
+            .map(|&(_, i)| &self.samples[i])
+            .collect()
+    }
+
+    /// Success rate and iterations (geometric mean over the successful neighbours) of
+    /// candidate `c`; for a stale-factor candidate, at factor age `age` (the oldest age the
+    /// data has when `age` is beyond it).
+    fn iterations(&self, c: usize, features: &[f64], age: Option<usize>) -> (f64, f64) {
+        let near = match age {
+            None => self.neighbours(features, |_| true),
+            Some(a) => {
+                let oldest = self
+                    .samples
                     .iter()
-                    .map(|(_, i)| &self.targets[*i][c])
-                    .filter(|t| t.ok)
-                    .collect();
-                let rate = ok.len() as f64 / near.len() as f64;
-                if ok.is_empty() {
-                    return (rate, f64::INFINITY);
-                }
-                let solve = ok.iter().map(|t| t.solve).sum::<f64>() / ok.len() as f64;
-                let setup = match (max_age(&self.candidates[c]), self.ages[c]) {
-                    // The policy holds a young enough factor: reused, no factorisation.
-                    (Some(max), Some(age)) if age < max => 0.0,
-                    (Some(_), _) => self.fresh_setup[c],
-                    (None, _) => ok.iter().map(|t| t.setup).sum::<f64>() / ok.len() as f64,
-                };
-                (rate, (solve + setup).max(1.0).log10())
-            })
+                    .map(|s| s.outcomes[c].2)
+                    .max()
+                    .unwrap_or(0);
+                let a = a.min(oldest);
+                self.neighbours(features, |s| s.outcomes[c].2 == a)
+            }
+        };
+        if near.is_empty() {
+            return (0.0, f64::INFINITY);
+        }
+        let ok: Vec<f64> = near
+            .iter()
+            .filter(|s| s.outcomes[c].0)
+            .map(|s| s.outcomes[c].1.ln())
             .collect();
-        let acceptable = (0..stats.len()).filter(|&c| stats[c].0 >= self.min_success);
-        acceptable
-            .min_by(|&a, &b| stats[a].1.total_cmp(&stats[b].1))
-            .unwrap_or_else(|| {
-                (0..stats.len())
-                    .max_by(|&a, &b| {
-                        stats[a]
-                            .0
-                            .total_cmp(&stats[b].0)
-                            .then(stats[b].1.total_cmp(&stats[a].1))
-                    })
-                    .unwrap_or(0)
-            })
+        let rate = ok.len() as f64 / near.len() as f64;
+        if ok.is_empty() {
+            return (rate, f64::INFINITY);
+        }
+        let factor = if self.candidates[c].tolerance().is_some() {
+            self.iteration_factor
+        } else {
+            1.0
+        };
+        (
+            rate,
+            (factor * (ok.iter().sum::<f64>() / ok.len() as f64).exp()).max(1.0),
+        )
+    }
+
+    fn setup_work(&self, c: usize, log_n: f64) -> f64 {
+        let m = &self.costs[c];
+        m.observed_setup
+            .or_else(|| m.setup.map(|p| p.at(log_n)))
+            .unwrap_or(0.0)
+    }
+
+    fn iteration_work(&self, c: usize, log_n: f64) -> f64 {
+        let m = &self.costs[c];
+        m.observed_iteration
+            .or_else(|| m.iteration.map(|p| p.at(log_n)))
+            .unwrap_or(f64::INFINITY)
+    }
+
+    /// Predicted work of the stale solve at `age` in a cycle whose last observed solve (at
+    /// `age - 1`) took `last` iterations: calibrated by the learned growth ratio.
+    fn stale_iterations(&self, c: usize, f: &[f64], age: usize, last: Option<f64>) -> (f64, f64) {
+        let (rate, its) = self.iterations(c, f, Some(age));
+        match last {
+            Some(last) if age > 0 => {
+                let (_, before) = self.iterations(c, f, Some(age - 1));
+                let growth = if before.is_finite() && its.is_finite() {
+                    (its / before).max(1.0)
+                } else {
+                    1.0
+                };
+                (rate, last * growth)
+            }
+            _ => (rate, its),
+        }
+    }
+
+    /// The least predicted average work per solve of a new factor cycle of candidate `c`.
+    fn cycle_average(&self, c: usize, f: &[f64], log_n: f64, scale: f64) -> Option<f64> {
+        let per = self.iteration_work(c, log_n);
+        let (rate, fresh) = self.iterations(c, f, Some(0));
+        if rate < self.options.min_success || !fresh.is_finite() {
+            return None;
+        }
+        let mut total = self.setup_work(c, log_n) + fresh * per;
+        let mut best = total;
+        let cap = max_age(&self.candidates[c]).unwrap_or(0);
+        for age in 1..=cap {
+            let (rate, its) = self.iterations(c, f, Some(age));
+            if rate < self.options.min_success || !its.is_finite() {
+                break;
+            }
+            let cost = its * scale * per;
+            let average = total / age as f64;
+            if cost > average {
+                break;
+            }
+            total += cost;
+            best = total / (age + 1) as f64;
+        }
+        Some(best)
+    }
+
+    /// The choice for a feature vector (in `FEATURES` order): candidate index and whether a
+    /// stale factor is recomputed first.
+    pub fn choose_index(&self, features: &[f64]) -> (usize, bool) {
+        let log_n = features[LOG_DOFS];
+        let min = self.options.min_success;
+        // (work, candidate, refresh)
+        let mut options: Vec<(f64, usize, bool)> = Vec::new();
+        for c in 0..self.candidates.len() {
+            if max_age(&self.candidates[c]).is_none() {
+                let (rate, its) = self.iterations(c, features, None);
+                let its = its * self.calibration[c].unwrap_or(1.0);
+                if rate >= min && its.is_finite() {
+                    let work = self.setup_work(c, log_n) + its * self.iteration_work(c, log_n);
+                    options.push((work, c, false));
+                }
+                continue;
+            }
+            // A stale-factor candidate: keep the held factor while the renewal rule says so,
+            // or start a new cycle, valued at its predicted least average.
+            let mut scale = 1.0;
+            if let Some(cy) = self.cycle.filter(|cy| cy.candidate == c) {
+                let next = cy.age + 1;
+                let (rate, its) = self.stale_iterations(c, features, next, cy.last_iterations);
+                if let Some(last) = cy.last_iterations {
+                    let (_, predicted) = self.iterations(c, features, Some(cy.age));
+                    if predicted.is_finite() && predicted > 0.0 {
+                        scale = (last / predicted).max(1.0);
+                    }
+                }
+                let within_cap = max_age(&self.candidates[c]).is_some_and(|m| next <= m);
+                let work = its * self.iteration_work(c, log_n);
+                if within_cap && rate >= min && work <= cy.work / cy.solves.max(1) as f64 {
+                    options.push((work, c, false));
+                    continue;
+                }
+            }
+            if let Some(average) = self.cycle_average(c, features, log_n, scale) {
+                options.push((average, c, true));
+            }
+        }
+        options
+            .iter()
+            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+            .map_or((0, false), |&(_, c, refresh)| (c, refresh))
     }
 }
 
 impl SolverPolicy for LearnedPolicy {
     fn name(&self) -> String {
         let names: Vec<String> = self.candidates.iter().map(spec_name).collect();
-        format!("learned-knn(k={}, over [{}])", self.k, names.join(", "))
+        format!(
+            "learned(k={}, over [{}])",
+            self.options.neighbours,
+            names.join(", ")
+        )
     }
 
     fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
@@ -205,27 +440,92 @@ impl SolverPolicy for LearnedPolicy {
             previous.map_or(0, |p| p.solve.iterations),
             c.dt,
             c.num_free,
-            self.young,
+            self.options.young,
         );
-        let chosen = self.choose_index(&features);
-        // Mirror the chosen instance's factor age (see `Iterative::factorize`).
-        if let Some(max) = max_age(&self.candidates[chosen]) {
-            self.ages[chosen] = match self.ages[chosen] {
-                Some(age) if age < max => Some(age + 1),
-                _ => Some(0),
+        // This solve's forcing term, and how much fewer iterations it needs than the
+        // configured tolerance the data were logged at.
+        let eta = self
+            .forcing
+            .as_mut()
+            .and_then(|ew| ew.choose(c).rel_tolerance);
+        self.iteration_factor = 1.0;
+        if let Some(eta) = eta {
+            let logged = self
+                .candidates
+                .iter()
+                .find_map(|s| s.tolerance())
+                .map(|t| t.rel);
+            if let Some(rel) = logged.filter(|r| *r > 0.0 && *r < 1.0 && eta > *r) {
+                self.iteration_factor = eta.ln() / rel.ln();
+            }
+        }
+        let (chosen, refresh) = self.choose_index(&features);
+        if max_age(&self.candidates[chosen]).is_some() {
+            // Mirror the kept instance's factor (see `Iterative::factorize`).
+            self.cycle = match self.cycle {
+                Some(cy) if cy.candidate == chosen && !refresh => Some(Cycle {
+                    age: cy.age + 1,
+                    ..cy
+                }),
+                _ => Some(Cycle {
+                    candidate: chosen,
+                    age: 0,
+                    work: 0.0,
+                    solves: 0,
+                    last_iterations: None,
+                }),
             };
         }
-        self.last = Some(chosen);
-        Decision::solver(self.candidates[chosen].clone())
+        let predicted = if max_age(&self.candidates[chosen]).is_none() {
+            self.iterations(chosen, &features, None).1
+        } else {
+            f64::NAN
+        };
+        self.last = Some((chosen, predicted));
+        Decision {
+            solver: self.candidates[chosen].clone(),
+            rel_tolerance: eta.filter(|_| self.candidates[chosen].tolerance().is_some()),
+            // A new cycle always factorises, whatever the instance holds.
+            refresh: self
+                .cycle
+                .is_some_and(|cy| cy.candidate == chosen && cy.age == 0),
+        }
     }
 
     fn observe(&mut self, _context: &PolicyContext<'_>, outcome: &IterationReport) {
-        // A fallback means the chosen instance failed; its factor state is unknown, so
-        // assume it must be recomputed.
-        if outcome.fallback
-            && let Some(last) = self.last
-        {
-            self.ages[last] = None;
+        let Some((last, predicted)) = self.last else {
+            return;
+        };
+        if outcome.fallback {
+            // The chosen solver failed; whatever it holds must be recomputed.
+            if self.cycle.is_some_and(|cy| cy.candidate == last) {
+                self.cycle = None;
+            }
+            return;
+        }
+        let weight = if factorises(&self.candidates[last]) {
+            self.options.factor_weight
+        } else {
+            1.0
+        };
+        let setup = weight * outcome.setup.flops as f64;
+        let model = &mut self.costs[last];
+        if !outcome.setup.reused && outcome.setup.flops > 0 {
+            model.observed_setup = Some(setup);
+        }
+        let iterations = outcome.solve.iterations.max(1) as f64;
+        if predicted.is_finite() && predicted > 0.0 {
+            let ratio = (iterations / predicted).ln();
+            let old = self.calibration[last].map(f64::ln);
+            self.calibration[last] = Some(old.map_or(ratio, |o| 0.5 * (o + ratio)).exp());
+        }
+        if outcome.solve.flops > 0 {
+            model.observed_iteration = Some(outcome.solve.flops as f64 / iterations);
+        }
+        if let Some(cy) = self.cycle.as_mut().filter(|cy| cy.candidate == last) {
+            cy.work += setup + outcome.solve.flops as f64;
+            cy.solves += 1;
+            cy.last_iterations = Some(iterations);
         }
     }
 }

@@ -6,8 +6,9 @@
 //! On disk, like trajectory datasets: `meta.ron` (feature names, candidate configurations,
 //! the scene) and `.npy` arrays numpy loads directly: `features.npy` (samples x features),
 //! `flops.npy`, `setup_flops.npy`, `reused.npy` (1 when a stale factor was reused),
-//! `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance) and
-//! `relative_residual.npy`, each samples x candidates.
+//! `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance),
+//! `relative_residual.npy`, `iterations.npy` and `age.npy` (solves since the candidate's
+//! preconditioner was set up afresh), each samples x candidates.
 
 use std::path::{Path, PathBuf};
 
@@ -47,6 +48,11 @@ pub struct Outcome {
     pub ok: bool,
     /// Relative residual reached (infinite on failure).
     pub relative_residual: f64,
+    /// Iterations of the solve (1 for a direct solve, the cap on failure).
+    pub iterations: f64,
+    /// Solves since the candidate's preconditioner was last set up afresh (0 when it was
+    /// set up for this one): the age of a stale factor.
+    pub age: f64,
 }
 
 /// The metadata of a solver dataset.
@@ -156,6 +162,7 @@ pub fn collect(
         features: Vec::new(),
         outcomes: Vec::new(),
     };
+    let mut ages = vec![0usize; candidates.len()];
     for step in 0..steps {
         let report = sim.step(&mut state).map_err(|e| DatasetError::Step {
             trajectory: 0,
@@ -169,12 +176,18 @@ pub fn collect(
                 report.iterations[k]
                     .candidates
                     .iter()
-                    .map(|c| Outcome {
+                    .zip(&mut ages)
+                    .map(|(c, age)| {
+                        let reused = c.setup.is_some_and(|s| s.reused);
+                        *age = if reused { *age + 1 } else { 0 };
+                        (c, reused, *age)
+                    })
+                    .map(|(c, reused, age)| Outcome {
                         flops: (c.setup.map_or(0, |s| s.flops)
                             + c.solve.as_ref().map_or(0, |s| s.flops))
                             as f64,
                         setup_flops: c.setup.map_or(0, |s| s.flops) as f64,
-                        reused: c.setup.is_some_and(|s| s.reused),
+                        reused,
                         seconds: c.setup.map_or(0.0, |s| s.seconds)
                             + c.solve.as_ref().map_or(0.0, |s| s.seconds),
                         ok: c.error.is_none(),
@@ -182,6 +195,8 @@ pub fn collect(
                             .solve
                             .as_ref()
                             .map_or(f64::INFINITY, |s| s.relative_residual()),
+                        iterations: c.solve.as_ref().map_or(0, |s| s.iterations) as f64,
+                        age: age as f64,
                     })
                     .collect(),
             );
@@ -243,6 +258,12 @@ impl SolverDataset {
             &[n, c],
             &column(&|o| o.relative_residual.min(f64::MAX)),
         )?;
+        npy::write(
+            &dir.join("iterations.npy"),
+            &[n, c],
+            &column(&|o| o.iterations),
+        )?;
+        npy::write(&dir.join("age.npy"), &[n, c], &column(&|o| o.age))?;
         let path: PathBuf = dir.join("meta.ron");
         let text = ron::ser::to_string_pretty(&self.meta, ron::ser::PrettyConfig::default())
             .map_err(|e| DatasetError::Meta {
@@ -290,6 +311,7 @@ impl SolverDataset {
             read("relative_residual.npy", c)?,
         );
         let (setup, reused) = (read("setup_flops.npy", c)?, read("reused.npy", c)?);
+        let (iterations, age) = (read("iterations.npy", c)?, read("age.npy", c)?);
         if [
             flops.len(),
             seconds.len(),
@@ -297,6 +319,8 @@ impl SolverDataset {
             res.len(),
             setup.len(),
             reused.len(),
+            iterations.len(),
+            age.len(),
         ]
         .iter()
         .any(|&l| l != features.len())
@@ -320,6 +344,8 @@ impl SolverDataset {
                         } else {
                             res[i][j]
                         },
+                        iterations: iterations[i][j],
+                        age: age[i][j],
                     })
                     .collect()
             })

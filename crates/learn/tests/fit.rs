@@ -560,7 +560,16 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         .iter()
         .map(|sp| run(Box::new(deform_integrator::Fixed(sp.clone()))).0)
         .collect();
-    let learned = deform_learn::policy::LearnedPolicy::train(&data, 5, 0.9, young);
+    let learned = deform_learn::policy::LearnedPolicy::train(
+        &data,
+        deform_learn::policy::PolicyOptions {
+            neighbours: 5,
+            min_success: 0.9,
+            factor_weight: 1.0,
+            young,
+            forcing: None,
+        },
+    );
     let (flops, x) = run(Box::new(learned));
     let best = *fixed.iter().min().unwrap();
     let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));

@@ -322,6 +322,24 @@ impl LinearSolver for Iterative {
                 {
                     *age += 1;
                     setup.reused = true;
+                } else if let (PreconditionerSpec::StaleCholesky { .. }, Some(m)) =
+                    (spec, self.precond.as_mut())
+                    && let Preconditioner::Cholesky { factor, age } = m
+                    && factor.nrows() == Some(a.nrows())
+                {
+                    // Refactorise in place: the symbolic analysis of the pattern is reused.
+                    match factor.factorize(a) {
+                        Ok(stats) => {
+                            *age = 0;
+                            setup.analyzed = stats.analyzed;
+                            setup.flops = stats.flops;
+                            setup.factor_nnz = factor.factor_nnz();
+                        }
+                        Err(e) => {
+                            self.precond = None;
+                            return Err(e);
+                        }
+                    }
                 } else {
                     // Drop the old set-up first: a stale factor can be large.
                     self.precond = None;

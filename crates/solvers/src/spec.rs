@@ -62,6 +62,16 @@ fn default_omega() -> f64 {
 }
 
 impl SolverSpec {
+    /// The stopping rule of an iterative configuration (`None` for the direct solver).
+    pub fn tolerance(&self) -> Option<Tolerance> {
+        match *self {
+            SolverSpec::Jacobi { tolerance, .. }
+            | SolverSpec::Cg { tolerance }
+            | SolverSpec::Pcg { tolerance, .. } => Some(tolerance),
+            SolverSpec::Direct { .. } => None,
+        }
+    }
+
     /// Validates and builds the solver.
     ///
     /// # Errors

@@ -1,0 +1,161 @@
+//! Solver policies compared on whole simulations: work, time and accuracy against direct
+//! solves at a tight Newton tolerance (relative 1e-10 or the scene's, if tighter).
+
+use std::path::Path;
+
+use anyhow::Result;
+use deform_integrator::{IterationReport, Scene, SolverPolicy};
+
+/// Makes a fresh policy for each run.
+pub type PolicyMaker = Box<dyn Fn() -> Box<dyn SolverPolicy>>;
+
+/// One or more simulations a policy is measured on together.
+pub struct Case<'a> {
+    /// Name in reports.
+    pub label: String,
+    /// Scenes (with their initial conditions) and the folder their paths are relative to.
+    pub runs: Vec<(Scene, &'a Path)>,
+    /// Steps of each run.
+    pub steps: usize,
+}
+
+/// A policy's totals on a case.
+#[derive(Debug, Clone)]
+pub struct Row {
+    /// Policy name.
+    pub policy: String,
+    /// Deterministic flops (set-up plus solves).
+    pub flops: f64,
+    /// Deterministic work: solve flops plus `factor_weight` times factorisation flops.
+    pub work: f64,
+    /// Median over the repeats of the total linear-solver wall time.
+    pub seconds: f64,
+    /// Median over the repeats of the total step wall time (the whole Newton loop:
+    /// assembly, solves, line search).
+    pub step_seconds: f64,
+    /// Newton iterations.
+    pub newton: usize,
+    /// Linear (Krylov) iterations.
+    pub linear: usize,
+    /// Largest position deviation from the reference, relative to the largest coordinate.
+    pub error: f64,
+    /// Direct fallbacks after a failed iterative solve.
+    pub fallbacks: usize,
+    /// A step failed.
+    pub failed: bool,
+    /// Flops were identical in every repeat.
+    pub deterministic: bool,
+}
+
+/// Whether the solver named in a report computes a sparse Cholesky factorisation.
+fn factorises(solver: &str) -> bool {
+    solver.starts_with("direct") || solver.contains("StaleCholesky")
+}
+
+/// Work of one Newton iteration (see [`Row::work`]).
+pub fn work(i: &IterationReport, factor_weight: f64) -> f64 {
+    let w = if factorises(&i.solver) {
+        factor_weight
+    } else {
+        1.0
+    };
+    w * i.setup.flops as f64 + i.solve.flops as f64
+}
+
+/// Positions after every step of each run with the direct solver at a tight tolerance.
+pub fn references(case: &Case<'_>) -> Result<Vec<Vec<Vec<f64>>>> {
+    let mut all = Vec::new();
+    for (scene, origin) in &case.runs {
+        let mut s = scene.clone();
+        // Tighter than any policy run, above the rounding floor of stiff systems.
+        s.integrator.newton.rel = s.integrator.newton.rel.min(1e-10);
+        s.policy = deform_integrator::PolicySpec::default();
+        let mut built = s.build(origin)?;
+        let mut xs = Vec::new();
+        for _ in 0..case.steps {
+            built.integrator.step(&mut built.state)?;
+            xs.push(built.state.x.clone());
+        }
+        all.push(xs);
+    }
+    Ok(all)
+}
+
+/// Runs `make`'s policy `repeats` times on every run of `case`.
+pub fn measure(
+    case: &Case<'_>,
+    references: &[Vec<Vec<f64>>],
+    name: &str,
+    make: &PolicyMaker,
+    factor_weight: f64,
+    repeats: usize,
+) -> Result<Row> {
+    let mut row = Row {
+        policy: name.to_owned(),
+        flops: 0.0,
+        work: 0.0,
+        seconds: 0.0,
+        step_seconds: 0.0,
+        newton: 0,
+        linear: 0,
+        error: 0.0,
+        fallbacks: 0,
+        failed: false,
+        deterministic: true,
+    };
+    let (mut times, mut step_times) = (Vec::new(), Vec::new());
+    for repeat in 0..repeats.max(1) {
+        let (mut flops, mut seconds, mut step_seconds) = (0.0, 0.0, 0.0);
+        for ((scene, origin), reference) in case.runs.iter().zip(references) {
+            let mut built = scene.build(origin)?;
+            built.integrator.set_policy(make());
+            let scale = reference
+                .iter()
+                .flatten()
+                .fold(0.0f64, |a, v| a.max(v.abs()))
+                .max(f64::MIN_POSITIVE);
+            for xr in reference {
+                let started = std::time::Instant::now();
+                let result = built.integrator.step(&mut built.state);
+                step_seconds += started.elapsed().as_secs_f64();
+                let Ok(r) = result else {
+                    row.failed = true;
+                    break;
+                };
+                flops += r.flops() as f64;
+                seconds += r.solver_seconds();
+                if repeat == 0 {
+                    row.work += r
+                        .iterations
+                        .iter()
+                        .map(|i| work(i, factor_weight))
+                        .sum::<f64>();
+                    row.newton += r.newton_iterations();
+                    row.linear += r.linear_iterations();
+                    row.fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
+                    let e = built
+                        .state
+                        .x
+                        .iter()
+                        .zip(xr)
+                        .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
+                    row.error = row.error.max(e / scale);
+                }
+            }
+        }
+        if repeat == 0 {
+            row.flops = flops;
+        } else if flops != row.flops {
+            row.deterministic = false;
+        }
+        times.push(seconds);
+        step_times.push(step_seconds);
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    row.seconds = median(times);
+    row.step_seconds = median(step_times);
+    Ok(row)
+}
