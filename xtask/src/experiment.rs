@@ -34,7 +34,7 @@ pub struct ExperimentArgs {
     pub quiet: bool,
 }
 
-fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+pub(crate) fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     let b = if quiet {
         ProgressBar::hidden()
     } else {
@@ -49,7 +49,7 @@ fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     b
 }
 
-fn write_text(path: &Path, text: &str) -> Result<()> {
+pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
     write_atomic(path, |w| w.write_all(text.as_bytes()))
         .with_context(|| format!("writing {}", path.display()))
 }
@@ -138,7 +138,7 @@ fn plot(
 }
 
 /// `rollout_error.svg`: RMS position error per step of each series.
-fn plot_rollouts(out: &Path, series: &[(String, Vec<f64>)]) -> Result<()> {
+pub(crate) fn plot_rollouts(out: &Path, series: &[(String, Vec<f64>)]) -> Result<()> {
     plot(
         &out.join("rollout_error.svg"),
         "test rollout RMS position error",
@@ -150,7 +150,7 @@ fn plot_rollouts(out: &Path, series: &[(String, Vec<f64>)]) -> Result<()> {
 }
 
 /// The scene with its material's moduli replaced by a Lame pair.
-fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene> {
+pub(crate) fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene> {
     let moduli = Moduli::Lame { mu, lambda };
     let material = match &scene.material {
         MaterialSpec::LinearElastic(_) => MaterialSpec::LinearElastic(moduli),
@@ -194,7 +194,8 @@ fn split_rollout(scene: &Scene, origin: &Path, data: &Dataset, split: Split) -> 
     Ok(mean)
 }
 
-pub fn run(args: ExperimentArgs) -> Result<()> {
+/// Runs the experiment; returns a one-line summary of its headline figure.
+pub fn run(args: ExperimentArgs) -> Result<String> {
     let experiment = Experiment::load(&args.experiment).map_err(anyhow::Error::msg)?;
     let scene = Scene::load(&experiment.scene)?;
     let out = args
@@ -251,6 +252,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         k
     );
 
+    let mut summary = String::new();
     match &experiment.task {
         Task::FitMaterial {
             equation_error,
@@ -747,6 +749,35 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 train.len()
             )?;
         }
+        Task::TuneBackwardEuler {
+            equation_error,
+            output_error,
+            candidates,
+            factor_weight,
+            accuracy,
+            max_iterations,
+        } => {
+            let mut base_scene = scene.clone();
+            base_scene.integrator.dt /= k as f64;
+            summary = crate::story::run(
+                &crate::story::Story {
+                    scene: &scene,
+                    origin: &experiment.scene,
+                    base: &base_scene,
+                    subsample: k,
+                    data: &data,
+                    equation_error: *equation_error,
+                    output_error: *output_error,
+                    candidates,
+                    factor_weight: *factor_weight,
+                    accuracy: *accuracy,
+                    max_iterations: *max_iterations,
+                    quiet: args.quiet,
+                },
+                &out,
+                &mut report,
+            )?;
+        }
         Task::TuneSolver {
             solver,
             accuracy,
@@ -766,7 +797,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 writeln!(
                     csv,
                     "{},{:e},{:e},{:e}",
-                    sample.log10_rel, sample.flops, sample.error, sample.cost
+                    sample.log10_value, sample.work, sample.error, sample.cost
                 )?;
             }
             write_text(&out.join("tuning.csv"), &csv)?;
@@ -774,21 +805,21 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 report,
                 "Tuned `{}`: relative tolerance 1e{:.2}, {:.4e} flops over {steps} steps, trajectory error {:.1e} (bound {accuracy:e}); {} evaluations (`tuning.csv`).",
                 deform_integrator::spec_name(solver),
-                tuned.log10_rel,
-                tuned.best.flops,
+                tuned.log10_value,
+                tuned.best.work,
                 tuned.best.error,
                 tuned.samples.len()
             )?;
             if let Some(default) = tuned
                 .samples
                 .iter()
-                .find(|x| (x.log10_rel + 8.0).abs() < 1e-9)
+                .find(|x| (x.log10_value + 8.0).abs() < 1e-9)
             {
                 writeln!(
                     report,
                     "At 1e-8: {:.4e} flops; tuned / 1e-8: {:.3}.",
-                    default.flops,
-                    tuned.best.flops / default.flops
+                    default.work,
+                    tuned.best.work / default.work
                 )?;
             }
         }
@@ -801,5 +832,5 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
     write_text(&out.join("report.md"), &report)?;
     println!("{report}");
     println!("results: {}", out.display());
-    Ok(())
+    Ok(summary)
 }

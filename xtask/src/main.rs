@@ -8,6 +8,7 @@ mod experiment;
 mod mesh;
 mod policies;
 mod simulate;
+mod story;
 
 use clap::{Parser, Subcommand};
 
@@ -42,7 +43,7 @@ fn main() -> std::process::ExitCode {
         Task::Simulate(args) => simulate::run(args),
         Task::Bench(task) => bench::run(task),
         Task::Demo(args) => demo::run(args),
-        Task::Experiment(args) => experiment::run(args),
+        Task::Experiment(args) => experiment::run(args).map(|_| ()),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

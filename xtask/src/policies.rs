@@ -1,10 +1,10 @@
 //! Solver policies compared on whole simulations: work, time and accuracy against direct
-//! solves at a tight Newton tolerance (relative 1e-10 or the scene's, if tighter).
+//! solves at a tight Newton tolerance (`deform_learn::tuning::reference_scene`).
 
 use std::path::Path;
 
 use anyhow::Result;
-use deform_integrator::{IterationReport, Scene, SolverPolicy};
+use deform_integrator::{Scene, SolverPolicy};
 
 /// Makes a fresh policy for each run.
 pub type PolicyMaker = Box<dyn Fn() -> Box<dyn SolverPolicy>>;
@@ -47,30 +47,11 @@ pub struct Row {
     pub deterministic: bool,
 }
 
-/// Whether the solver named in a report computes a sparse Cholesky factorisation.
-fn factorises(solver: &str) -> bool {
-    solver.starts_with("direct") || solver.contains("StaleCholesky")
-}
-
-/// Work of one Newton iteration (see [`Row::work`]).
-pub fn work(i: &IterationReport, factor_weight: f64) -> f64 {
-    let w = if factorises(&i.solver) {
-        factor_weight
-    } else {
-        1.0
-    };
-    w * i.setup.flops as f64 + i.solve.flops as f64
-}
-
 /// Positions after every step of each run with the direct solver at a tight tolerance.
 pub fn references(case: &Case<'_>) -> Result<Vec<Vec<Vec<f64>>>> {
     let mut all = Vec::new();
     for (scene, origin) in &case.runs {
-        let mut s = scene.clone();
-        // Tighter than any policy run, above the rounding floor of stiff systems.
-        s.integrator.newton.rel = s.integrator.newton.rel.min(1e-10);
-        s.policy = deform_integrator::PolicySpec::default();
-        let mut built = s.build(origin)?;
+        let mut built = deform_learn::tuning::reference_scene(scene).build(origin)?;
         let mut xs = Vec::new();
         for _ in 0..case.steps {
             built.integrator.step(&mut built.state)?;
@@ -125,11 +106,7 @@ pub fn measure(
                 flops += r.flops() as f64;
                 seconds += r.solver_seconds();
                 if repeat == 0 {
-                    row.work += r
-                        .iterations
-                        .iter()
-                        .map(|i| work(i, factor_weight))
-                        .sum::<f64>();
+                    row.work += r.work(factor_weight);
                     row.newton += r.newton_iterations();
                     row.linear += r.linear_iterations();
                     row.fallbacks += r.iterations.iter().filter(|i| i.fallback).count();

@@ -95,6 +95,15 @@ impl StepReport {
             .sum()
     }
 
+    /// Deterministic work with factorisation flops weighted by `factor_weight` (see
+    /// [`deform_solvers::SetupStats::work`]); `flops()` is `work(1.0)`.
+    pub fn work(&self, factor_weight: f64) -> f64 {
+        self.iterations
+            .iter()
+            .map(|i| i.setup.work(factor_weight) + i.solve.flops as f64)
+            .sum()
+    }
+
     /// Linear-solve wall time (set-up and solve) summed over the step.
     pub fn solver_seconds(&self) -> f64 {
         self.iterations

@@ -106,6 +106,31 @@ pub enum Task {
         #[serde(default = "twenty_usize")]
         refactor_above: usize,
     },
+    /// The whole idea on one model (the demo's story): the model stepping
+    /// `dataset.subsample` times coarser than the base is tuned (Lame pair by both stages, a
+    /// learned solver policy over `candidates`, its largest forcing term tuned) and compared
+    /// with the untuned coarse model on the test trajectories: error against the base's data,
+    /// work and time, side by side, with ParaView frames of base, untuned and tuned.
+    TuneBackwardEuler {
+        /// Stage-1 options (with `damping: true`, Rayleigh alpha and gamma are fitted too
+        /// and kept for stage 2: the coarse model's own damping can offset Backward Euler's
+        /// numerical dissipation).
+        #[serde(default)]
+        equation_error: EquationErrorOptions,
+        /// Stage-2 options of the material fit.
+        output_error: OutputErrorOptions,
+        /// Solver candidates of the learned policy.
+        candidates: Vec<deform_solvers::SolverSpec>,
+        /// Work of a factorisation flop relative to a solve flop.
+        #[serde(default = "unit")]
+        factor_weight: f64,
+        /// Relative position accuracy the tuned forcing term must keep.
+        #[serde(default = "accuracy")]
+        accuracy: f64,
+        /// Nelder-Mead iterations for the forcing term.
+        #[serde(default = "twenty")]
+        max_iterations: u64,
+    },
     /// Solver optimisation: tune an iterative solver's relative tolerance for least work
     /// with the trajectory within `accuracy` of the direct solver's.
     TuneSolver {

@@ -372,6 +372,24 @@ impl LearnedPolicy {
         Some(best)
     }
 
+    /// The same learned model with other forcing terms `(eta_max, gamma)` (for tuning
+    /// them), its per-simulation state reset.
+    pub fn with_forcing(&self, forcing: Option<(f64, f64)>) -> Self {
+        let mut p = self.clone();
+        p.options.forcing = forcing;
+        p.forcing = forcing.map(|(eta_max, gamma)| {
+            EisenstatWalker::with_constants(self.candidates[0].clone(), eta_max, gamma)
+        });
+        p.cycle = None;
+        p.last = None;
+        p.calibration = vec![None; self.candidates.len()];
+        p.costs.iter_mut().for_each(|c| {
+            c.observed_setup = None;
+            c.observed_iteration = None;
+        });
+        p
+    }
+
     /// The choice for a feature vector (in `FEATURES` order): candidate index and whether a
     /// stale factor is recomputed first.
     pub fn choose_index(&self, features: &[f64]) -> (usize, bool) {
@@ -503,12 +521,7 @@ impl SolverPolicy for LearnedPolicy {
             }
             return;
         }
-        let weight = if factorises(&self.candidates[last]) {
-            self.options.factor_weight
-        } else {
-            1.0
-        };
-        let setup = weight * outcome.setup.flops as f64;
+        let setup = outcome.setup.work(self.options.factor_weight);
         let model = &mut self.costs[last];
         if !outcome.setup.reused && outcome.setup.flops > 0 {
             model.observed_setup = Some(setup);

@@ -3,18 +3,20 @@
 //! simulation, subject to its trajectory staying within a tolerance of the reference
 //! computed with the direct solver to a tight tolerance.
 //!
-//! The parameters are the base-10 logarithm of the relative tolerance of an iterative
-//! solver used at every Newton iteration; the optimiser is argmin's Nelder-Mead. The cost of
-//! a parameter value is the total flop count of the simulation, multiplied by a penalty
+//! One mechanism, [`tune_policy`]: a scalar parameter (in log10) that makes a solver policy
+//! (the relative tolerance of a fixed iterative solver, [`tune_relative_tolerance`]; the
+//! largest forcing term of the learned policy; ...) is tuned by argmin's Nelder-Mead. The
+//! cost of a parameter value is the simulation's total work (flops, factorisations weighted
+//! by `factor_weight`, see `SetupStats::work`), multiplied by a penalty
 //! `1 + 10 error / accuracy` when the trajectory error exceeds `accuracy`, and infinite when
-//! a step fails.
+//! a step fails (no direct fallback, no retries while tuning).
 
 use std::cell::RefCell;
 use std::path::Path;
 
 use argmin::core::{CostFunction, Error as ArgminError, Executor};
 use argmin::solver::neldermead::NelderMead;
-use deform_integrator::{Fixed, Scene};
+use deform_integrator::{Fixed, Scene, SolverPolicy};
 use deform_solvers::{SolverSpec, Tolerance};
 use serde::{Deserialize, Serialize};
 
@@ -23,10 +25,10 @@ use crate::fit::FitError;
 /// One evaluated parameter value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TuningSample {
-    /// `log10` of the relative tolerance.
-    pub log10_rel: f64,
-    /// Total flops of the simulation.
-    pub flops: f64,
+    /// `log10` of the parameter (a relative tolerance, a forcing term, ...).
+    pub log10_value: f64,
+    /// Total work of the simulation (flops, factorisations weighted, see [`Tuning`]).
+    pub work: f64,
     /// Max position error against the reference, relative to the positions' scale.
     pub error: f64,
     /// The penalised cost the optimiser saw.
@@ -36,8 +38,8 @@ pub struct TuningSample {
 /// The result of tuning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TuningResult {
-    /// The best `log10` relative tolerance.
-    pub log10_rel: f64,
+    /// The best `log10` parameter value.
+    pub log10_value: f64,
     /// Its sample.
     pub best: TuningSample,
     /// Every evaluation, in order.
@@ -66,10 +68,16 @@ pub fn with_relative_tolerance(solver: &SolverSpec, rel: f64) -> Option<SolverSp
     })
 }
 
+/// Makes the policy for a parameter value (`None`: not a valid value).
+pub type PolicyOf<'a> = dyn Fn(f64) -> Option<Box<dyn SolverPolicy>> + 'a;
+
 struct Problem<'a> {
     scene: &'a Scene,
     origin: &'a Path,
-    solver: &'a SolverSpec,
+    make: &'a PolicyOf<'a>,
+    range: (f64, f64),
+    factor_weight: f64,
+    fallback: bool,
     steps: usize,
     accuracy: f64,
     reference: Vec<Vec<f64>>,
@@ -78,33 +86,33 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
-    fn evaluate(&self, log10_rel: f64) -> TuningSample {
-        let rel = 10f64.powf(log10_rel.clamp(-14.0, -0.5));
-        let sample = |flops: f64, error: f64, cost: f64| TuningSample {
-            log10_rel,
-            flops,
+    fn evaluate(&self, log10_value: f64) -> TuningSample {
+        let sample = |work: f64, error: f64, cost: f64| TuningSample {
+            log10_value,
+            work,
             error,
             cost,
         };
-        let Some(spec) = with_relative_tolerance(self.solver, rel) else {
+        let Some(policy) = (self.make)(log10_value.clamp(self.range.0, self.range.1)) else {
             return sample(f64::NAN, f64::NAN, f64::INFINITY);
         };
         let Ok(mut built) = self.scene.build(self.origin) else {
             return sample(f64::NAN, f64::NAN, f64::INFINITY);
         };
-        // No fallback: a configuration that fails must show as failing, not as the direct
-        // solver's cost.
+        // No retries; no fallback unless the policy relies on it by design (then the failed
+        // attempt and the direct solve are both charged): a configuration that fails must show
+        // as failing, not as the direct solver's cost.
         let mut options = built.integrator.options().clone();
-        options.fallback_to_direct = false;
+        options.fallback_to_direct = self.fallback;
         options.max_retries = 0;
         if built.integrator.set_options(options).is_err() {
             return sample(f64::NAN, f64::NAN, f64::INFINITY);
         }
-        built.integrator.set_policy(Box::new(Fixed(spec)));
-        let (mut flops, mut error) = (0.0, 0.0f64);
+        built.integrator.set_policy(policy);
+        let (mut work, mut error) = (0.0, 0.0f64);
         for n in 0..self.steps {
             match built.integrator.step(&mut built.state) {
-                Ok(r) => flops += r.flops() as f64,
+                Ok(r) => work += r.work(self.factor_weight),
                 Err(_) => return sample(f64::NAN, f64::INFINITY, f64::INFINITY),
             }
             let e = built
@@ -120,7 +128,7 @@ impl Problem<'_> {
         } else {
             1.0
         };
-        sample(flops, error, flops * penalty)
+        sample(work, error, work * penalty)
     }
 }
 
@@ -136,9 +144,9 @@ impl CostFunction for Problem<'_> {
     }
 }
 
-/// Tunes the relative tolerance of `solver` (an iterative configuration used at every
-/// Newton iteration) on `steps` steps of `scene`, keeping the trajectory within `accuracy`
-/// (relative max-norm) of the direct solver's at Newton tolerance 1e-12.
+/// Tunes the relative tolerance of the iterative `solver` (the same at every Newton
+/// iteration) for the least flops on `steps` steps of `scene`, keeping the trajectory within
+/// `accuracy` (relative max-norm) of the direct solver's ([`reference_scene`]).
 ///
 /// # Errors
 /// [`FitError`] when the reference simulation fails or the solver is not iterative.
@@ -156,15 +164,75 @@ pub fn tune_relative_tolerance(
             reason: "tolerance tuning needs an iterative solver".into(),
         });
     }
+    let make = |log10_value: f64| -> Option<Box<dyn SolverPolicy>> {
+        let spec = with_relative_tolerance(solver, 10f64.powf(log10_value))?;
+        Some(Box::new(Fixed(spec)))
+    };
+    tune_policy(
+        scene,
+        origin,
+        &make,
+        Tuning {
+            start: (-3.0, -8.0),
+            range: (-14.0, -0.5),
+            factor_weight: 1.0,
+            fallback: false,
+            steps,
+            accuracy,
+            max_iterations,
+        },
+    )
+}
+
+/// The scene that accuracy is measured against: the direct solver, and a Newton tolerance
+/// tighter than any policy run (relative 1e-10, or the scene's if tighter), above the
+/// rounding floor of stiff systems.
+pub fn reference_scene(scene: &Scene) -> Scene {
+    let mut s = scene.clone();
+    s.integrator.newton.rel = s.integrator.newton.rel.min(1e-10);
+    s.policy = deform_integrator::PolicySpec::default();
+    s
+}
+
+/// What [`tune_policy`] searches and how it scores.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tuning {
+    /// The two vertices of the initial simplex (log10 of the parameter).
+    pub start: (f64, f64),
+    /// Values are clamped to this range (log10).
+    pub range: (f64, f64),
+    /// Factorisation flops count this much (1: plain flops).
+    pub factor_weight: f64,
+    /// Let the integrator fall back to the direct solver when a solve fails (for policies
+    /// that rely on it, such as the learned one); the failed attempt is charged too.
+    pub fallback: bool,
+    /// Steps simulated per evaluation.
+    pub steps: usize,
+    /// Relative max-norm position error allowed against the reference.
+    pub accuracy: f64,
+    /// Nelder-Mead iterations.
+    pub max_iterations: u64,
+}
+
+/// Tunes the log10 of a scalar parameter of the policy `make` builds, for the least work
+/// on `tuning.steps` steps of `scene` within `tuning.accuracy` of the direct solver's
+/// trajectory (see [`reference_scene`]). Every evaluation is returned in `samples`.
+///
+/// # Errors
+/// [`FitError`] when the reference simulation fails or no value works.
+pub fn tune_policy(
+    scene: &Scene,
+    origin: &Path,
+    make: &PolicyOf<'_>,
+    tuning: Tuning,
+) -> Result<TuningResult, FitError> {
     let fail = |e: String| FitError::Data {
         index: 0,
         reason: e,
     };
+    let steps = tuning.steps;
     // The reference: direct solves, tight Newton tolerance.
-    let mut reference_scene = scene.clone();
-    reference_scene.integrator.newton.rel = 1e-12;
-    reference_scene.integrator.newton.abs = 0.0;
-    let mut built = reference_scene
+    let mut built = reference_scene(scene)
         .build(origin)
         .map_err(|e| fail(e.to_string()))?;
     let mut reference = Vec::with_capacity(steps);
@@ -183,18 +251,21 @@ pub fn tune_relative_tolerance(
     let problem = Problem {
         scene,
         origin,
-        solver,
+        make,
+        range: tuning.range,
+        factor_weight: tuning.factor_weight,
+        fallback: tuning.fallback,
         steps,
-        accuracy,
+        accuracy: tuning.accuracy,
         reference,
         scale,
         samples: RefCell::new(Vec::new()),
     };
-    let simplex = NelderMead::new(vec![vec![-3.0], vec![-8.0]])
+    let simplex = NelderMead::new(vec![vec![tuning.start.0], vec![tuning.start.1]])
         .with_sd_tolerance(1e-3)
         .map_err(|e| fail(e.to_string()))?;
     let result = Executor::new(&problem, simplex)
-        .configure(|s| s.max_iters(max_iterations))
+        .configure(|s| s.max_iters(tuning.max_iterations))
         .run();
     let samples = problem.samples.borrow().clone();
     let best = samples
@@ -202,9 +273,9 @@ pub fn tune_relative_tolerance(
         .filter(|s| s.cost.is_finite())
         .min_by(|a, b| a.cost.total_cmp(&b.cost))
         .cloned()
-        .ok_or_else(|| fail(format!("no tolerance worked ({:?})", result.err())))?;
+        .ok_or_else(|| fail(format!("no value worked ({:?})", result.err())))?;
     Ok(TuningResult {
-        log10_rel: best.log10_rel,
+        log10_value: best.log10_value,
         best,
         samples,
     })

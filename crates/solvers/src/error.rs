@@ -41,11 +41,11 @@ pub enum SolverError {
         stats: Box<SolveStats>,
     },
     /// A factorisation or preconditioner set-up met a non-positive pivot.
-    #[error("not positive definite: pivot {pivot} is {value:e}")]
+    #[error("not positive definite: pivot {pivot} is {}", pivot_value(*.value))]
     NotPositiveDefinite {
         /// Row of the failing pivot.
         pivot: usize,
-        /// Its value.
+        /// Its value (NaN when the factorisation does not report it).
         value: f64,
     },
     /// The operator cannot provide what this solver or preconditioner needs.
@@ -85,5 +85,14 @@ pub(crate) fn check_vector(
     match v.iter().position(|x| !x.is_finite()) {
         Some(index) => Err(SolverError::NonFinite { what, index }),
         None => Ok(()),
+    }
+}
+
+/// A pivot's value for messages: "not positive" when it is unknown.
+fn pivot_value(value: f64) -> String {
+    if value.is_nan() {
+        "not positive".to_owned()
+    } else {
+        format!("{value:e}")
     }
 }

@@ -84,3 +84,18 @@ pub struct SetupStats {
     /// Wall time in seconds.
     pub seconds: f64,
 }
+
+impl SetupStats {
+    /// Work of the set-up with factorisation flops weighted by `factor_weight`: a dense
+    /// supernodal Cholesky runs at many more flops per second than memory-bound sparse
+    /// kernels, so plain flops overstate its cost in time (the weight is the ratio of the
+    /// two rates, see docs/benchmarks.md).
+    pub fn work(&self, factor_weight: f64) -> f64 {
+        let w = if self.factor_nnz > 0 {
+            factor_weight
+        } else {
+            1.0
+        };
+        w * self.flops as f64
+    }
+}
