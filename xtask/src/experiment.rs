@@ -16,9 +16,9 @@ use deform_learn::{
 use deform_materials::{Lame, MaterialSpec, Moduli};
 use deform_mesh::io::write_atomic;
 use indicatif::{ProgressBar, ProgressStyle};
-use plotters::prelude::*;
 
 /// Makes a fresh policy for each test trajectory.
+use crate::plots::plot;
 use crate::policies::{self, PolicyMaker};
 
 /// Arguments of `experiment`.
@@ -54,93 +54,10 @@ pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// A line plot of named series against their index; with `log`, of their base-10
-/// logarithms (non-positive values are left out).
-fn plot(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[(String, Vec<f64>)],
-    log: bool,
-) -> Result<()> {
-    let series: Vec<(String, Vec<(f64, f64)>)> = series
-        .iter()
-        .map(|(name, v)| {
-            let points = v
-                .iter()
-                .enumerate()
-                .filter(|(_, y)| y.is_finite() && (!log || **y > 0.0))
-                .map(|(i, y)| (i as f64, if log { y.log10() } else { *y }))
-                .collect();
-            (name.clone(), points)
-        })
-        .collect();
-    let ys: Vec<f64> = series
-        .iter()
-        .flat_map(|(_, p)| p.iter().map(|q| q.1))
-        .collect();
-    if ys.is_empty() {
-        return Ok(());
-    }
-    let (lo, hi) = ys
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(*v), b.max(*v))
-        });
-    let pad = 0.05 * (hi - lo).max(1e-30);
-    let len = series
-        .iter()
-        .map(|(_, p)| p.len())
-        .max()
-        .unwrap_or(1)
-        .max(2);
-    let y_desc = if log {
-        format!("log10 {y_label}")
-    } else {
-        y_label.to_owned()
-    };
-    let tmp = path.with_extension("svg.tmp");
-    {
-        let root = SVGBackend::new(&tmp, (800, 500)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
-        let mut builder = ChartBuilder::on(&root);
-        let mut chart = builder
-            .caption(title, ("sans-serif", 22))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0f64..(len - 1) as f64, (lo - pad)..(hi + pad))
-            .map_err(|e| anyhow!("{e}"))?;
-        chart
-            .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_desc)
-            .draw()
-            .map_err(|e| anyhow!("{e}"))?;
-        let colors = [&BLUE, &RED, &GREEN, &MAGENTA, &CYAN, &BLACK];
-        for (k, (name, points)) in series.iter().enumerate() {
-            let color = colors[k % colors.len()];
-            chart
-                .draw_series(LineSeries::new(points.iter().copied(), color))
-                .map_err(|e| anyhow!("{e}"))?
-                .label(name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
-        }
-        chart
-            .configure_series_labels()
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| anyhow!("{e}"))?;
-        root.present().map_err(|e| anyhow!("{e}"))?;
-    }
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
-}
-
-/// `rollout_error.svg`: RMS position error per step of each series.
+/// `rollout_error.svg` and `.png`: RMS position error per step of each series.
 pub(crate) fn plot_rollouts(out: &Path, series: &[(String, Vec<f64>)]) -> Result<()> {
     plot(
-        &out.join("rollout_error.svg"),
+        &out.join("rollout_error"),
         "test rollout RMS position error",
         "step",
         "m",
@@ -340,7 +257,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             }
             write_text(&out.join("iterations.csv"), &csv)?;
             plot(
-                &out.join("loss.svg"),
+                &out.join("loss"),
                 "output-error loss per iteration",
                 "iteration",
                 "loss",
@@ -390,9 +307,16 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             write_text(&out.join("rollout_error.csv"), &rcsv)?;
             plot_rollouts(&out, &series)?;
             let mean = |e: &[f64]| e.iter().sum::<f64>() / e.len().max(1) as f64;
+            let (last_e, last_nu) = (rows[rows.len() - 1].1, rows[rows.len() - 1].2);
+            summary = format!(
+                "E off by {:.3} %, nu by {:.3} %; rollout error fitted / true {:.3}",
+                100.0 * (last_e - e0).abs() / e0,
+                100.0 * (last_nu - nu0).abs() / nu0,
+                mean(&series[2].1) / mean(&series[0].1).max(f64::MIN_POSITIVE)
+            );
             writeln!(
                 report,
-                "\nRMS position error of free rollouts on the test trajectories, averaged over the rollout: {}. Fitted / true parameters: {:.3}.\n\nFiles: `iterations.csv`, `loss.svg`, `rollout_error.csv`, `rollout_error.svg`.",
+                "\nRMS position error of free rollouts on the test trajectories, averaged over the rollout: {}. Fitted / true parameters: {:.3}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
                 series
                     .iter()
                     .map(|(n, e)| format!("{n} {:.3e} m", mean(e)))
@@ -500,6 +424,15 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     report,
                     "\nBest single model by validation error: {name} (test {btest:.4e} m). Ensemble test error / best single model's: {verdict}."
                 )?;
+                let top = fit
+                    .members
+                    .iter()
+                    .max_by(|a, b| a.energy_share.total_cmp(&b.energy_share));
+                summary = format!(
+                    "{} carries {:.1} % of the energy; best single model {name}",
+                    top.map_or("-", |m| m.model.as_str()),
+                    100.0 * top.map_or(0.0, |m| m.energy_share)
+                );
             }
             write_text(&out.join("members.csv"), &csv)?;
             // Test rollouts of the ensemble and of the base scene.
@@ -659,7 +592,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 (cases.len() * (policies.len() * repeats.max(&1) + 1)) as u64,
                 "policies",
             );
-            for case in &cases {
+            for (ci, case) in cases.iter().enumerate() {
                 writeln!(
                     report,
                     "\n### {}\n\nWork = solve flops + {factor_weight} x factorisation flops; solver s / step s: median linear-solver / whole Newton-loop time over {} run(s); error: max position deviation from direct solves at Newton rel 1e-10, relative to the largest coordinate.\n\n| policy | flops | work | solver s | step s | Newton its | linear its | error | fallbacks |\n|---|---|---|---|---|---|---|---|---|",
@@ -708,6 +641,66 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     }
                     rows.push(row);
                 }
+                // Plots: work and Newton iterations per step, and the learned policy's choices.
+                let stem = |what: &str| out.join(format!("case{ci}_{what}"));
+                plot(
+                    &stem("work"),
+                    &format!("work per step: {}", case.label),
+                    "step",
+                    "work",
+                    &rows
+                        .iter()
+                        .map(|r| (r.policy.clone(), r.per_step.iter().map(|p| p.0).collect()))
+                        .collect::<Vec<_>>(),
+                    true,
+                )?;
+                plot(
+                    &stem("newton"),
+                    &format!("Newton iterations per step: {}", case.label),
+                    "step",
+                    "iterations",
+                    &rows
+                        .iter()
+                        .map(|r| {
+                            (
+                                r.policy.clone(),
+                                r.per_step.iter().map(|p| p.1 as f64).collect(),
+                            )
+                        })
+                        .collect::<Vec<_>>(),
+                    false,
+                )?;
+                if let Some(learned) = rows.last() {
+                    let index = |name: &str| {
+                        candidates
+                            .iter()
+                            .position(|c| name.starts_with(&deform_integrator::spec_name(c)))
+                            .map_or(-1.0, |i| i as f64)
+                    };
+                    plot(
+                        &stem("choices"),
+                        &format!(
+                            "learned policy's solver per Newton iteration: {}",
+                            case.label
+                        ),
+                        "Newton iteration (all steps)",
+                        "candidate index (-1: fallback)",
+                        &[(
+                            "learned".to_owned(),
+                            learned.choices.iter().map(|c| index(c)).collect(),
+                        )],
+                        false,
+                    )?;
+                    let mut ccsv = String::from("iteration,solver\n");
+                    for (i, c) in learned.choices.iter().enumerate() {
+                        writeln!(ccsv, "{i},\"{c}\"")?;
+                    }
+                    write_text(&stem("choices.csv"), &ccsv)?;
+                }
+                writeln!(
+                    report,
+                    "\nPlots: `case{ci}_work.svg`/`.png` (work per step), `case{ci}_newton.svg`/`.png` (Newton iterations per step), `case{ci}_choices.svg`/`.png` and `.csv` (the learned policy's solver at every Newton iteration)."
+                )?;
                 // The best fixed solver in hindsight, by work and by time, against the others.
                 let ok = |r: &&policies::Row| !r.failed && r.error <= 1e-6;
                 let best_work = rows[..fixed]
@@ -724,6 +717,14 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                         "\nBest fixed solver in hindsight: by work `{}`, by whole-step time `{}`. Ratios to them (work, whole-step time):",
                         bw.policy, bt.policy
                     )?;
+                    if let Some(learned) = rows.last() {
+                        summary = format!(
+                            "{}: learned / best fixed {:.2}x work, {:.2}x time",
+                            case.label,
+                            learned.work / bw.work,
+                            learned.step_seconds / bt.step_seconds.max(f64::MIN_POSITIVE)
+                        );
+                    }
                     for r in &rows[fixed..] {
                         writeln!(
                             report,
@@ -821,6 +822,11 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     default.work,
                     tuned.best.work / default.work
                 )?;
+                summary = format!(
+                    "tolerance 1e{:.2}: {:.2}x the flops of 1e-8",
+                    tuned.log10_value,
+                    tuned.best.work / default.work
+                );
             }
         }
     }

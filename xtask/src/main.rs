@@ -6,6 +6,7 @@ mod bench;
 mod demo;
 mod experiment;
 mod mesh;
+mod plots;
 mod policies;
 mod simulate;
 mod story;

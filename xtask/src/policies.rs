@@ -45,6 +45,10 @@ pub struct Row {
     pub failed: bool,
     /// Flops were identical in every repeat.
     pub deterministic: bool,
+    /// Work and Newton iterations of every step (runs one after the other).
+    pub per_step: Vec<(f64, usize)>,
+    /// The solver of every Newton iteration (with the fallback marked), in order.
+    pub choices: Vec<String>,
 }
 
 /// Positions after every step of each run with the direct solver at a tight tolerance.
@@ -83,6 +87,8 @@ pub fn measure(
         fallbacks: 0,
         failed: false,
         deterministic: true,
+        per_step: Vec::new(),
+        choices: Vec::new(),
     };
     let (mut times, mut step_times) = (Vec::new(), Vec::new());
     for repeat in 0..repeats.max(1) {
@@ -107,6 +113,15 @@ pub fn measure(
                 seconds += r.solver_seconds();
                 if repeat == 0 {
                     row.work += r.work(factor_weight);
+                    row.per_step
+                        .push((r.work(factor_weight), r.newton_iterations()));
+                    row.choices.extend(r.iterations.iter().map(|i| {
+                        if i.fallback {
+                            format!("{} (fallback)", i.solver)
+                        } else {
+                            i.solver.clone()
+                        }
+                    }));
                     row.newton += r.newton_iterations();
                     row.linear += r.linear_iterations();
                     row.fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
