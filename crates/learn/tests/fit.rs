@@ -583,10 +583,11 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         flops as f64 / best as f64
     );
     assert!(error < 1e-6, "{error}");
-    // Deterministic flop counts: today 1.197x the best fixed solver (direct) on this small
-    // mesh; the cost model does not yet see whether a factor exists (next step).
+    // Deterministic flop counts: 1.07x the best fixed solver (direct) on this 192-tet mesh,
+    // where a factorisation is so cheap that nothing beats refactorising every time (the
+    // policy's stale-factor cycles cost one PCG iteration more per solve).
     assert!(
-        (flops as f64) <= 1.25 * best as f64,
+        (flops as f64) <= 1.1 * best as f64,
         "learned {flops} vs best fixed {best}"
     );
 }
@@ -620,4 +621,62 @@ fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
         tuned.log10_value > -8.0,
         "a looser tolerance than 1e-8 suffices"
     );
+}
+
+#[test]
+fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
+    // Trained on the n = 2 beam, run on the n = 6 beam released under gravity (another mesh,
+    // stiffness and dt): the stale factor stays a good preconditioner, so the renewal rule
+    // keeps it for several solves, and the policy is no costlier than the best fixed solver.
+    let mut train = scene("", "Beam(2)");
+    train.integrator.newton.rel = 1e-8;
+    let specs: Vec<deform_solvers::SolverSpec> = [
+        "Direct()",
+        "Pcg(preconditioner: StaleCholesky(max_age: 100), tolerance: (rel: 1e-10))",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))",
+    ]
+    .iter()
+    .map(|t| ron::from_str(t).unwrap())
+    .collect();
+    let data =
+        deform_learn::solver_data::collect(&train, Path::new("t"), &specs, 8, |_| {}).unwrap();
+    let mut held_out = scene("", "Beam(6)");
+    held_out.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.4))").unwrap();
+    held_out.integrator.dt = 0.005;
+    held_out.integrator.newton.rel = 1e-8;
+    let weight = 0.1;
+    let run = |policy: Box<dyn deform_integrator::SolverPolicy>| {
+        let mut built = held_out.build(Path::new("t")).unwrap();
+        built.integrator.set_policy(policy);
+        let (mut work, mut reused, mut solves) = (0.0, 0, 0);
+        for _ in 0..6 {
+            let r = built.integrator.step(&mut built.state).unwrap();
+            work += r.work(weight);
+            reused += r.iterations.iter().filter(|i| i.setup.reused).count();
+            solves += r.iterations.len();
+        }
+        (work, reused, solves)
+    };
+    let fixed: Vec<f64> = specs
+        .iter()
+        .map(|s| run(Box::new(deform_integrator::Fixed(s.clone()))).0)
+        .collect();
+    let learned = deform_learn::policy::LearnedPolicy::train(
+        &data,
+        deform_learn::policy::PolicyOptions {
+            neighbours: 5,
+            min_success: 0.9,
+            factor_weight: weight,
+            young: 3e5,
+            forcing: None,
+        },
+    );
+    let (work, reused, solves) = run(Box::new(learned));
+    let best = fixed.iter().copied().fold(f64::INFINITY, f64::min);
+    eprintln!(
+        "work: fixed {fixed:?}, learned {work:.4e} ({:.3} of the best), {reused} of {solves} solves reused a factor",
+        work / best
+    );
+    assert!(reused >= solves / 2, "{reused} of {solves}");
+    assert!(work <= 1.05 * best, "learned {work} vs best fixed {best}");
 }
