@@ -188,9 +188,9 @@ fn solvers(args: SolversArgs) -> Result<()> {
         let (an, fa, so) = (median(analyze), median(factor), median(solve));
         report(
             if parallel {
-                "direct_parallel"
-            } else {
                 "direct"
+            } else {
+                "direct_one_thread"
             },
             format!(
                 r#""analyze": {an:.4}, "factorize": {fa:.4}, "solve": {so:.4}, "total": {:.4}, "factor_nnz": {nnz}"#,
@@ -247,7 +247,7 @@ fn step(args: StepArgs) -> Result<()> {
         .collect();
     for (name, policy) in [
         ("direct", "Fixed(Direct())"),
-        ("direct_parallel", "Fixed(Direct(parallel: true))"),
+        ("direct_one_thread", "Fixed(Direct(parallel: false))"),
         (
             // Factorise once (PCG with a fresh factor converges in one iteration), then reuse
             // the stale factor in later Newton iterations and steps.

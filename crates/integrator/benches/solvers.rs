@@ -80,9 +80,9 @@ fn benches(c: &mut Criterion) {
             for parallel in [false, true] {
                 direct.set_parallel(parallel);
                 let name = if parallel {
-                    "direct_factorize_parallel"
-                } else {
                     "direct_factorize"
+                } else {
+                    "direct_factorize_one_thread"
                 };
                 group.bench_function(id(name), |bench| {
                     bench.iter(|| direct.factorize(&a).unwrap())

@@ -203,7 +203,7 @@ fn fallback_spec() -> SolverSpec {
     SolverSpec::Direct {
         ordering: Ordering::Auto,
         indefinite: Indefinite::Ldlt,
-        parallel: false,
+        parallel: true,
     }
 }
 

@@ -283,7 +283,7 @@ impl Default for PolicySpec {
         PolicySpec::Fixed(SolverSpec::Direct {
             ordering: Default::default(),
             indefinite: Default::default(),
-            parallel: false,
+            parallel: true,
         })
     }
 }
@@ -353,7 +353,7 @@ pub fn spec_name(spec: &SolverSpec) -> String {
             ordering, parallel, ..
         } => format!(
             "direct({ordering:?}{})",
-            if *parallel { ", parallel" } else { "" }
+            if *parallel { "" } else { ", one thread" }
         ),
     }
 }

@@ -72,18 +72,21 @@ impl Cholesky {
             analyze_seconds: 0.0,
             values: Vec::new(),
             kind: None,
-            parallel: false,
+            parallel: true,
         }
     }
 
-    /// Factorise on rayon's current thread pool instead of one thread.
+    /// Whether a large factorisation (at least `PARALLEL_MIN_ROWS` rows) is split into
+    /// `PARALLEL_TASKS` parallel tasks (the default) or runs on one thread. The split is
+    /// fixed, not the pool's thread count, so the result is bit-identical on any pool; small
+    /// matrices always run on one thread, where parallel overhead outweighs the gain.
     pub fn set_parallel(&mut self, parallel: bool) {
         self.parallel = parallel;
     }
 
-    fn par(&self) -> Par {
-        if self.parallel {
-            Par::rayon(rayon_threads())
+    fn par(&self, rows: usize) -> Par {
+        if self.parallel && rows >= PARALLEL_MIN_ROWS {
+            Par::rayon(PARALLEL_TASKS)
         } else {
             Par::Seq
         }
@@ -140,7 +143,7 @@ impl Cholesky {
                 found: x.len(),
             });
         }
-        let par = self.par();
+        let par = self.par(n);
         let req = symbolic.solve_in_place_scratch::<f64>(1, par);
         let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         let stack = MemStack::new(&mut mem);
@@ -261,7 +264,7 @@ impl LinearSolver for Cholesky {
         self.values.clear();
         self.values.resize(symbolic.len_val(), 0.0);
         self.kind = None;
-        let par = self.par();
+        let par = self.par(n);
         let llt = {
             let req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default());
             let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
@@ -400,7 +403,10 @@ fn permuted_row(symbolic: &SymbolicCholesky<usize>, index: usize) -> usize {
         .map_or(index, |p| p.arrays().0.get(index).copied().unwrap_or(index))
 }
 
-/// Threads of the current rayon pool.
-fn rayon_threads() -> usize {
-    rayon::current_num_threads()
-}
+/// Tasks a parallel factorisation is split into, whatever the pool's size: faer's
+/// parallel kernels partition by this number, so fixing it (rather than asking rayon for its
+/// thread count) makes the factor's bits independent of the thread count.
+const PARALLEL_TASKS: usize = 2;
+
+/// Rows below which factorisations and solves run on one thread.
+const PARALLEL_MIN_ROWS: usize = 20_000;

@@ -50,11 +50,16 @@ pub enum SolverSpec {
         /// What to do with a matrix that is not positive definite.
         #[serde(default)]
         indefinite: Indefinite,
-        /// Factorise on all of rayon's threads: about 1.7x faster on 2 cores, but the last
-        /// bits of the result then depend on the thread count, so it is off by default.
-        #[serde(default)]
+        /// Split factorisations of at least 20,000 rows into a fixed number of parallel
+        /// tasks (default): bit-identical for any thread count, 1.2x faster on 2 cores at
+        /// 55k DOFs. `false` keeps every factorisation on one thread.
+        #[serde(default = "yes")]
         parallel: bool,
     },
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn default_omega() -> f64 {

@@ -367,3 +367,33 @@ fn iterative_solves_do_not_depend_on_the_thread_count() {
         assert_eq!(one, solve(4), "{spec}");
     }
 }
+
+#[test]
+fn the_parallel_factorisation_is_identical_for_any_thread_count() {
+    // The factorisation splits its work into a fixed number of tasks, not into as many as
+    // the pool has threads, so its result does not depend on the thread count. (With the
+    // pool's thread count instead, this test fails.) n = 12: 24,843 rows, above the
+    // size where factorisations go parallel.
+    let n: usize = std::env::var("DEFORM_TEST_BEAM").map_or(12, |v| v.parse().unwrap());
+    let mesh = beam(n);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.02), 100.0);
+    let b = rhs(a.rows());
+    let solve = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+                s.factorize(&a).unwrap();
+                let mut x = vec![0.0; b.len()];
+                s.solve(&a, &b, &mut x).unwrap();
+                x.iter().map(|v| v.to_bits()).collect::<Vec<u64>>()
+            })
+    };
+    assert!(a.rows() >= 20_000);
+    let one = solve(1);
+    for threads in [2, 3, 4] {
+        assert_eq!(one, solve(threads), "{threads} threads");
+    }
+}
