@@ -459,6 +459,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             also_train,
             repeats,
             forcing,
+            tune,
             refactor_above,
         } => {
             let steps = data.meta.trajectories.first().map_or(0, |t| t.steps);
@@ -555,10 +556,64 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     forcing: *forcing,
                 },
             );
+            // The learned policy with its Newton tolerance tuned on the first training run.
+            let mut tuned_newton = None;
+            if let (Some(t), Some(m)) = (
+                tune,
+                data.meta
+                    .trajectories
+                    .iter()
+                    .find(|m| m.split == Split::Train),
+            ) {
+                let b = bar(args.quiet, t.max_iterations + 2, "tune");
+                let make = |log_rel: f64, o: &mut deform_integrator::IntegratorOptions| {
+                    b.inc(1);
+                    o.newton.rel = 10f64.powf(log_rel);
+                    Some(Box::new(learned.with_forcing(*forcing))
+                        as Box<dyn deform_integrator::SolverPolicy>)
+                };
+                let tuned = deform_learn::tuning::tune_policy(
+                    &variant(&m.initial),
+                    &experiment.scene,
+                    &make,
+                    deform_learn::tuning::Tuning {
+                        start: (-6.0, -9.0),
+                        range: (-12.0, -3.0),
+                        factor_weight: *factor_weight,
+                        fallback: true,
+                        steps,
+                        accuracy: t.accuracy,
+                        max_iterations: t.max_iterations,
+                    },
+                )?;
+                b.finish_and_clear();
+                let rel = 10f64.powf(tuned.log10_value.clamp(-12.0, -3.0));
+                writeln!(
+                    report,
+                    "Tuned for the learned policy: Newton rel {rel:.2e} ({} evaluations on the first training trajectory, error {:.1e} within {:e}).",
+                    tuned.samples.len(),
+                    tuned.best.error,
+                    t.accuracy
+                )?;
+                tuned_newton = Some(rel);
+            }
+            let mut policies: Vec<(String, PolicyMaker, Option<f64>)> = policies
+                .into_iter()
+                .map(|(name, make)| (name, make, None))
+                .collect();
+            let plain = learned.clone();
             policies.push((
                 "learned".to_owned(),
-                Box::new(move || Box::new(learned.clone())),
+                Box::new(move || Box::new(plain.clone())),
+                None,
             ));
+            if let Some(rel) = tuned_newton {
+                policies.push((
+                    format!("learned, tuned (Newton rel {rel:.1e})"),
+                    Box::new(move || Box::new(learned.clone())),
+                    Some(rel),
+                ));
+            }
             let held: Vec<(String, Scene)> = held_out
                 .iter()
                 .map(|h| {
@@ -602,9 +657,36 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 let references = policies::references(case)?;
                 b.inc(1);
                 let mut rows = Vec::new();
-                for (name, make) in &policies {
-                    let row =
-                        policies::measure(case, &references, name, make, *factor_weight, *repeats)?;
+                for (name, make, newton) in &policies {
+                    // A tuned Newton tolerance runs the same scenes with that tolerance.
+                    let tuned_case;
+                    let run_case = match newton {
+                        Some(rel) => {
+                            tuned_case = policies::Case {
+                                label: case.label.clone(),
+                                runs: case
+                                    .runs
+                                    .iter()
+                                    .map(|(s, o)| {
+                                        let mut s = s.clone();
+                                        s.integrator.newton.rel = *rel;
+                                        (s, *o)
+                                    })
+                                    .collect(),
+                                steps: case.steps,
+                            };
+                            &tuned_case
+                        }
+                        None => case,
+                    };
+                    let row = policies::measure(
+                        run_case,
+                        &references,
+                        name,
+                        make,
+                        *factor_weight,
+                        *repeats,
+                    )?;
                     b.inc(repeats.max(&1).to_owned() as u64);
                     let error = if row.failed {
                         "failed".to_owned()

@@ -12,7 +12,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Result, anyhow};
-use deform_integrator::{Integrator, Scene, SolverPolicy};
+use deform_integrator::{Integrator, IntegratorOptions, Scene, SolverPolicy};
 use deform_learn::dataset::state_at;
 use deform_learn::policy::{LearnedPolicy, PolicyOptions};
 use deform_learn::tuning::{Tuning, tune_policy};
@@ -199,7 +199,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     {
         tune_scene.initial = m.initial.clone();
     }
-    let make = |log_eta: f64| -> Option<Box<dyn SolverPolicy>> {
+    let make = |log_eta: f64, _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
         b.inc(1);
         Some(Box::new(
             policy.with_forcing(Some((10f64.powf(log_eta), 0.9))),

@@ -102,6 +102,10 @@ pub enum Task {
         /// `(eta_max, gamma)` for its iterative solves; `None` keeps their tolerances.
         #[serde(default)]
         forcing: Option<(f64, f64)>,
+        /// Also run the learned policy with its Newton tolerance tuned (on the first training
+        /// trajectory, for the least work within the accuracy bound).
+        #[serde(default)]
+        tune: Option<PolicyTune>,
         /// Refactorisation threshold of the hand schedule baseline (`StaleFactor`).
         #[serde(default = "twenty_usize")]
         refactor_above: usize,
@@ -151,6 +155,22 @@ fn five() -> usize {
 
 fn twenty_usize() -> usize {
     20
+}
+
+/// How the learned policy's parameters are tuned in a solver-selection experiment.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PolicyTune {
+    /// Relative max-norm position error allowed against the direct reference.
+    #[serde(default = "accuracy")]
+    pub accuracy: f64,
+    /// Nelder-Mead iterations.
+    #[serde(default = "twelve")]
+    pub max_iterations: u64,
+}
+
+fn twelve() -> u64 {
+    12
 }
 
 /// A scene file and how many steps to simulate it.

@@ -16,7 +16,7 @@ use std::path::Path;
 
 use argmin::core::{CostFunction, Error as ArgminError, Executor};
 use argmin::solver::neldermead::NelderMead;
-use deform_integrator::{Fixed, Scene, SolverPolicy};
+use deform_integrator::{Fixed, IntegratorOptions, Scene, SolverPolicy};
 use deform_solvers::{SolverSpec, Tolerance};
 use serde::{Deserialize, Serialize};
 
@@ -68,8 +68,9 @@ pub fn with_relative_tolerance(solver: &SolverSpec, rel: f64) -> Option<SolverSp
     })
 }
 
-/// Makes the policy for a parameter value (`None`: not a valid value).
-pub type PolicyOf<'a> = dyn Fn(f64) -> Option<Box<dyn SolverPolicy>> + 'a;
+/// Makes the policy for a parameter value, and may adjust the integrator's options for it
+/// (a Newton tolerance, ...); `None`: not a valid value.
+pub type PolicyOf<'a> = dyn Fn(f64, &mut IntegratorOptions) -> Option<Box<dyn SolverPolicy>> + 'a;
 
 struct Problem<'a> {
     scene: &'a Scene,
@@ -93,16 +94,17 @@ impl Problem<'_> {
             error,
             cost,
         };
-        let Some(policy) = (self.make)(log10_value.clamp(self.range.0, self.range.1)) else {
+        let Ok(mut built) = self.scene.build(self.origin) else {
             return sample(f64::NAN, f64::NAN, f64::INFINITY);
         };
-        let Ok(mut built) = self.scene.build(self.origin) else {
+        let mut options = built.integrator.options().clone();
+        let value = log10_value.clamp(self.range.0, self.range.1);
+        let Some(policy) = (self.make)(value, &mut options) else {
             return sample(f64::NAN, f64::NAN, f64::INFINITY);
         };
         // No retries; no fallback unless the policy relies on it by design (then the failed
         // attempt and the direct solve are both charged): a configuration that fails must show
         // as failing, not as the direct solver's cost.
-        let mut options = built.integrator.options().clone();
         options.fallback_to_direct = self.fallback;
         options.max_retries = 0;
         if built.integrator.set_options(options).is_err() {
@@ -164,7 +166,7 @@ pub fn tune_relative_tolerance(
             reason: "tolerance tuning needs an iterative solver".into(),
         });
     }
-    let make = |log10_value: f64| -> Option<Box<dyn SolverPolicy>> {
+    let make = |log10_value: f64, _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
         let spec = with_relative_tolerance(solver, 10f64.powf(log10_value))?;
         Some(Box::new(Fixed(spec)))
     };
