@@ -835,6 +835,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
         Task::TuneBackwardEuler {
             equation_error,
             output_error,
+            members,
             candidates,
             factor_weight,
             accuracy,
@@ -851,6 +852,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     data: &data,
                     equation_error: *equation_error,
                     output_error: *output_error,
+                    members,
                     candidates,
                     factor_weight: *factor_weight,
                     accuracy: *accuracy,

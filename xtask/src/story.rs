@@ -14,9 +14,12 @@ use std::time::Instant;
 use anyhow::{Result, anyhow};
 use deform_integrator::{Integrator, IntegratorOptions, Scene, SolverPolicy};
 use deform_learn::dataset::state_at;
+use deform_learn::experiment::rollout_error;
 use deform_learn::policy::{LearnedPolicy, PolicyOptions};
 use deform_learn::tuning::{Tuning, tune_policy};
-use deform_learn::{Dataset, Split, Trajectory, fit_equation_error, fit_output_error};
+use deform_learn::{
+    Dataset, Split, Trajectory, fit_ensemble, fit_equation_error, fit_output_error, refine_ensemble,
+};
 use deform_materials::Lame;
 use deform_mesh::io::{Pvd, Vtu};
 use deform_solvers::SolverSpec;
@@ -36,6 +39,7 @@ pub struct Story<'a> {
     pub data: &'a Dataset,
     pub equation_error: deform_learn::EquationErrorOptions,
     pub output_error: deform_learn::OutputErrorOptions,
+    pub members: &'a [String],
     pub candidates: &'a [SolverSpec],
     pub factor_weight: f64,
     pub accuracy: f64,
@@ -150,7 +154,63 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     tuned_scene.integrator.alpha = stage1.alpha;
     tuned_scene.integrator.gamma = stage1.gamma;
 
-    // 2. Solver selection on the tuned model's own Newton systems.
+    // 2. Model selection: an ensemble fitted the same two ways (with the fitted damping)
+    // replaces the single model when it predicts the validation trajectories better.
+    let validation = s.data.split(Split::Validation);
+    let mut selection = String::new();
+    let mut tuned_name = "tuned";
+    if !s.members.is_empty() {
+        let names: Vec<&str> = s.members.iter().map(String::as_str).collect();
+        let b = bar(s.quiet, s.output_error.max_evaluations as u64, "ensemble");
+        let ensemble = fit_ensemble(&tuned_scene, s.origin, &names, &train, &validation)?;
+        let (ensemble, _) = refine_ensemble(
+            &ensemble,
+            &tuned_scene,
+            s.origin,
+            &train,
+            &validation,
+            s.output_error,
+            |_, _| b.inc(1),
+        )?;
+        b.finish_and_clear();
+        let rollout = |scene: &Scene| -> Result<f64> {
+            let mut sim = scene.build(s.origin)?.integrator;
+            let mut total = 0.0;
+            for t in &validation {
+                let e = rollout_error(&mut sim, t).map_err(anyhow::Error::msg)?;
+                total += e.iter().sum::<f64>() / e.len().max(1) as f64;
+            }
+            Ok(total / validation.len().max(1) as f64)
+        };
+        let single_error = rollout(&tuned_scene)?;
+        let mut ensemble_scene = tuned_scene.clone();
+        let shares: Vec<String> = ensemble
+            .members
+            .iter()
+            .map(|m| format!("{} {:.1} %", m.model, 100.0 * m.energy_share))
+            .collect();
+        let ensemble_error = match ensemble.spec() {
+            Some(spec) => {
+                ensemble_scene.material = spec;
+                rollout(&ensemble_scene).unwrap_or(f64::INFINITY)
+            }
+            None => f64::INFINITY,
+        };
+        let chosen = if ensemble_error < single_error {
+            tuned_scene = ensemble_scene;
+            tuned_name = "tuned (ensemble; E, nu of the single fit)";
+            "the ensemble"
+        } else {
+            "the single model"
+        };
+        selection = format!(
+            " Model selection: an ensemble of {} fitted by both stages (energy shares {}) has validation rollout error {ensemble_error:.3e} m against {single_error:.3e} m for the single model: {chosen} is kept.",
+            names.join(", "),
+            shares.join(", ")
+        );
+    }
+
+    // 3. Solver selection on the tuned model's own Newton systems.
     let steps = train.first().map_or(0, |t| t.steps());
     let b = bar(s.quiet, train.len() as u64, "solver data");
     let mut logged: Option<deform_learn::solver_data::SolverDataset> = None;
@@ -187,7 +247,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
         },
     );
 
-    // 3. Solver optimisation: the largest forcing term, on the first training trajectory.
+    // 4. Solver optimisation: the largest forcing term, on the first training trajectory.
     let b = bar(s.quiet, s.max_iterations, "tune");
     let mut tune_scene = tuned_scene.clone();
     if let Some(m) = s
@@ -223,7 +283,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     let eta_max = 10f64.powf(tuned.log10_value.clamp(-8.0, -0.3));
     let tuned_policy = policy.with_forcing(Some((eta_max, 0.9)));
 
-    // 4. Side by side on the test trajectories; frames of the first.
+    // 5. Side by side on the test trajectories; frames of the first.
     let b = bar(s.quiet, 3, "compare");
     let build = |scene: &Scene, policy: Option<LearnedPolicy>| -> Result<(Integrator, _)> {
         let built = scene.build(s.origin)?;
@@ -269,7 +329,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     );
     writeln!(
         report,
-        "The cheap model steps {k}x coarser (dt = {} s) than the base (dt = {} s). Tuned: Rayleigh alpha {:.4} -> {:.4}, gamma {:.4} -> {:.4} (stage 1), Lame pair fitted through the coarse steps (stage 1, then stage 2: loss {:.3e} -> {:.3e}, {} evaluations), a solver policy learned from {} logged Newton systems of the tuned model, its largest forcing term tuned by Nelder-Mead ({} evaluations, work {:.3e}, error {:.1e} within {:e}).\n",
+        "The cheap model steps {k}x coarser (dt = {} s) than the base (dt = {} s). Tuned: Rayleigh alpha {:.4} -> {:.4}, gamma {:.4} -> {:.4} (stage 1), Lame pair fitted through the coarse steps (stage 1, then stage 2: loss {:.3e} -> {:.3e}, {} evaluations).{selection} A solver policy learned from {} logged Newton systems of the tuned model, its largest forcing term tuned by Nelder-Mead ({} evaluations, work {:.3e}, error {:.1e} within {:e}).\n",
         s.scene.integrator.dt,
         s.base.integrator.dt,
         s.scene.integrator.alpha,
@@ -314,7 +374,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
             &untuned,
         ),
         (
-            "tuned",
+            tuned_name,
             s.scene.integrator.dt,
             (e2, nu2),
             policy_name.clone(),

@@ -123,6 +123,11 @@ pub enum Task {
         equation_error: EquationErrorOptions,
         /// Stage-2 options of the material fit.
         output_error: OutputErrorOptions,
+        /// Model selection: an ensemble of these models (names of `ensemble::MEMBERS`),
+        /// fitted by both stages with the fitted damping, replaces the single model when its
+        /// validation rollout error is lower. Empty: no selection.
+        #[serde(default)]
+        members: Vec<String>,
         /// Solver candidates of the learned policy.
         candidates: Vec<deform_solvers::SolverSpec>,
         /// Work of a factorisation flop relative to a solve flop.
