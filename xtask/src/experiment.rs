@@ -470,44 +470,20 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             };
             // Counterfactual logs from the training trajectories' initial conditions.
             let b = bar(args.quiet, (train.len() * steps) as u64, "logging");
-            let mut logged: Option<deform_learn::solver_data::SolverDataset> = None;
-            for m in data
+            let also: Vec<(Scene, &Path, usize)> = also_train
+                .iter()
+                .map(|r| Ok((Scene::load(&r.scene)?, r.scene.as_path(), r.steps)))
+                .collect::<Result<_>>()?;
+            let runs: Vec<(Scene, &Path, usize)> = data
                 .meta
                 .trajectories
                 .iter()
                 .filter(|m| m.split == Split::Train)
-            {
-                let d = deform_learn::solver_data::collect(
-                    &variant(&m.initial),
-                    &experiment.scene,
-                    candidates,
-                    steps,
-                    |_| b.inc(1),
-                )?;
-                match &mut logged {
-                    None => logged = Some(d),
-                    Some(all) => {
-                        all.features.extend(d.features);
-                        all.outcomes.extend(d.outcomes);
-                    }
-                }
-            }
-            for run in also_train {
-                let s = Scene::load(&run.scene)?;
-                let d = deform_learn::solver_data::collect(
-                    &s,
-                    &run.scene,
-                    candidates,
-                    run.steps,
-                    |_| {},
-                )?;
-                if let Some(all) = &mut logged {
-                    all.features.extend(d.features);
-                    all.outcomes.extend(d.outcomes);
-                }
-            }
+                .map(|m| (variant(&m.initial), experiment.scene.as_path(), steps))
+                .chain(also)
+                .collect();
+            let logged = deform_learn::solver_data::collect_runs(&runs, candidates, |_| b.inc(1))?;
             b.finish_and_clear();
-            let logged = logged.ok_or_else(|| anyhow!("no training trajectory"))?;
             logged.save(&out.join("solver_data"))?;
             let young = scene
                 .material
@@ -827,9 +803,10 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             write_text(&out.join("policies.csv"), &csv)?;
             writeln!(
                 report,
-                "\n{} logged Newton iterations from {} training trajectories; data in `solver_data/`.",
+                "\n{} logged Newton iterations from {} training trajectories and {} more training scenes; data in `solver_data/`.",
                 logged.len(),
-                train.len()
+                train.len(),
+                also_train.len()
             )?;
         }
         Task::TuneBackwardEuler {

@@ -212,30 +212,21 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
 
     // 3. Solver selection on the tuned model's own Newton systems.
     let steps = train.first().map_or(0, |t| t.steps());
-    let b = bar(s.quiet, train.len() as u64, "solver data");
-    let mut logged: Option<deform_learn::solver_data::SolverDataset> = None;
-    for m in s
+    let b = bar(s.quiet, (train.len() * steps) as u64, "solver data");
+    let runs: Vec<(Scene, &Path, usize)> = s
         .data
         .meta
         .trajectories
         .iter()
         .filter(|m| m.split == Split::Train)
-    {
-        let mut variant = tuned_scene.clone();
-        variant.initial = m.initial.clone();
-        let d =
-            deform_learn::solver_data::collect(&variant, s.origin, s.candidates, steps, |_| {})?;
-        match &mut logged {
-            None => logged = Some(d),
-            Some(all) => {
-                all.features.extend(d.features);
-                all.outcomes.extend(d.outcomes);
-            }
-        }
-        b.inc(1);
-    }
+        .map(|m| {
+            let mut variant = tuned_scene.clone();
+            variant.initial = m.initial.clone();
+            (variant, s.origin, steps)
+        })
+        .collect();
+    let logged = deform_learn::solver_data::collect_runs(&runs, s.candidates, |_| b.inc(1))?;
     b.finish_and_clear();
-    let logged = logged.ok_or_else(|| anyhow!("no training trajectory"))?;
     let policy = LearnedPolicy::train(
         &logged,
         PolicyOptions {

@@ -206,6 +206,33 @@ pub fn collect(
     Ok(data)
 }
 
+/// One simulation to log: the scene, the folder its paths are relative to, and its steps.
+pub type Run<'a> = (Scene, &'a Path, usize);
+
+/// Logs several simulations into one dataset (its metadata names the first scene);
+/// `progress` sees each finished step.
+///
+/// # Errors
+/// [`DatasetError`] as [`collect`]; `Inconsistent` when `runs` is empty.
+pub fn collect_runs(
+    runs: &[Run<'_>],
+    candidates: &[SolverSpec],
+    mut progress: impl FnMut(usize),
+) -> Result<SolverDataset, DatasetError> {
+    let mut all: Option<SolverDataset> = None;
+    for (scene, origin, steps) in runs {
+        let d = collect(scene, origin, candidates, *steps, &mut progress)?;
+        match &mut all {
+            None => all = Some(d),
+            Some(a) => {
+                a.features.extend(d.features);
+                a.outcomes.extend(d.outcomes);
+            }
+        }
+    }
+    all.ok_or_else(|| DatasetError::Inconsistent("no simulation to log".into()))
+}
+
 impl SolverDataset {
     /// Number of samples.
     pub fn len(&self) -> usize {
