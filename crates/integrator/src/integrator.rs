@@ -7,13 +7,15 @@ use deform_assembly::{
 };
 use deform_mesh::TetMesh;
 use deform_solvers::{
-    Indefinite, LinearSolver, Ordering, SetupStats, SolveStats, SolverError, SolverSpec,
+    Indefinite, LinearOperator, LinearSolver, Ordering, SetupStats, SolveStats, SolverError,
+    SolverSpec,
 };
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use sprs::CsMat;
 use thiserror::Error;
 
+use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{PolicyContext, SolverPolicy, spec_name};
 use crate::report::{
     CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport,
@@ -184,6 +186,8 @@ pub struct Integrator {
     policy: Box<dyn SolverPolicy>,
     observer: Box<dyn Observer>,
     steps_taken: usize,
+    /// The Newton matrix's point for matrix-free solves: positions, tangent, `c_m`, `c_k`.
+    linearisation: Option<(Vec<f64>, Tangent, f64, f64)>,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -270,6 +274,7 @@ impl Integrator {
             policy,
             observer: Box::new(NoObserver),
             steps_taken: 0,
+            linearisation: None,
         })
     }
 
@@ -566,6 +571,7 @@ impl Integrator {
                 .restrict_matrix(&self.a, &mut self.a_free)
                 .map_err(|e| fail_assembly(e, &report))?;
             let rhs: Vec<f64> = r_free.iter().map(|v| -v).collect();
+            self.linearisation = Some((x.clone(), tangent, c_m, c_k));
             // What the policy sees, before the solve and (with its outcome) after it.
             let (step, num_free, initial) = (
                 self.steps_taken,
@@ -748,6 +754,21 @@ impl Integrator {
         rhs: &[f64],
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), SolverError> {
+        if spec.is_matrix_free() {
+            let tangents = element_tangents(&self.asm, &self.options, &self.linearisation)?;
+            let (_, _, c_m, c_k) = self.linearisation.clone().expect("set before solving");
+            let op = MatrixFreeNewton::new(&self.asm, tangents, &self.mass, c_m, c_k);
+            let reduced = Restricted::new(&op, &self.dofs);
+            return solve_with(
+                &mut self.solvers,
+                &reduced,
+                spec,
+                rel_tolerance,
+                refresh,
+                rhs,
+                x,
+            );
+        }
         solve_with(
             &mut self.solvers,
             &self.a_free.matrix,
@@ -767,15 +788,37 @@ impl Integrator {
             .iter()
             .map(|spec| {
                 let mut x = vec![0.0; rhs.len()];
-                match solve_with(
-                    &mut self.candidates,
-                    &self.a_free.matrix,
-                    spec,
-                    None,
-                    false,
-                    rhs,
-                    &mut x,
-                ) {
+                let outcome = if spec.is_matrix_free() {
+                    element_tangents(&self.asm, &self.options, &self.linearisation).and_then(
+                        |tangents| {
+                            let (_, _, c_m, c_k) =
+                                self.linearisation.clone().expect("set before solving");
+                            let op =
+                                MatrixFreeNewton::new(&self.asm, tangents, &self.mass, c_m, c_k);
+                            let reduced = Restricted::new(&op, &self.dofs);
+                            solve_with(
+                                &mut self.candidates,
+                                &reduced,
+                                spec,
+                                None,
+                                false,
+                                rhs,
+                                &mut x,
+                            )
+                        },
+                    )
+                } else {
+                    solve_with(
+                        &mut self.candidates,
+                        &self.a_free.matrix,
+                        spec,
+                        None,
+                        false,
+                        rhs,
+                        &mut x,
+                    )
+                };
+                match outcome {
                     Ok((setup, solve)) => {
                         let diff = x
                             .iter()
@@ -804,11 +847,30 @@ impl Integrator {
     }
 }
 
+/// Element tangents at the Newton point, for matrix-free solves (which need the lumped
+/// mass: the operator adds a diagonal mass).
+fn element_tangents<'a>(
+    asm: &'a Assembly,
+    options: &IntegratorOptions,
+    point: &Option<(Vec<f64>, Tangent, f64, f64)>,
+) -> Result<deform_assembly::ElementTangents<'a>, SolverError> {
+    if options.mass != MassKind::Lumped {
+        return Err(SolverError::Unsupported(
+            "matrix-free Newton solves need the lumped mass",
+        ));
+    }
+    let (x, tangent, _, _) = point
+        .as_ref()
+        .ok_or(SolverError::Unsupported("no Newton point to linearise at"))?;
+    asm.tangents(x, *tangent)
+        .map_err(|_| SolverError::Unsupported("element tangents failed at this point"))
+}
+
 /// Factorises (or sets up) and solves with the instance of `spec` kept in `list` (built on
 /// first use).
 fn solve_with(
     list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
-    a: &CsMat<f64>,
+    a: &dyn LinearOperator,
     spec: &SolverSpec,
     rel_tolerance: Option<f64>,
     refresh: bool,

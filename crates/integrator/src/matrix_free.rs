@@ -1,7 +1,7 @@
 //! The Newton matrix `c_m M + c_k K` as a matrix-free operator: element-by-element force
 //! differentials (the seed's Section 1.4) driving the iterative solvers without assembling K.
 
-use deform_assembly::{Assembly, ElementTangents, Mass};
+use deform_assembly::{Assembly, DofMap, ElementTangents, Mass};
 use deform_solvers::{LinearOperator, SolverError};
 use nalgebra::Matrix3;
 
@@ -62,5 +62,55 @@ impl LinearOperator for MatrixFreeNewton<'_> {
 
     fn apply_flops(&self) -> u64 {
         self.tangents.apply_flops() + 3 * self.nrows() as u64
+    }
+}
+
+/// An operator on all `3N` DOFs restricted to the free ones (`A_ff`): the constrained DOFs
+/// of the input are zero, those of the output dropped. Constraints are per vertex, so the
+/// free DOFs come in triples and the 3x3 block diagonal restricts block by block.
+pub struct Restricted<'a, Op> {
+    op: &'a Op,
+    dofs: &'a DofMap,
+}
+
+impl<'a, Op: LinearOperator> Restricted<'a, Op> {
+    /// `op` on the free DOFs of `dofs`.
+    pub fn new(op: &'a Op, dofs: &'a DofMap) -> Self {
+        Self { op, dofs }
+    }
+}
+
+impl<Op: LinearOperator> LinearOperator for Restricted<'_, Op> {
+    fn nrows(&self) -> usize {
+        self.dofs.num_free()
+    }
+
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        let n = self.op.nrows();
+        let (mut full_x, mut full_y) = (vec![0.0; n], vec![0.0; n]);
+        self.dofs.scatter(x, &mut full_x).expect("sizes match");
+        self.op.apply(&full_x, &mut full_y);
+        self.dofs.restrict(&full_y, y).expect("sizes match");
+    }
+
+    fn diagonal(&self, out: &mut [f64]) {
+        let mut full = vec![0.0; self.op.nrows()];
+        self.op.diagonal(&mut full);
+        self.dofs.restrict(&full, out).expect("sizes match");
+    }
+
+    fn block_diagonal(&self, out: &mut [Matrix3<f64>]) -> Result<(), SolverError> {
+        let mut full = vec![Matrix3::zeros(); self.op.nrows() / 3];
+        self.op.block_diagonal(&mut full)?;
+        let constrained = self.dofs.constrained_vertices();
+        let free = (0..full.len()).filter(|v| constrained.binary_search(v).is_err());
+        for (o, v) in out.iter_mut().zip(free) {
+            *o = full[v];
+        }
+        Ok(())
+    }
+
+    fn apply_flops(&self) -> u64 {
+        self.op.apply_flops()
     }
 }

@@ -346,6 +346,7 @@ impl PolicySpec {
 /// A short name of a solver configuration.
 pub fn spec_name(spec: &SolverSpec) -> String {
     match spec {
+        SolverSpec::MatrixFree(inner) => format!("matrix-free {}", spec_name(inner)),
         SolverSpec::Jacobi { omega, .. } => format!("jacobi({omega})"),
         SolverSpec::Cg { .. } => "cg".into(),
         SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),

@@ -213,6 +213,7 @@ fn every_policy_gives_the_same_trajectory() {
         "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-12)))",
         "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
         "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-12)), refactor_above: 6)",
+        "Fixed(MatrixFree(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12))))",
     ] {
         let (state, reports) = run(p);
         let diff = state
@@ -380,6 +381,13 @@ fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
     assert!(ron::from_str::<IntegratorOptions>("(dt: 0.01, damping: 3.0)").is_err());
     assert!(
         ron::from_str::<PolicySpec>("EisenstatWalker(solver: Direct())")
+            .unwrap()
+            .build()
+            .is_err()
+    );
+    // A matrix-free solve cannot use a preconditioner that needs the matrix's entries.
+    assert!(
+        ron::from_str::<PolicySpec>("Fixed(MatrixFree(Pcg(preconditioner: Ic0)))")
             .unwrap()
             .build()
             .is_err()
@@ -696,6 +704,8 @@ fn counterfactual_candidates_are_logged_without_changing_the_trajectory() {
                 "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8))",
                 "Pcg(preconditioner: StaleCholesky(max_age: 5), tolerance: (rel: 1e-8))",
                 "Jacobi(tolerance: (rel: 1e-8, max_iterations: 3))",
+                // On element-by-element force differentials instead of the assembled K.
+                "MatrixFree(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-8)))",
             ]
             .iter()
             .map(|t| ron::from_str(t).unwrap())
@@ -710,14 +720,14 @@ fn counterfactual_candidates_are_logged_without_changing_the_trajectory() {
     let (logged, reports) = run(true);
     assert_eq!(plain, logged, "candidates must not change the trajectory");
     for it in reports.iter().flat_map(|r| &r.iterations) {
-        assert_eq!(it.candidates.len(), 5);
+        assert_eq!(it.candidates.len(), 6);
         let direct = &it.candidates[0];
         assert!(
             direct.distance < 1e-12,
             "direct vs the chosen direct solve: {}",
             direct.distance
         );
-        for c in &it.candidates[1..4] {
+        for c in it.candidates[1..4].iter().chain(&it.candidates[5..]) {
             let stats = c
                 .solve
                 .as_ref()

@@ -65,6 +65,9 @@ pub fn with_relative_tolerance(solver: &SolverSpec, rel: f64) -> Option<SolverSp
             tolerance: set(tolerance),
         },
         SolverSpec::Direct { .. } => return None,
+        SolverSpec::MatrixFree(inner) => {
+            SolverSpec::MatrixFree(Box::new(with_relative_tolerance(inner, rel)?))
+        }
     })
 }
 

@@ -56,6 +56,11 @@ pub enum SolverSpec {
         #[serde(default = "yes")]
         parallel: bool,
     },
+    /// An iterative solver on a matrix-free operator instead of the assembled matrix: the
+    /// caller supplies products with element-by-element force differentials (the
+    /// integrator's Newton matrix without K). Only preconditioners that need no matrix
+    /// entries qualify: none (CG), Jacobi, block Jacobi; or the Jacobi iteration.
+    MatrixFree(Box<SolverSpec>),
 }
 
 fn yes() -> bool {
@@ -74,7 +79,13 @@ impl SolverSpec {
             | SolverSpec::Cg { tolerance }
             | SolverSpec::Pcg { tolerance, .. } => Some(tolerance),
             SolverSpec::Direct { .. } => None,
+            SolverSpec::MatrixFree(ref inner) => inner.tolerance(),
         }
+    }
+
+    /// Whether the solver runs on a matrix-free operator.
+    pub fn is_matrix_free(&self) -> bool {
+        matches!(self, SolverSpec::MatrixFree(_))
     }
 
     /// Validates and builds the solver.
@@ -103,6 +114,22 @@ impl SolverSpec {
                 c.set_parallel(parallel);
                 Box::new(c)
             }
+            SolverSpec::MatrixFree(ref inner) => match **inner {
+                SolverSpec::Jacobi { .. }
+                | SolverSpec::Cg { .. }
+                | SolverSpec::Pcg {
+                    preconditioner:
+                        PreconditionerSpec::Identity
+                        | PreconditionerSpec::Jacobi
+                        | PreconditionerSpec::BlockJacobi,
+                    ..
+                } => inner.build()?,
+                _ => {
+                    return Err(SolverError::Unsupported(
+                        "MatrixFree needs Jacobi, Cg or Pcg with Identity, Jacobi or BlockJacobi",
+                    ));
+                }
+            },
         })
     }
 }
