@@ -212,9 +212,11 @@ impl LearnedPolicy {
                     if !o.reused && o.setup_flops > 0.0 {
                         setup.push((f[LOG_DOFS], (weight * o.setup_flops).log10()));
                     }
+                    // A direct solve reports no iterations: it is one "iteration" here, as in
+                    // the iteration model.
                     let solve = o.flops - o.setup_flops;
-                    if o.iterations > 0.0 && solve > 0.0 {
-                        iteration.push((f[LOG_DOFS], (solve / o.iterations).log10()));
+                    if solve > 0.0 {
+                        iteration.push((f[LOG_DOFS], (solve / o.iterations.max(1.0)).log10()));
                     }
                 }
                 // 3D nested dissection: factorisation O(n^2), nnz(L) O(n^(4/3)); sparse

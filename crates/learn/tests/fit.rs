@@ -583,11 +583,11 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         flops as f64 / best as f64
     );
     assert!(error < 1e-6, "{error}");
-    // Deterministic flop counts: 1.07x the best fixed solver (direct) on this 192-tet mesh,
-    // where a factorisation is so cheap that nothing beats refactorising every time (the
-    // policy's stale-factor cycles cost one PCG iteration more per solve).
+    // Deterministic flop counts: 1.004x the best fixed solver (direct) on this 192-tet mesh,
+    // where a factorisation is so cheap that nothing beats refactorising every time. (Before
+    // the direct solver's work per solve was modelled, the policy could not pick it: 1.07x.)
     assert!(
-        (flops as f64) <= 1.1 * best as f64,
+        (flops as f64) <= 1.05 * best as f64,
         "learned {flops} vs best fixed {best}"
     );
 }
