@@ -5,6 +5,7 @@ use std::path::Path;
 
 use anyhow::Result;
 use deform_integrator::{Scene, SolverPolicy};
+use deform_learn::tuning::Reference;
 
 /// Makes a fresh policy for each run.
 pub type PolicyMaker = Box<dyn Fn() -> Box<dyn SolverPolicy>>;
@@ -52,24 +53,17 @@ pub struct Row {
 }
 
 /// Positions after every step of each run with the direct solver at a tight tolerance.
-pub fn references(case: &Case<'_>) -> Result<Vec<Vec<Vec<f64>>>> {
-    let mut all = Vec::new();
-    for (scene, origin) in &case.runs {
-        let mut built = deform_learn::tuning::reference_scene(scene).build(origin)?;
-        let mut xs = Vec::new();
-        for _ in 0..case.steps {
-            built.integrator.step(&mut built.state)?;
-            xs.push(built.state.x.clone());
-        }
-        all.push(xs);
-    }
-    Ok(all)
+pub fn references(case: &Case<'_>) -> Result<Vec<Reference>> {
+    case.runs
+        .iter()
+        .map(|(scene, origin)| Ok(Reference::simulate(scene, origin, case.steps)?))
+        .collect()
 }
 
 /// Runs `make`'s policy `repeats` times on every run of `case`.
 pub fn measure(
     case: &Case<'_>,
-    references: &[Vec<Vec<f64>>],
+    references: &[Reference],
     name: &str,
     make: &PolicyMaker,
     factor_weight: f64,
@@ -96,12 +90,7 @@ pub fn measure(
         for ((scene, origin), reference) in case.runs.iter().zip(references) {
             let mut built = scene.build(origin)?;
             built.integrator.set_policy(make());
-            let scale = reference
-                .iter()
-                .flatten()
-                .fold(0.0f64, |a, v| a.max(v.abs()))
-                .max(f64::MIN_POSITIVE);
-            for xr in reference {
+            for n in 0..reference.steps() {
                 let started = std::time::Instant::now();
                 let result = built.integrator.step(&mut built.state);
                 step_seconds += started.elapsed().as_secs_f64();
@@ -125,13 +114,7 @@ pub fn measure(
                     row.newton += r.newton_iterations();
                     row.linear += r.linear_iterations();
                     row.fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
-                    let e = built
-                        .state
-                        .x
-                        .iter()
-                        .zip(xr)
-                        .fold(0.0f64, |a, (p, q)| a.max((p - q).abs()));
-                    row.error = row.error.max(e / scale);
+                    row.error = row.error.max(reference.error(n, &built.state.x));
                 }
             }
         }

@@ -11,7 +11,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Result, anyhow};
+use anyhow::{Context, Result, anyhow};
 use deform_integrator::{Integrator, IntegratorOptions, Scene, SolverPolicy};
 use deform_learn::dataset::state_at;
 use deform_learn::experiment::rollout_error;
@@ -80,10 +80,14 @@ fn run_model(
         let (mut sim, mesh) = make()?;
         let dt = sim.options().dt;
         let mut state = state_at(t, 0, dt);
-        let mut pvd = frames.filter(|_| k == 0).map(|dir| {
-            let _ = std::fs::create_dir_all(dir);
-            (dir.to_path_buf(), Pvd::new(dir.join("series.pvd")))
-        });
+        let mut pvd = match frames.filter(|_| k == 0) {
+            Some(dir) => {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+                Some((dir.to_path_buf(), Pvd::new(dir.join("series.pvd"))))
+            }
+            None => None,
+        };
         let mut frame = |n: usize, x: &[f64], time: f64| -> Result<()> {
             if let Some((dir, pvd)) = pvd.as_mut() {
                 let file = dir.join(format!("frame_{n:05}.vtu"));
@@ -279,7 +283,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     let build = |scene: &Scene, policy: Option<LearnedPolicy>| -> Result<(Integrator, _)> {
         let built = scene.build(s.origin)?;
         let mut sim = built.integrator;
-        if let Some(p) = policy.clone() {
+        if let Some(p) = policy {
             sim.set_policy(Box::new(p));
         }
         Ok((sim, built.mesh))
@@ -345,12 +349,14 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
         s.factor_weight
     )?;
     report.push_str("| model | dt | E (Pa) | nu | solver | mean RMS error vs base (m) | final RMS error (m) | work | flops | step time (s) | Newton its | fallbacks |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    let base_policy = deform_integrator::spec_name(match &s.base.policy {
-        deform_integrator::PolicySpec::Fixed(spec) => spec,
-        _ => &s.candidates[0],
-    });
-    for (name, dt, (e, nu), solver, t) in [
+    // The scene's own policy (base and untuned run with it).
+    let base_policy = s.base.policy.build().map_err(anyhow::Error::msg)?.name();
+    // One row per model, in the report's table and in comparison.csv.
+    let mut csv =
+        String::from("model,mean_error,final_error,work,flops,seconds,newton,fallbacks\n");
+    for (key, name, dt, (e, nu), solver, t) in [
         (
+            "base",
             "base (the data)",
             s.base.integrator.dt,
             (e0, nu0),
@@ -359,12 +365,14 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
         ),
         (
             "untuned",
+            "untuned",
             s.scene.integrator.dt,
             (e0, nu0),
             base_policy.clone(),
             &untuned,
         ),
         (
+            "tuned",
             tuned_name,
             s.scene.integrator.dt,
             (e2, nu2),
@@ -372,16 +380,16 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
             &tuned_run,
         ),
     ] {
+        let (mean_error, final_error) = (mean(&t.errors), t.errors.last().copied().unwrap_or(0.0));
         writeln!(
             report,
-            "| {name} | {dt} | {e:.4e} | {nu:.4} | {solver} | {:.3e} | {:.3e} | {:.3e} | {:.3e} | {:.3} | {} | {} |",
-            mean(&t.errors),
-            t.errors.last().copied().unwrap_or(0.0),
-            t.work,
-            t.flops,
-            t.seconds,
-            t.newton,
-            t.fallbacks
+            "| {name} | {dt} | {e:.4e} | {nu:.4} | {solver} | {mean_error:.3e} | {final_error:.3e} | {:.3e} | {:.3e} | {:.3} | {} | {} |",
+            t.work, t.flops, t.seconds, t.newton, t.fallbacks
+        )?;
+        writeln!(
+            csv,
+            "{key},{mean_error:e},{final_error:e},{:e},{:e},{},{},{}",
+            t.work, t.flops, t.seconds, t.newton, t.fallbacks
         )?;
     }
     let summary = format!(
@@ -395,25 +403,6 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
         "\n**{summary}**; against the base model the tuned one takes {:.2}x the time.\n\nParaView: `frames/base/series.pvd`, `frames/untuned/series.pvd`, `frames/tuned/series.pvd` (the first test trajectory; open together). Files: `comparison.csv`, `rollout_error.svg`/`.png`, `solver_data/`, `tuning.csv`.",
         tuned_run.seconds / base.seconds.max(f64::MIN_POSITIVE)
     )?;
-    let mut csv =
-        String::from("model,mean_error,final_error,work,flops,seconds,newton,fallbacks\n");
-    for (name, t) in [
-        ("base", &base),
-        ("untuned", &untuned),
-        ("tuned", &tuned_run),
-    ] {
-        writeln!(
-            csv,
-            "{name},{:e},{:e},{:e},{:e},{},{},{}",
-            mean(&t.errors),
-            t.errors.last().copied().unwrap_or(0.0),
-            t.work,
-            t.flops,
-            t.seconds,
-            t.newton,
-            t.fallbacks
-        )?;
-    }
     write_text(&out.join("comparison.csv"), &csv)?;
     let mut tcsv = String::from("log10_eta_max,work,error,cost\n");
     for x in &tuned.samples {

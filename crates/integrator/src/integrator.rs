@@ -186,8 +186,6 @@ pub struct Integrator {
     policy: Box<dyn SolverPolicy>,
     observer: Box<dyn Observer>,
     steps_taken: usize,
-    /// The Newton matrix's point for matrix-free solves: positions, tangent, `c_m`, `c_k`.
-    linearisation: Option<(Vec<f64>, Tangent, f64, f64)>,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -274,7 +272,6 @@ impl Integrator {
             policy,
             observer: Box::new(NoObserver),
             steps_taken: 0,
-            linearisation: None,
         })
     }
 
@@ -571,7 +568,12 @@ impl Integrator {
                 .restrict_matrix(&self.a, &mut self.a_free)
                 .map_err(|e| fail_assembly(e, &report))?;
             let rhs: Vec<f64> = r_free.iter().map(|v| -v).collect();
-            self.linearisation = Some((x.clone(), tangent, c_m, c_k));
+            let point = NewtonPoint {
+                x: &x,
+                tangent,
+                c_m,
+                c_k,
+            };
             // What the policy sees, before the solve and (with its outcome) after it.
             let (step, num_free, initial) = (
                 self.steps_taken,
@@ -590,6 +592,7 @@ impl Integrator {
             let decision = self.policy.choose(&context(&report.iterations));
             du_free.iter_mut().for_each(|v| *v = 0.0);
             let (setup, solve, fallback) = match self.linear_solve(
+                point,
                 &decision.solver,
                 decision.rel_tolerance,
                 decision.refresh,
@@ -600,7 +603,14 @@ impl Integrator {
                 Err(e) if opts.fallback_to_direct && decision.solver != fallback_spec() => {
                     let _ = e;
                     du_free.iter_mut().for_each(|v| *v = 0.0);
-                    match self.linear_solve(&fallback_spec(), None, false, &rhs, &mut du_free) {
+                    match self.linear_solve(
+                        point,
+                        &fallback_spec(),
+                        None,
+                        false,
+                        &rhs,
+                        &mut du_free,
+                    ) {
                         Ok((setup, solve)) => (setup, solve, true),
                         Err(source) => {
                             return Err(StepError::Solver {
@@ -620,7 +630,7 @@ impl Integrator {
             let candidates = if self.candidates.is_empty() {
                 Vec::new()
             } else {
-                self.run_candidates(&rhs, &du_free)
+                self.run_candidates(point, &rhs, &du_free)
             };
             du.iter_mut().for_each(|v| *v = 0.0);
             self.dofs.scatter(&du_free, &mut du).expect("sizes match");
@@ -748,76 +758,46 @@ impl Integrator {
     /// Factorises (or sets up) and solves with the kept solver of `spec`.
     fn linear_solve(
         &mut self,
+        point: NewtonPoint<'_>,
         spec: &SolverSpec,
         rel_tolerance: Option<f64>,
         refresh: bool,
         rhs: &[f64],
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), SolverError> {
-        if spec.is_matrix_free() {
-            let tangents = element_tangents(&self.asm, &self.options, &self.linearisation)?;
-            let (_, _, c_m, c_k) = self.linearisation.clone().expect("set before solving");
-            let op = MatrixFreeNewton::new(&self.asm, tangents, &self.mass, c_m, c_k);
-            let reduced = Restricted::new(&op, &self.dofs);
-            return solve_with(
-                &mut self.solvers,
-                &reduced,
-                spec,
-                rel_tolerance,
-                refresh,
-                rhs,
-                x,
-            );
-        }
-        solve_with(
-            &mut self.solvers,
-            &self.a_free.matrix,
-            spec,
-            rel_tolerance,
-            refresh,
-            rhs,
-            x,
-        )
+        let system = System {
+            asm: &self.asm,
+            mass: &self.mass,
+            dofs: &self.dofs,
+            options: &self.options,
+            a_free: &self.a_free.matrix,
+            point,
+        };
+        system.solve(&mut self.solvers, spec, rel_tolerance, refresh, rhs, x)
     }
 
     /// Runs every counterfactual candidate on the current system.
-    fn run_candidates(&mut self, rhs: &[f64], chosen: &[f64]) -> Vec<CandidateOutcome> {
+    fn run_candidates(
+        &mut self,
+        point: NewtonPoint<'_>,
+        rhs: &[f64],
+        chosen: &[f64],
+    ) -> Vec<CandidateOutcome> {
         let specs: Vec<SolverSpec> = self.candidates.iter().map(|(s, _)| s.clone()).collect();
         let chosen_norm = chosen.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let system = System {
+            asm: &self.asm,
+            mass: &self.mass,
+            dofs: &self.dofs,
+            options: &self.options,
+            a_free: &self.a_free.matrix,
+            point,
+        };
         specs
             .iter()
             .map(|spec| {
                 let mut x = vec![0.0; rhs.len()];
-                let outcome = if spec.is_matrix_free() {
-                    element_tangents(&self.asm, &self.options, &self.linearisation).and_then(
-                        |tangents| {
-                            let (_, _, c_m, c_k) =
-                                self.linearisation.clone().expect("set before solving");
-                            let op =
-                                MatrixFreeNewton::new(&self.asm, tangents, &self.mass, c_m, c_k);
-                            let reduced = Restricted::new(&op, &self.dofs);
-                            solve_with(
-                                &mut self.candidates,
-                                &reduced,
-                                spec,
-                                None,
-                                false,
-                                rhs,
-                                &mut x,
-                            )
-                        },
-                    )
-                } else {
-                    solve_with(
-                        &mut self.candidates,
-                        &self.a_free.matrix,
-                        spec,
-                        None,
-                        false,
-                        rhs,
-                        &mut x,
-                    )
-                };
+                let outcome = system.solve(&mut self.candidates, spec, None, false, rhs, &mut x);
                 match outcome {
                     Ok((setup, solve)) => {
                         let diff = x
@@ -847,23 +827,55 @@ impl Integrator {
     }
 }
 
-/// Element tangents at the Newton point, for matrix-free solves (which need the lumped
-/// mass: the operator adds a diagonal mass).
-fn element_tangents<'a>(
+/// Where the Newton matrix `c_m M + c_k K` is linearised, for matrix-free solves.
+#[derive(Clone, Copy)]
+struct NewtonPoint<'a> {
+    x: &'a [f64],
+    tangent: Tangent,
+    c_m: f64,
+    c_k: f64,
+}
+
+/// The linear system of a Newton iteration: the assembled reduced matrix, or the same matrix
+/// applied element by element at `point` for matrix-free configurations.
+struct System<'a> {
     asm: &'a Assembly,
-    options: &IntegratorOptions,
-    point: &Option<(Vec<f64>, Tangent, f64, f64)>,
-) -> Result<deform_assembly::ElementTangents<'a>, SolverError> {
-    if options.mass != MassKind::Lumped {
-        return Err(SolverError::Unsupported(
-            "matrix-free Newton solves need the lumped mass",
-        ));
+    mass: &'a Mass,
+    dofs: &'a DofMap,
+    options: &'a IntegratorOptions,
+    a_free: &'a CsMat<f64>,
+    point: NewtonPoint<'a>,
+}
+
+impl System<'_> {
+    /// Solves with the instance of `spec` kept in `list` on the operator `spec` asks for.
+    fn solve(
+        &self,
+        list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+        spec: &SolverSpec,
+        rel_tolerance: Option<f64>,
+        refresh: bool,
+        rhs: &[f64],
+        x: &mut [f64],
+    ) -> Result<(SetupStats, SolveStats), SolverError> {
+        if !spec.is_matrix_free() {
+            return solve_with(list, self.a_free, spec, rel_tolerance, refresh, rhs, x);
+        }
+        // The operator adds a diagonal mass: lumped only.
+        if self.options.mass != MassKind::Lumped {
+            return Err(SolverError::Unsupported(
+                "matrix-free Newton solves need the lumped mass",
+            ));
+        }
+        let p = self.point;
+        let tangents = self
+            .asm
+            .tangents(p.x, p.tangent)
+            .map_err(|_| SolverError::Unsupported("element tangents failed at this point"))?;
+        let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k);
+        let reduced = Restricted::new(&op, self.dofs);
+        solve_with(list, &reduced, spec, rel_tolerance, refresh, rhs, x)
     }
-    let (x, tangent, _, _) = point
-        .as_ref()
-        .ok_or(SolverError::Unsupported("no Newton point to linearise at"))?;
-    asm.tangents(x, *tangent)
-        .map_err(|_| SolverError::Unsupported("element tangents failed at this point"))
 }
 
 /// Factorises (or sets up) and solves with the instance of `spec` kept in `list` (built on

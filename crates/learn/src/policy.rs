@@ -128,6 +128,8 @@ struct Sample {
 pub struct LearnedPolicy {
     candidates: Vec<SolverSpec>,
     samples: Vec<Sample>,
+    /// Per candidate, the oldest factor age the data has.
+    oldest: Vec<usize>,
     costs: Vec<CostModel>,
     mean: Vec<f64>,
     scale: Vec<f64>,
@@ -194,6 +196,15 @@ impl LearnedPolicy {
             })
             .collect();
         let candidates = data.meta.candidates.clone();
+        let oldest = (0..candidates.len())
+            .map(|c| {
+                data.outcomes
+                    .iter()
+                    .map(|o| o[c].age as usize)
+                    .max()
+                    .unwrap_or(0)
+            })
+            .collect();
         let costs = candidates
             .iter()
             .enumerate()
@@ -236,6 +247,7 @@ impl LearnedPolicy {
         Self {
             candidates,
             samples,
+            oldest,
             costs,
             mean,
             scale,
@@ -283,13 +295,7 @@ impl LearnedPolicy {
         let near = match age {
             None => self.neighbours(features, |_| true),
             Some(a) => {
-                let oldest = self
-                    .samples
-                    .iter()
-                    .map(|s| s.outcomes[c].2)
-                    .max()
-                    .unwrap_or(0);
-                let a = a.min(oldest);
+                let a = a.min(self.oldest[c]);
                 self.neighbours(features, |s| s.outcomes[c].2 == a)
             }
         };

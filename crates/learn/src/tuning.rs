@@ -84,8 +84,7 @@ struct Problem<'a> {
     fallback: bool,
     steps: usize,
     accuracy: f64,
-    reference: Vec<Vec<f64>>,
-    scale: f64,
+    reference: Reference,
     samples: RefCell<Vec<TuningSample>>,
 }
 
@@ -120,13 +119,7 @@ impl Problem<'_> {
                 Ok(r) => work += r.work(self.factor_weight),
                 Err(_) => return sample(f64::NAN, f64::INFINITY, f64::INFINITY),
             }
-            let e = built
-                .state
-                .x
-                .iter()
-                .zip(&self.reference[n])
-                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-            error = error.max(e / self.scale);
+            error = error.max(self.reference.error(n, &built.state.x));
         }
         let penalty = if error > self.accuracy {
             1.0 + 10.0 * error / self.accuracy
@@ -199,6 +192,59 @@ pub fn reference_scene(scene: &Scene) -> Scene {
     s
 }
 
+/// The positions after every step of [`reference_scene`], against which trajectories are
+/// measured: the max-norm deviation relative to the largest reference coordinate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reference {
+    positions: Vec<Vec<f64>>,
+    scale: f64,
+}
+
+impl Reference {
+    /// Simulates `steps` steps of `scene`'s reference.
+    ///
+    /// # Errors
+    /// [`FitError::Data`] naming the failure.
+    pub fn simulate(scene: &Scene, origin: &Path, steps: usize) -> Result<Self, FitError> {
+        let fail = |e: String| FitError::Data {
+            index: 0,
+            reason: format!("reference simulation: {e}"),
+        };
+        let mut built = reference_scene(scene)
+            .build(origin)
+            .map_err(|e| fail(e.to_string()))?;
+        let mut positions = Vec::with_capacity(steps);
+        for _ in 0..steps {
+            built
+                .integrator
+                .step(&mut built.state)
+                .map_err(|e| fail(e.to_string()))?;
+            positions.push(built.state.x.clone());
+        }
+        let scale = positions
+            .iter()
+            .flatten()
+            .fold(0.0f64, |m, v| m.max(v.abs()))
+            .max(f64::MIN_POSITIVE);
+        Ok(Self { positions, scale })
+    }
+
+    /// Steps simulated.
+    pub fn steps(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// Max-norm deviation of positions `x` after step `n` (0-based) from the reference's,
+    /// relative to its largest coordinate.
+    pub fn error(&self, n: usize, x: &[f64]) -> f64 {
+        let e = x
+            .iter()
+            .zip(&self.positions[n])
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        e / self.scale
+    }
+}
+
 /// What [`tune_policy`] searches and how it scores.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Tuning {
@@ -236,23 +282,7 @@ pub fn tune_policy(
         reason: e,
     };
     let steps = tuning.steps;
-    // The reference: direct solves, tight Newton tolerance.
-    let mut built = reference_scene(scene)
-        .build(origin)
-        .map_err(|e| fail(e.to_string()))?;
-    let mut reference = Vec::with_capacity(steps);
-    for _ in 0..steps {
-        built
-            .integrator
-            .step(&mut built.state)
-            .map_err(|e| fail(e.to_string()))?;
-        reference.push(built.state.x.clone());
-    }
-    let scale = reference
-        .iter()
-        .flatten()
-        .fold(0.0f64, |m, v| m.max(v.abs()))
-        .max(f64::MIN_POSITIVE);
+    let reference = Reference::simulate(scene, origin, steps)?;
     let problem = Problem {
         scene,
         origin,
@@ -263,7 +293,6 @@ pub fn tune_policy(
         steps,
         accuracy: tuning.accuracy,
         reference,
-        scale,
         samples: RefCell::new(Vec::new()),
     };
     let simplex = NelderMead::new(vec![vec![tuning.start.0], vec![tuning.start.1]])

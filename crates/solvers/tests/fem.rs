@@ -397,3 +397,18 @@ fn the_parallel_factorisation_is_identical_for_any_thread_count() {
         assert_eq!(one, solve(threads), "{threads} threads");
     }
 }
+
+#[test]
+fn only_factorisations_are_weighted_in_work() {
+    let mesh = beam(2);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.0), 100.0);
+    let mut direct = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+    let setup = direct.factorize(&a).unwrap();
+    assert!(setup.factor_nnz > 0 && setup.flops > 0);
+    assert_eq!(setup.work(0.1), 0.1 * setup.flops as f64);
+    assert_eq!(setup.work(1.0), setup.flops as f64);
+    let mut ic0 = pcg(PreconditionerSpec::Ic0);
+    let setup = ic0.factorize(&a).unwrap();
+    assert!(setup.factor_nnz == 0 && setup.flops > 0);
+    assert_eq!(setup.work(0.1), setup.flops as f64);
+}
