@@ -32,6 +32,25 @@ pub enum MassKind {
     Consistent,
 }
 
+/// Which element tangent Newton's matrix is built from.
+///
+/// In RON: `project: Never`, `Always` or `WhenNeeded`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum Projection {
+    /// The exact tangent: Newton converges quadratically, but the matrix can be indefinite
+    /// in compressed or inverted states.
+    #[default]
+    Never,
+    /// Every element tangent projected to SPD: always a descent direction, but Newton
+    /// converges only linearly far from the rest shape.
+    Always,
+    /// The exact tangent until it fails in a step (a solver reports the matrix is not
+    /// positive definite, or the direction is not a descent direction); that iteration and
+    /// the rest of the step then use the projected one. The failed solve's work is charged
+    /// (`IterationReport::discarded`).
+    WhenNeeded,
+}
+
 /// Newton's stopping rules and globalisation.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -46,8 +65,9 @@ pub struct NewtonOptions {
     pub max_iterations: usize,
     /// Backtracking (Armijo) line search on the incremental potential.
     pub line_search: bool,
-    /// Project each element's tangent to SPD (robust for inverting and compressed states).
-    pub project: bool,
+    /// Project element tangents to SPD: never, always (robust for inverting and compressed
+    /// states), or only when the exact tangent fails ([`Projection`]).
+    pub project: Projection,
 }
 
 impl Default for NewtonOptions {
@@ -58,7 +78,7 @@ impl Default for NewtonOptions {
             update: 0.0,
             max_iterations: 30,
             line_search: true,
-            project: false,
+            project: Projection::Never,
         }
     }
 }
@@ -482,12 +502,18 @@ impl Integrator {
         let mut r_free = vec![0.0; self.dofs.num_free()];
         let mut du_free = vec![0.0; self.dofs.num_free()];
         let mut du = vec![0.0; n];
-        let tangent = if opts.newton.project {
-            Tangent::Projected
-        } else {
-            Tangent::Exact
+        let mut tangent = match opts.newton.project {
+            Projection::Always => Tangent::Projected,
+            Projection::Never | Projection::WhenNeeded => Tangent::Exact,
         };
-        for iteration in 0..=opts.newton.max_iterations {
+        // Solves whose result was not used (a failed choice before the fallback, an
+        // exact-tangent attempt before projection), charged to the next iteration's report.
+        let mut discarded: Vec<CandidateOutcome> = Vec::new();
+        let mut iteration = 0;
+        while iteration <= opts.newton.max_iterations {
+            // `WhenNeeded` switches to the projected tangent once per step at most.
+            let can_project =
+                opts.newton.project == Projection::WhenNeeded && tangent == Tangent::Exact;
             let started = Instant::now();
             let mut energy = 0.0;
             self.asm
@@ -591,42 +617,54 @@ impl Integrator {
             };
             let decision = self.policy.choose(&context(&report.iterations));
             du_free.iter_mut().for_each(|v| *v = 0.0);
-            let (setup, solve, fallback) = match self.linear_solve(
+            let attempt = self.linear_solve(
                 point,
                 &decision.solver,
                 decision.rel_tolerance,
                 decision.refresh,
                 &rhs,
                 &mut du_free,
-            ) {
-                Ok((setup, solve)) => (setup, solve, false),
-                Err(e) if opts.fallback_to_direct && decision.solver != fallback_spec() => {
-                    let _ = e;
+            );
+            let attempt = match attempt {
+                Err(failed)
+                    if opts.fallback_to_direct
+                        && decision.solver != fallback_spec()
+                        && !(can_project && failed.error.is_indefinite()) =>
+                {
+                    discarded.push(failed.outcome(&decision.solver));
                     du_free.iter_mut().for_each(|v| *v = 0.0);
-                    match self.linear_solve(
-                        point,
-                        &fallback_spec(),
-                        None,
-                        false,
-                        &rhs,
-                        &mut du_free,
-                    ) {
-                        Ok((setup, solve)) => (setup, solve, true),
-                        Err(source) => {
-                            return Err(StepError::Solver {
-                                source,
-                                report: Box::new(report),
-                            });
-                        }
-                    }
+                    self.linear_solve(point, &fallback_spec(), None, false, &rhs, &mut du_free)
+                        .map(|(setup, solve)| (setup, solve, true))
                 }
-                Err(source) => {
+                other => other.map(|(setup, solve)| (setup, solve, false)),
+            };
+            let (setup, solve, fallback) = match attempt {
+                Ok(done) => done,
+                Err(failed) if can_project && failed.error.is_indefinite() => {
+                    discarded.push(failed.outcome(&decision.solver));
+                    tangent = Tangent::Projected;
+                    continue;
+                }
+                Err(failed) => {
                     return Err(StepError::Solver {
-                        source,
+                        source: failed.error,
                         report: Box::new(report),
                     });
                 }
             };
+            // An indefinite exact tangent can also give an ascent direction without failing.
+            let slope: f64 = r_free.iter().zip(&du_free).map(|(a, b)| a * b).sum();
+            if can_project && slope >= 0.0 {
+                discarded.push(CandidateOutcome {
+                    solver: spec_name(&decision.solver),
+                    setup: Some(setup),
+                    solve: Some(solve),
+                    error: Some(format!("not a descent direction (r . du = {slope:e})")),
+                    distance: f64::INFINITY,
+                });
+                tangent = Tangent::Projected;
+                continue;
+            }
             let candidates = if self.candidates.is_empty() {
                 Vec::new()
             } else {
@@ -635,7 +673,6 @@ impl Integrator {
             du.iter_mut().for_each(|v| *v = 0.0);
             self.dofs.scatter(&du_free, &mut du).expect("sizes match");
             // Backtracking line search on the merit function, K frozen at this iterate.
-            let slope: f64 = r.iter().zip(&du).map(|(a, b)| a * b).sum();
             let mut step_length = 1.0;
             if opts.newton.line_search && slope < 0.0 {
                 let phi0 = self.merit(mode, state, &u, energy);
@@ -696,10 +733,12 @@ impl Integrator {
                 update,
                 seconds: started.elapsed().as_secs_f64(),
                 candidates,
+                discarded: std::mem::take(&mut discarded),
             };
             self.observer.iteration(&it);
             self.policy.observe(&context(&report.iterations), &it);
             report.iterations.push(it);
+            iteration += 1;
         }
         Err(StepError::NotConverged {
             report: Box::new(report),
@@ -764,7 +803,7 @@ impl Integrator {
         refresh: bool,
         rhs: &[f64],
         x: &mut [f64],
-    ) -> Result<(SetupStats, SolveStats), SolverError> {
+    ) -> Result<(SetupStats, SolveStats), FailedSolve> {
         let system = System {
             asm: &self.asm,
             mass: &self.mass,
@@ -814,13 +853,7 @@ impl Integrator {
                             distance: diff / chosen_norm.max(f64::MIN_POSITIVE),
                         }
                     }
-                    Err(e) => CandidateOutcome {
-                        solver: spec_name(spec),
-                        setup: None,
-                        solve: None,
-                        error: Some(e.to_string()),
-                        distance: f64::INFINITY,
-                    },
+                    Err(failed) => failed.outcome(spec),
                 }
             })
             .collect()
@@ -857,21 +890,22 @@ impl System<'_> {
         refresh: bool,
         rhs: &[f64],
         x: &mut [f64],
-    ) -> Result<(SetupStats, SolveStats), SolverError> {
+    ) -> Result<(SetupStats, SolveStats), FailedSolve> {
         if !spec.is_matrix_free() {
             return solve_with(list, self.a_free, spec, rel_tolerance, refresh, rhs, x);
         }
         // The operator adds a diagonal mass: lumped only.
         if self.options.mass != MassKind::Lumped {
-            return Err(SolverError::Unsupported(
-                "matrix-free Newton solves need the lumped mass",
-            ));
+            return Err(
+                SolverError::Unsupported("matrix-free Newton solves need the lumped mass").into(),
+            );
         }
         let p = self.point;
-        let tangents = self
-            .asm
-            .tangents(p.x, p.tangent)
-            .map_err(|_| SolverError::Unsupported("element tangents failed at this point"))?;
+        let tangents = self.asm.tangents(p.x, p.tangent).map_err(|_| {
+            FailedSolve::from(SolverError::Unsupported(
+                "element tangents failed at this point",
+            ))
+        })?;
         let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k);
         let reduced = Restricted::new(&op, self.dofs);
         solve_with(list, &reduced, spec, rel_tolerance, refresh, rhs, x)
@@ -888,7 +922,7 @@ fn solve_with(
     refresh: bool,
     rhs: &[f64],
     x: &mut [f64],
-) -> Result<(SetupStats, SolveStats), SolverError> {
+) -> Result<(SetupStats, SolveStats), FailedSolve> {
     let index = match list.iter().position(|(s, _)| s == spec) {
         Some(i) => i,
         None => {
@@ -904,8 +938,40 @@ fn solve_with(
         solver.set_relative_tolerance(rel)?;
     }
     let setup = solver.factorize(a)?;
-    let stats = solver.solve(a, rhs, x)?;
-    Ok((setup, stats))
+    match solver.solve(a, rhs, x) {
+        Ok(stats) => Ok((setup, stats)),
+        Err(error) => Err(FailedSolve {
+            setup: Some(setup),
+            error,
+        }),
+    }
+}
+
+/// A linear solve that failed, with what it had spent: its set-up, when that succeeded, and
+/// the solve's statistics inside the error (`SolverError::stats`).
+#[derive(Debug)]
+struct FailedSolve {
+    setup: Option<SetupStats>,
+    error: SolverError,
+}
+
+impl From<SolverError> for FailedSolve {
+    fn from(error: SolverError) -> Self {
+        Self { setup: None, error }
+    }
+}
+
+impl FailedSolve {
+    /// As a candidate outcome (its cost, why it failed).
+    fn outcome(&self, spec: &SolverSpec) -> CandidateOutcome {
+        CandidateOutcome {
+            solver: spec_name(spec),
+            setup: self.setup.or_else(|| self.error.spent().copied()),
+            solve: self.error.stats().cloned(),
+            error: Some(self.error.to_string()),
+            distance: f64::INFINITY,
+        }
+    }
 }
 
 fn retryable(e: &StepError) -> bool {

@@ -40,7 +40,9 @@ mod report;
 pub mod scene;
 mod state;
 
-pub use integrator::{Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions};
+pub use integrator::{
+    Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions, Projection,
+};
 pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,

@@ -32,6 +32,50 @@ pub struct IterationReport {
     /// `Integrator::set_candidates` was called).
     #[serde(default)]
     pub candidates: Vec<CandidateOutcome>,
+    /// Solves of this iteration whose result was not used, with what they cost: the chosen
+    /// solver's failed attempt before the direct fallback, an exact-tangent solve before
+    /// `Projection::WhenNeeded` switched to the projected tangent. Counted in
+    /// [`StepReport::work`] and [`StepReport::solver_seconds`].
+    #[serde(default)]
+    pub discarded: Vec<CandidateOutcome>,
+}
+
+impl CandidateOutcome {
+    /// Its deterministic work (see [`StepReport::work`]); failed parts count what they spent.
+    pub fn work(&self, factor_weight: f64) -> f64 {
+        self.setup.as_ref().map_or(0.0, |s| s.work(factor_weight))
+            + self.solve.as_ref().map_or(0.0, |s| s.flops as f64)
+    }
+
+    /// Its wall time (set-up and solve).
+    pub fn seconds(&self) -> f64 {
+        self.setup.as_ref().map_or(0.0, |s| s.seconds)
+            + self.solve.as_ref().map_or(0.0, |s| s.seconds)
+    }
+}
+
+impl IterationReport {
+    /// Deterministic work of the iteration's linear solves, discarded ones included.
+    pub fn work(&self, factor_weight: f64) -> f64 {
+        self.setup.work(factor_weight)
+            + self.solve.flops as f64
+            + self
+                .discarded
+                .iter()
+                .map(|d| d.work(factor_weight))
+                .sum::<f64>()
+    }
+
+    /// Wall time of the iteration's linear solves, discarded ones included.
+    pub fn solver_seconds(&self) -> f64 {
+        self.setup.seconds
+            + self.solve.seconds
+            + self
+                .discarded
+                .iter()
+                .map(CandidateOutcome::seconds)
+                .sum::<f64>()
+    }
 }
 
 /// What a counterfactual candidate solver did on an iteration's linear system.
@@ -89,26 +133,32 @@ impl StepReport {
 
     /// Deterministic work: set-up and solve flops summed over the step.
     pub fn flops(&self) -> u64 {
+        let discarded = |i: &IterationReport| -> u64 {
+            i.discarded
+                .iter()
+                .map(|d| {
+                    d.setup.as_ref().map_or(0, |s| s.flops)
+                        + d.solve.as_ref().map_or(0, |s| s.flops)
+                })
+                .sum()
+        };
         self.iterations
             .iter()
-            .map(|i| i.setup.flops + i.solve.flops)
+            .map(|i| i.setup.flops + i.solve.flops + discarded(i))
             .sum()
     }
 
     /// Deterministic work with factorisation flops weighted by `factor_weight` (see
     /// [`deform_solvers::SetupStats::work`]); `flops()` is `work(1.0)`.
     pub fn work(&self, factor_weight: f64) -> f64 {
-        self.iterations
-            .iter()
-            .map(|i| i.setup.work(factor_weight) + i.solve.flops as f64)
-            .sum()
+        self.iterations.iter().map(|i| i.work(factor_weight)).sum()
     }
 
     /// Linear-solve wall time (set-up and solve) summed over the step.
     pub fn solver_seconds(&self) -> f64 {
         self.iterations
             .iter()
-            .map(|i| i.setup.seconds + i.solve.seconds)
+            .map(IterationReport::solver_seconds)
             .sum()
     }
 }

@@ -751,3 +751,63 @@ fn counterfactual_candidates_are_logged_without_changing_the_trajectory() {
         .count();
     assert!(reused > 0);
 }
+
+#[test]
+fn projection_when_needed_switches_once_the_exact_tangent_fails_and_charges_the_attempt() {
+    use deform_integrator::Projection;
+    let mesh = beam();
+    // A beam squashed along its axis, released with a small or a huge time step.
+    let run = |project: Projection, dt: f64| {
+        let options = IntegratorOptions {
+            dt,
+            newton: NewtonOptions {
+                project,
+                ..NewtonOptions::default()
+            },
+            max_retries: 0,
+            ..IntegratorOptions::default()
+        };
+        let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
+        let mut state = s.rest_state();
+        state.x.iter_mut().step_by(3).for_each(|x| *x *= 0.9);
+        s.step(&mut state).map(|r| (r, state))
+    };
+    // Small step: the exact tangent stays positive definite; nothing changes.
+    let (never, x_never) = run(Projection::Never, 0.01).unwrap();
+    let (when, x_when) = run(Projection::WhenNeeded, 0.01).unwrap();
+    assert_eq!(x_never.x, x_when.x);
+    assert_eq!(never.iterations.len(), when.iterations.len());
+    assert!(when.iterations.iter().all(|i| i.discarded.is_empty()));
+    // Huge step: the exact tangent is indefinite; Newton on it inverts an element.
+    assert!(run(Projection::Never, 1.0).is_err());
+    let (when, x_when) = run(Projection::WhenNeeded, 1.0).unwrap();
+    let (always, x_always) = run(Projection::Always, 1.0).unwrap();
+    let discarded: Vec<_> = when.iterations.iter().flat_map(|i| &i.discarded).collect();
+    assert_eq!(discarded.len(), 1, "one switch per step");
+    assert!(
+        discarded[0]
+            .error
+            .as_deref()
+            .is_some_and(|e| e.contains("not positive definite")),
+        "{:?}",
+        discarded[0].error
+    );
+    // The failed attempt is charged: its analysis at least.
+    let used: u64 = when
+        .iterations
+        .iter()
+        .map(|i| i.setup.flops + i.solve.flops)
+        .sum();
+    assert!(when.flops() > used, "{} vs {used}", when.flops());
+    assert!(when.work(1.0) > used as f64);
+    // After the switch it is Newton on the projected tangent: the same iterations and
+    // solution as `Always`.
+    assert_eq!(when.iterations.len(), always.iterations.len());
+    let scale = x_always.x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let diff = x_when
+        .x
+        .iter()
+        .zip(&x_always.x)
+        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff <= 1e-6 * scale, "{diff:e}");
+}

@@ -46,7 +46,8 @@ pub struct Outcome {
     pub seconds: f64,
     /// Whether it met its tolerance.
     pub ok: bool,
-    /// Relative residual reached (infinite on failure).
+    /// Relative residual reached (on failure the last one; infinite when the solve never
+    /// started, e.g. a failed factorisation).
     pub relative_residual: f64,
     /// Iterations of the solve (1 for a direct solve, the cap on failure).
     pub iterations: f64,

@@ -514,7 +514,9 @@ fn solver_datasets_log_every_candidate_and_round_trip() {
         assert!(f.iter().all(|v| v.is_finite()), "{f:?}");
         assert!(o[0].ok && o[0].flops > 0.0 && o[0].relative_residual < 1e-10);
         assert!(o[1].ok);
-        assert!(!o[2].ok && o[2].relative_residual.is_infinite());
+        // A failed solve keeps what it reached and spent.
+        assert!(!o[2].ok && o[2].relative_residual > 1e-8 && o[2].iterations == 2.0);
+        assert!(o[2].flops > 0.0);
     }
     let dir = tempfile::tempdir().unwrap();
     data.save(dir.path()).unwrap();

@@ -98,6 +98,7 @@ fn report(solver: &str, factorised: bool, iterations: usize) -> IterationReport 
         update: 0.0,
         seconds: 0.0,
         candidates: Vec::new(),
+        discarded: Vec::new(),
     }
 }
 

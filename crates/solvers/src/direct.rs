@@ -171,6 +171,15 @@ impl Cholesky {
     }
 }
 
+/// The set-up stats of a factorisation that failed: charged as a whole one.
+fn spent(symbolic: &SymbolicCholesky<usize>, mut setup: SetupStats, start: Instant) -> SetupStats {
+    let (nnz, flops) = factor_counts(symbolic);
+    setup.flops += flops;
+    setup.factor_nnz = nnz;
+    setup.seconds += start.elapsed().as_secs_f64();
+    setup
+}
+
 /// `(nnz(L), flops of the numeric factorisation)` from the symbolic structure.
 fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) {
     match symbolic.raw() {
@@ -287,6 +296,7 @@ impl LinearSolver for Cholesky {
                     return Err(SolverError::NotPositiveDefinite {
                         pivot: permuted_row(symbolic, index),
                         value: f64::NAN,
+                        spent: Some(Box::new(spent(symbolic, setup, start))),
                     });
                 }
                 let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
@@ -306,6 +316,7 @@ impl LinearSolver for Cholesky {
                             SolverError::NotPositiveDefinite {
                                 pivot: permuted_row(symbolic, index),
                                 value: 0.0,
+                                spent: Some(Box::new(spent(symbolic, setup, start))),
                             }
                         }
                     })?;

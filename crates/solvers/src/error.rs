@@ -2,7 +2,7 @@
 
 use thiserror::Error;
 
-use crate::stats::SolveStats;
+use crate::stats::{SetupStats, SolveStats};
 
 /// Why a solve failed.
 #[derive(Debug, Clone, PartialEq, Error)]
@@ -47,6 +47,9 @@ pub enum SolverError {
         pivot: usize,
         /// Its value (NaN when the factorisation does not report it).
         value: f64,
+        /// What the failed set-up spent, when it is large enough to count (a sparse
+        /// factorisation: its whole flop count, as faer does not say how far it got).
+        spent: Option<Box<SetupStats>>,
     },
     /// The operator cannot provide what this solver or preconditioner needs.
     #[error("unsupported: {0}")]
@@ -67,6 +70,34 @@ pub enum SolverError {
         /// The valid range.
         reason: &'static str,
     },
+}
+
+impl SolverError {
+    /// The statistics of the failed solve, when it got as far as iterating (breakdown, not
+    /// converged): its work is spent even though its result is not used.
+    pub fn stats(&self) -> Option<&SolveStats> {
+        match self {
+            Self::Breakdown { stats, .. } | Self::NotConverged { stats } => Some(stats),
+            _ => None,
+        }
+    }
+
+    /// What a failed set-up spent before failing (see `NotPositiveDefinite::spent`).
+    pub fn spent(&self) -> Option<&SetupStats> {
+        match self {
+            Self::NotPositiveDefinite { spent, .. } => spent.as_deref(),
+            _ => None,
+        }
+    }
+
+    /// The failure says the matrix is not positive definite (a non-positive pivot, or CG's
+    /// non-positive curvature).
+    pub fn is_indefinite(&self) -> bool {
+        matches!(
+            self,
+            Self::Breakdown { .. } | Self::NotPositiveDefinite { .. }
+        )
+    }
 }
 
 /// Checks length and finiteness of a vector argument.

@@ -308,6 +308,7 @@ impl LinearSolver for Iterative {
                     return Err(SolverError::NotPositiveDefinite {
                         pivot: i,
                         value: d[i],
+                        spent: None,
                     });
                 }
                 self.inv_diag = d.iter().map(|x| 1.0 / x).collect();

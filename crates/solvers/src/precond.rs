@@ -89,7 +89,11 @@ impl Preconditioner {
                         if x > 0.0 {
                             Ok(1.0 / x)
                         } else {
-                            Err(SolverError::NotPositiveDefinite { pivot: i, value: x })
+                            Err(SolverError::NotPositiveDefinite {
+                                pivot: i,
+                                value: x,
+                                spent: None,
+                            })
                         }
                     })
                     .collect::<Result<Vec<_>, _>>()?;
@@ -107,6 +111,7 @@ impl Preconditioner {
                     let chol = b.cholesky().ok_or(SolverError::NotPositiveDefinite {
                         pivot: 3 * v,
                         value: b[(0, 0)],
+                        spent: None,
                     })?;
                     *b = chol.inverse();
                 }
@@ -123,6 +128,7 @@ impl Preconditioner {
                     return Err(SolverError::NotPositiveDefinite {
                         pivot: i,
                         value: diag[i],
+                        spent: None,
                     });
                 }
                 (Preconditioner::Ssor { omega, diag }, nu)
@@ -303,6 +309,7 @@ fn ic0(
         let mut d = diag.ok_or(SolverError::NotPositiveDefinite {
             pivot: i,
             value: 0.0,
+            spent: None,
         })?;
         // L_ij = (A_ij - sum_{m<j} L_im L_jm) / L_jj for j in the pattern, in column order.
         for a in row_start..li.len() {
@@ -325,7 +332,11 @@ fn ic0(
             d -= lv[a] * lv[a];
         }
         if !(d > 0.0) {
-            return Err(SolverError::NotPositiveDefinite { pivot: i, value: d });
+            return Err(SolverError::NotPositiveDefinite {
+                pivot: i,
+                value: d,
+                spent: None,
+            });
         }
         li.push(i);
         lv.push(d.sqrt());

@@ -168,6 +168,13 @@ fn indefinite_input_is_reported() {
             matches!(got, Err(SolverError::NotPositiveDefinite { pivot: 1, .. })),
             "{spec}: {got:?}"
         );
+        // A failed sparse factorisation is charged (as a whole one); it is spent work.
+        if let Err(e) = &got
+            && spec.starts_with("Direct")
+        {
+            let spent = e.spent().expect("the factorisation's cost");
+            assert!(spent.flops > 0 && spent.factor_nnz > 0, "{spent:?}");
+        }
     }
     // Block Jacobi names the first row of the failing 3x3 block.
     assert!(matches!(
