@@ -13,7 +13,7 @@ use deform_integrator::benchmark::{beam, beam_system};
 use deform_integrator::{Constraint, Integrator, IntegratorOptions, Motion, PolicySpec};
 use deform_materials::{Model, StableNeoHookean};
 use deform_mesh::io::{MshFormat, MshVersion, write_atomic, write_msh};
-use deform_solvers::SolverSpec;
+use deform_solvers::{Precision, SolverSpec};
 
 /// Which measurement.
 #[derive(Debug, Subcommand)]
@@ -163,17 +163,22 @@ fn solvers(args: SolversArgs) -> Result<()> {
             r#"{{"what": "solvers", "impl": "deform", "solver": "{name}", "dofs": {dofs}, {fields}}}"#
         );
     };
-    for parallel in [false, true] {
+    for (name, parallel, precision) in [
+        ("direct_one_thread", false, Precision::Double),
+        ("direct", true, Precision::Double),
+        ("direct_mixed", true, Precision::Mixed),
+    ] {
         if args.no_direct {
             break;
         }
         let (mut analyze, mut factor, mut solve) = (Vec::new(), Vec::new(), Vec::new());
-        let mut nnz = 0;
+        let (mut nnz, mut residual, mut steps) = (0, f64::NAN, 0);
         for _ in 0..args.repeats.max(1) {
             let spec = SolverSpec::Direct {
                 ordering: Default::default(),
                 indefinite: Default::default(),
                 parallel,
+                precision,
             };
             let mut s = spec.build()?;
             analyze.push(time(|| s.analyze(&a)).1);
@@ -182,18 +187,16 @@ fn solvers(args: SolversArgs) -> Result<()> {
             factor.push(t);
             let mut x = vec![0.0; dofs];
             let (r, t) = time(|| s.solve(&a, &b, &mut x));
-            r?;
+            let stats = r?;
+            residual = stats.relative_residual();
+            steps = stats.iterations;
             solve.push(t);
         }
         let (an, fa, so) = (median(analyze), median(factor), median(solve));
         report(
-            if parallel {
-                "direct"
-            } else {
-                "direct_one_thread"
-            },
+            name,
             format!(
-                r#""analyze": {an:.4}, "factorize": {fa:.4}, "solve": {so:.4}, "total": {:.4}, "factor_nnz": {nnz}"#,
+                r#""analyze": {an:.4}, "factorize": {fa:.4}, "solve": {so:.4}, "total": {:.4}, "factor_nnz": {nnz}, "relative_residual": {residual:.3e}, "refinement_steps": {steps}"#,
                 an + fa + so
             ),
         );

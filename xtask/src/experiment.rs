@@ -532,8 +532,9 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     forcing: *forcing,
                 },
             );
-            // The learned policy with its Newton tolerance tuned on the first training run.
-            let mut tuned_newton = None;
+            // The learned policy with its Newton options and forcing tuned on the first
+            // training run (and the tuning's own scenes).
+            let mut tuned_settings = None;
             if let (Some(t), Some(m)) = (
                 tune,
                 data.meta
@@ -541,39 +542,88 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     .iter()
                     .find(|m| m.split == Split::Train),
             ) {
-                let b = bar(args.quiet, t.max_iterations + 2, "tune");
-                let make = |log_rel: f64, o: &mut deform_integrator::IntegratorOptions| {
-                    b.inc(1);
-                    o.newton.rel = 10f64.powf(log_rel);
-                    Some(Box::new(learned.with_forcing(*forcing))
-                        as Box<dyn deform_integrator::SolverPolicy>)
+                let mut runs: Vec<(Scene, &Path, usize)> =
+                    vec![(variant(&m.initial), experiment.scene.as_path(), steps)];
+                for r in &t.scenes {
+                    runs.push((Scene::load(&r.scene)?, r.scene.as_path(), r.steps));
+                }
+                // Newton rel, and the largest forcing term when the policy has one.
+                let (mut start, mut range) = (vec![vec![-6.0], vec![-9.0]], vec![(-12.0, -3.0)]);
+                if let Some((eta_max, _)) = forcing {
+                    let e = eta_max.log10();
+                    start = vec![vec![-6.0, e], vec![-9.0, e], vec![-6.0, e - 1.0]];
+                    range.push((-8.0, -0.3));
+                }
+                let tuning = deform_learn::tuning::Tuning {
+                    start,
+                    range,
+                    factor_weight: *factor_weight,
+                    fallback: true,
+                    accuracy: t.accuracy,
+                    max_iterations: t.max_iterations,
                 };
-                let tuned = deform_learn::tuning::tune_policy(
-                    &variant(&m.initial),
-                    &experiment.scene,
-                    &make,
-                    deform_learn::tuning::Tuning {
-                        start: (-6.0, -9.0),
-                        range: (-12.0, -3.0),
-                        factor_weight: *factor_weight,
-                        fallback: true,
-                        steps,
-                        accuracy: t.accuracy,
-                        max_iterations: t.max_iterations,
-                    },
-                )?;
+                let projections: Vec<Option<deform_integrator::Projection>> = std::iter::once(None)
+                    .chain(t.projections.iter().copied().map(Some))
+                    .collect();
+                let b = bar(
+                    args.quiet,
+                    projections.len() as u64 * (t.max_iterations + 3) * runs.len() as u64,
+                    "tune",
+                );
+                let mut best: Option<(TunedLearned, deform_learn::tuning::TuningResult)> = None;
+                let mut tcsv =
+                    String::from("projection,log10_newton_rel,log10_eta_max,work,error,cost\n");
+                for projection in projections {
+                    let make = |p: &[f64], o: &mut deform_integrator::IntegratorOptions| {
+                        b.inc(1);
+                        let settings = TunedLearned::from_values(p, *forcing, projection);
+                        settings.apply(o);
+                        Some(Box::new(learned.with_forcing(settings.forcing))
+                            as Box<dyn deform_integrator::SolverPolicy>)
+                    };
+                    let tuned = deform_learn::tuning::tune_policy(&runs, &make, &tuning)?;
+                    for x in &tuned.samples {
+                        writeln!(
+                            tcsv,
+                            "{},{},{},{:e},{:e},{:e}",
+                            projection.map_or("scene's".to_owned(), |p| format!("{p:?}")),
+                            x.log10_values[0],
+                            x.log10_values.get(1).map_or(String::new(), f64::to_string),
+                            x.work,
+                            x.error,
+                            x.cost
+                        )?;
+                    }
+                    if best
+                        .as_ref()
+                        .is_none_or(|(_, b)| tuned.best.cost < b.best.cost)
+                    {
+                        best = Some((
+                            TunedLearned::from_values(&tuned.log10_values, *forcing, projection),
+                            tuned,
+                        ));
+                    }
+                }
                 b.finish_and_clear();
-                let rel = 10f64.powf(tuned.log10_value.clamp(-12.0, -3.0));
-                writeln!(
-                    report,
-                    "Tuned for the learned policy: Newton rel {rel:.2e} ({} evaluations on the first training trajectory, error {:.1e} within {:e}).",
-                    tuned.samples.len(),
-                    tuned.best.error,
-                    t.accuracy
-                )?;
-                tuned_newton = Some(rel);
+                write_text(&out.join("tuning.csv"), &tcsv)?;
+                if let Some((settings, tuned)) = best {
+                    writeln!(
+                        report,
+                        "Tuned for the learned policy: {} ({} evaluations on the first training trajectory{}, work {:.4e}, error {:.1e} within {:e}; every evaluation in `tuning.csv`).",
+                        settings.label(),
+                        tuned.samples.len(),
+                        t.scenes
+                            .iter()
+                            .map(|r| format!(" and `{}`", r.scene.display()))
+                            .collect::<String>(),
+                        tuned.best.work,
+                        tuned.best.error,
+                        t.accuracy
+                    )?;
+                    tuned_settings = Some(settings);
+                }
             }
-            let mut policies: Vec<(String, PolicyMaker, Option<f64>)> = policies
+            let mut policies: Vec<(String, PolicyMaker, Option<TunedLearned>)> = policies
                 .into_iter()
                 .map(|(name, make)| (name, make, None))
                 .collect();
@@ -583,12 +633,25 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 Box::new(move || Box::new(plain.clone())),
                 None,
             ));
-            if let Some(rel) = tuned_newton {
+            if let Some(settings) = tuned_settings {
+                let tuned = learned.with_forcing(settings.forcing);
                 policies.push((
-                    format!("learned, tuned (Newton rel {rel:.1e})"),
-                    Box::new(move || Box::new(learned.clone())),
-                    Some(rel),
+                    format!("learned, tuned ({})", settings.label()),
+                    Box::new(move || Box::new(tuned.clone())),
+                    Some(settings),
                 ));
+                // The same Newton settings with the direct solver: what tuning Newton alone gives.
+                if let Some(direct) = candidates
+                    .iter()
+                    .find(|c| matches!(c, deform_solvers::SolverSpec::Direct { .. }))
+                {
+                    let c = direct.clone();
+                    policies.push((
+                        format!("fixed {}{TUNED_DIRECT}", deform_integrator::spec_name(&c)),
+                        Box::new(move || Box::new(deform_integrator::Fixed(c.clone()))),
+                        Some(settings),
+                    ));
+                }
             }
             let held: Vec<(String, Scene)> = held_out
                 .iter()
@@ -633,11 +696,11 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 let references = policies::references(case)?;
                 b.inc(1);
                 let mut rows = Vec::new();
-                for (name, make, newton) in &policies {
-                    // A tuned Newton tolerance runs the same scenes with that tolerance.
+                for (name, make, settings) in &policies {
+                    // Tuned Newton options run the same scenes with those options.
                     let tuned_case;
-                    let run_case = match newton {
-                        Some(rel) => {
+                    let run_case = match settings {
+                        Some(settings) => {
                             tuned_case = policies::Case {
                                 label: case.label.clone(),
                                 runs: case
@@ -645,7 +708,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                                     .iter()
                                     .map(|(s, o)| {
                                         let mut s = s.clone();
-                                        s.integrator.newton.rel = *rel;
+                                        settings.apply(&mut s.integrator);
                                         (s, *o)
                                     })
                                     .collect(),
@@ -728,7 +791,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                         .collect::<Vec<_>>(),
                     false,
                 )?;
-                if let Some(learned) = rows.last() {
+                if let Some(learned) = rows.iter().rev().find(|r| r.policy.starts_with("learned")) {
                     let index = |name: &str| {
                         candidates
                             .iter()
@@ -759,44 +822,99 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                     report,
                     "\nPlots: `case{ci}_work.svg`/`.png` (work per step), `case{ci}_newton.svg`/`.png` (Newton iterations per step), `case{ci}_choices.svg`/`.png` and `.csv` (the learned policy's solver at every Newton iteration)."
                 )?;
-                // The best fixed solver in hindsight, by work and by time, against the others.
+                // The best fixed solver in hindsight, by work and by time, against the others:
+                // among every fixed candidate, and among those that set up afresh for every
+                // solve (the "best fixed solver"; a stale factor is a schedule).
                 let ok = |r: &&policies::Row| !r.failed && r.error <= 1e-6;
-                let best_work = rows[..fixed]
-                    .iter()
-                    .filter(ok)
-                    .min_by(|a, b| a.work.total_cmp(&b.work));
-                let best_time = rows[..fixed]
-                    .iter()
-                    .filter(ok)
-                    .min_by(|a, b| a.step_seconds.total_cmp(&b.step_seconds));
-                if let (Some(bw), Some(bt)) = (best_work, best_time) {
-                    writeln!(
-                        report,
-                        "\nBest fixed solver in hindsight: by work `{}`, by whole-step time `{}`. Ratios to them (work, whole-step time):",
-                        bw.policy, bt.policy
-                    )?;
-                    if let Some(learned) = rows.last() {
-                        summary = format!(
-                            "{}: learned / best fixed {:.2}x work, {:.2}x time",
-                            case.label,
-                            learned.work / bw.work,
-                            learned.step_seconds / bt.step_seconds.max(f64::MIN_POSITIVE)
+                let fresh = |r: &&policies::Row| !r.policy.contains("StaleCholesky");
+                let best = |pick: &dyn Fn(&&policies::Row) -> bool,
+                            key: &dyn Fn(&policies::Row) -> f64| {
+                    rows[..fixed]
+                        .iter()
+                        .filter(ok)
+                        .filter(|r| pick(r))
+                        .min_by(|a, b| key(a).total_cmp(&key(b)))
+                };
+                let any = |_: &&policies::Row| true;
+                let refs = [
+                    ("best fixed", &any as &dyn Fn(&&policies::Row) -> bool),
+                    ("best fixed without reuse", &fresh),
+                ];
+                writeln!(
+                    report,
+                    "\nRatios to the best fixed solver in hindsight (within 1e-6), by work, by linear-solver time and by whole-step time, each picked separately; \"without reuse\": among the fixed solvers that set up afresh for every solve (a fresh factorisation, IC(0), ...), stale-factor PCG being a schedule:\n"
+                )?;
+                let mut header = String::from("| policy |");
+                let mut rule = String::from("|---|");
+                for (label, pick) in &refs {
+                    let (w, s, t) = (
+                        best(*pick, &|r| r.work),
+                        best(*pick, &|r| r.seconds),
+                        best(*pick, &|r| r.step_seconds),
+                    );
+                    let name =
+                        |r: Option<&policies::Row>| r.map_or("-", |r| r.policy.as_str()).to_owned();
+                    header += &format!(
+                        " work / {label} (`{}`) | solver s / {label} (`{}`) | step s / {label} (`{}`) |",
+                        name(w),
+                        name(s),
+                        name(t)
+                    );
+                    rule += "---|---|---|";
+                }
+                writeln!(report, "{header}\n{rule}")?;
+                for r in &rows[fixed..] {
+                    let mut line = format!("| {} |", r.policy);
+                    for (_, pick) in &refs {
+                        let ratio = |key: &dyn Fn(&policies::Row) -> f64| {
+                            best(*pick, key).map_or("-".to_owned(), |b| {
+                                format!("{:.3}", key(r) / key(b).max(f64::MIN_POSITIVE))
+                            })
+                        };
+                        line += &format!(
+                            " {} | {} | {} |",
+                            ratio(&|r| r.work),
+                            ratio(&|r| r.seconds),
+                            ratio(&|r| r.step_seconds)
                         );
                     }
-                    for r in &rows[fixed..] {
-                        writeln!(
-                            report,
-                            "- {}: {:.3}, {:.3}{}",
-                            r.policy,
-                            r.work / bw.work,
-                            r.step_seconds / bt.step_seconds.max(f64::MIN_POSITIVE),
-                            if ok(&r) {
-                                ""
-                            } else {
-                                " (outside the 1e-6 accuracy bound)"
-                            }
-                        )?;
+                    if !ok(&r) {
+                        line += " (outside the 1e-6 accuracy bound)";
                     }
+                    writeln!(report, "{line}")?;
+                }
+                let learned = rows[fixed..]
+                    .iter()
+                    .rev()
+                    .find(|r| r.policy.starts_with("learned"));
+                if let (Some(l), Some(bw), Some(bs)) = (
+                    learned,
+                    best(&fresh, &|r| r.work),
+                    best(&fresh, &|r| r.seconds),
+                ) {
+                    summary = format!(
+                        "{}: {} / best fixed without reuse {:.2}x work, {:.2}x solver time",
+                        case.label,
+                        l.policy,
+                        l.work / bw.work,
+                        l.seconds / bs.seconds.max(f64::MIN_POSITIVE)
+                    );
+                }
+                // What the solver choice adds on top of the tuned Newton settings.
+                if let (Some(l), Some(d)) = (
+                    learned,
+                    rows.iter().find(|r| r.policy.ends_with(TUNED_DIRECT)),
+                ) && l.policy.contains("tuned")
+                {
+                    writeln!(
+                        report,
+                        "\nSolver choice alone: `{}` / `{}` (the same Newton settings): {:.3} work, {:.3} solver time, {:.3} step time.",
+                        l.policy,
+                        d.policy,
+                        l.work / d.work,
+                        l.seconds / d.seconds.max(f64::MIN_POSITIVE),
+                        l.step_seconds / d.step_seconds.max(f64::MIN_POSITIVE)
+                    )?;
                 }
             }
             b.finish_and_clear();
@@ -859,7 +977,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 writeln!(
                     csv,
                     "{},{:e},{:e},{:e}",
-                    sample.log10_value, sample.work, sample.error, sample.cost
+                    sample.log10_values[0], sample.work, sample.error, sample.cost
                 )?;
             }
             write_text(&out.join("tuning.csv"), &csv)?;
@@ -867,7 +985,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 report,
                 "Tuned `{}`: relative tolerance 1e{:.2}, {:.4e} flops over {steps} steps, trajectory error {:.1e} (bound {accuracy:e}); {} evaluations (`tuning.csv`).",
                 deform_integrator::spec_name(solver),
-                tuned.log10_value,
+                tuned.log10_values[0],
                 tuned.best.work,
                 tuned.best.error,
                 tuned.samples.len()
@@ -875,7 +993,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
             if let Some(default) = tuned
                 .samples
                 .iter()
-                .find(|x| (x.log10_value + 8.0).abs() < 1e-9)
+                .find(|x| (x.log10_values[0] + 8.0).abs() < 1e-9)
             {
                 writeln!(
                     report,
@@ -885,7 +1003,7 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
                 )?;
                 summary = format!(
                     "tolerance 1e{:.2}: {:.2}x the flops of 1e-8",
-                    tuned.log10_value,
+                    tuned.log10_values[0],
                     tuned.best.work / default.work
                 );
             }
@@ -900,4 +1018,51 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
     println!("{report}");
     println!("results: {}", out.display());
     Ok(summary)
+}
+
+/// Name suffix of the direct solver run with the learned policy's tuned Newton settings.
+const TUNED_DIRECT: &str = ", the tuned Newton settings";
+
+/// The learned policy's tuned settings in a solver-selection experiment.
+#[derive(Debug, Clone, Copy)]
+struct TunedLearned {
+    newton_rel: f64,
+    /// Its forcing terms `(eta_max, gamma)`, when it has them.
+    forcing: Option<(f64, f64)>,
+    /// Newton's tangent projection, when it replaces the scenes' own.
+    projection: Option<deform_integrator::Projection>,
+}
+
+impl TunedLearned {
+    /// From the tuned log10 values: Newton rel, then eta_max when there is forcing.
+    fn from_values(
+        p: &[f64],
+        forcing: Option<(f64, f64)>,
+        projection: Option<deform_integrator::Projection>,
+    ) -> Self {
+        Self {
+            newton_rel: 10f64.powf(p[0]),
+            forcing: forcing.map(|(eta, gamma)| (p.get(1).map_or(eta, |e| 10f64.powf(*e)), gamma)),
+            projection,
+        }
+    }
+
+    /// Sets the tuned Newton options.
+    fn apply(&self, o: &mut deform_integrator::IntegratorOptions) {
+        o.newton.rel = self.newton_rel;
+        if let Some(p) = self.projection {
+            o.newton.project = p;
+        }
+    }
+
+    fn label(&self) -> String {
+        let mut s = format!("Newton rel {:.1e}", self.newton_rel);
+        if let Some((eta, _)) = self.forcing {
+            s += &format!(", eta_max {eta:.1e}");
+        }
+        if let Some(p) = self.projection {
+            s += &format!(", projection {p:?}");
+        }
+        s
+    }
 }

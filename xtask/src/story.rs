@@ -254,28 +254,24 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
     {
         tune_scene.initial = m.initial.clone();
     }
-    let make = |log_eta: f64, _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
+    let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
         b.inc(1);
-        Some(Box::new(
-            policy.with_forcing(Some((10f64.powf(log_eta), 0.9))),
-        ))
+        Some(Box::new(policy.with_forcing(Some((10f64.powf(p[0]), 0.9)))))
     };
     let tuned = tune_policy(
-        &tune_scene,
-        s.origin,
+        &[(tune_scene, s.origin, steps)],
         &make,
-        Tuning {
-            start: (-1.0, -3.0),
-            range: (-8.0, -0.3),
+        &Tuning {
+            start: vec![vec![-1.0], vec![-3.0]],
+            range: vec![(-8.0, -0.3)],
             factor_weight: s.factor_weight,
             fallback: true,
-            steps,
             accuracy: s.accuracy,
             max_iterations: s.max_iterations,
         },
     )?;
     b.finish_and_clear();
-    let eta_max = 10f64.powf(tuned.log10_value.clamp(-8.0, -0.3));
+    let eta_max = 10f64.powf(tuned.log10_values[0]);
     let tuned_policy = policy.with_forcing(Some((eta_max, 0.9)));
 
     // 5. Side by side on the test trajectories; frames of the first.
@@ -409,7 +405,7 @@ pub fn run(s: &Story<'_>, out: &Path, report: &mut String) -> Result<String> {
         writeln!(
             tcsv,
             "{},{:e},{:e},{:e}",
-            x.log10_value, x.work, x.error, x.cost
+            x.log10_values[0], x.work, x.error, x.cost
         )?;
     }
     write_text(&out.join("tuning.csv"), &tcsv)?;

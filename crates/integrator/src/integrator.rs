@@ -226,6 +226,7 @@ fn fallback_spec() -> SolverSpec {
         ordering: Ordering::Auto,
         indefinite: Indefinite::Ldlt,
         parallel: true,
+        precision: Default::default(),
     }
 }
 

@@ -284,6 +284,7 @@ impl Default for PolicySpec {
             ordering: Default::default(),
             indefinite: Default::default(),
             parallel: true,
+            precision: Default::default(),
         })
     }
 }
@@ -351,10 +352,18 @@ pub fn spec_name(spec: &SolverSpec) -> String {
         SolverSpec::Cg { .. } => "cg".into(),
         SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),
         SolverSpec::Direct {
-            ordering, parallel, ..
+            ordering,
+            parallel,
+            precision,
+            ..
         } => format!(
-            "direct({ordering:?}{})",
-            if *parallel { "" } else { ", one thread" }
+            "direct({ordering:?}{}{})",
+            if *parallel { "" } else { ", one thread" },
+            if *precision == deform_solvers::Precision::Mixed {
+                ", mixed"
+            } else {
+                ""
+            }
         ),
     }
 }

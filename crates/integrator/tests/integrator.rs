@@ -511,6 +511,7 @@ fn bundled_scenes_dissipate_energy_with_and_without_damping() {
                 ordering: Default::default(),
                 indefinite: Default::default(),
                 parallel: false,
+                precision: Default::default(),
             });
             let mut built = scene.build(&path).unwrap();
             let mut previous = total_energy(&mut built.integrator, &built.state);

@@ -162,16 +162,27 @@ fn twenty_usize() -> usize {
     20
 }
 
-/// How the learned policy's parameters are tuned in a solver-selection experiment.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// How the learned policy's parameters are tuned in a solver-selection experiment: Newton's
+/// relative tolerance, the largest forcing term (when the task has `forcing`), and Newton's
+/// tangent projection (the scenes' own or one of `projections`), for the least work on the
+/// first training trajectory and `scenes` within `accuracy`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PolicyTune {
     /// Relative max-norm position error allowed against the direct reference.
     #[serde(default = "accuracy")]
     pub accuracy: f64,
-    /// Nelder-Mead iterations.
+    /// Nelder-Mead iterations (per projection tried).
     #[serde(default = "twelve")]
     pub max_iterations: u64,
+    /// More training scenes simulated by every evaluation (paths relative to the
+    /// experiment file).
+    #[serde(default)]
+    pub scenes: Vec<SceneRun>,
+    /// Tangent projections tried besides the scenes' own; the chosen one then replaces
+    /// every scene's.
+    #[serde(default)]
+    pub projections: Vec<deform_integrator::Projection>,
 }
 
 fn twelve() -> u64 {
@@ -234,10 +245,12 @@ impl Experiment {
         if let Task::SelectSolver {
             held_out,
             also_train,
+            tune,
             ..
         } = &mut e.task
         {
-            for h in held_out.iter_mut().chain(also_train) {
+            let tuned = tune.iter_mut().flat_map(|t| t.scenes.iter_mut());
+            for h in held_out.iter_mut().chain(also_train).chain(tuned) {
                 if h.scene.is_relative() {
                     h.scene = dir.join(&h.scene);
                 }

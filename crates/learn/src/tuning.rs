@@ -3,13 +3,14 @@
 //! simulation, subject to its trajectory staying within a tolerance of the reference
 //! computed with the direct solver to a tight tolerance.
 //!
-//! One mechanism, [`tune_policy`]: a scalar parameter (in log10) that makes a solver policy
-//! (the relative tolerance of a fixed iterative solver, [`tune_relative_tolerance`]; the
-//! largest forcing term of the learned policy; ...) is tuned by argmin's Nelder-Mead. The
-//! cost of a parameter value is the simulation's total work (flops, factorisations weighted
-//! by `factor_weight`, see `SetupStats::work`), multiplied by a penalty
-//! `1 + 10 error / accuracy` when the trajectory error exceeds `accuracy`, and infinite when
-//! a step fails (no direct fallback, no retries while tuning).
+//! One mechanism, [`tune_policy`]: parameters (in log10) that make a solver policy and may
+//! set the integrator's options (the relative tolerance of a fixed iterative solver,
+//! [`tune_relative_tolerance`]; the learned policy's largest forcing term; Newton's
+//! tolerance; ...) are tuned by argmin's Nelder-Mead on one or more training simulations.
+//! The cost of a parameter vector is the simulations' total work (flops, factorisations
+//! weighted by `factor_weight`, see `SetupStats::work`), multiplied by a penalty
+//! `1 + 10 error / accuracy` when the largest trajectory error exceeds `accuracy`, and
+//! infinite when a step fails (no retries while tuning).
 
 use std::cell::RefCell;
 use std::path::Path;
@@ -17,19 +18,22 @@ use std::path::Path;
 use argmin::core::{CostFunction, Error as ArgminError, Executor};
 use argmin::solver::neldermead::NelderMead;
 use deform_integrator::{Fixed, IntegratorOptions, Scene, SolverPolicy};
+
+use crate::solver_data::Run;
 use deform_solvers::{SolverSpec, Tolerance};
 use serde::{Deserialize, Serialize};
 
 use crate::fit::FitError;
 
-/// One evaluated parameter value.
+/// One evaluated parameter vector.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TuningSample {
-    /// `log10` of the parameter (a relative tolerance, a forcing term, ...).
-    pub log10_value: f64,
-    /// Total work of the simulation (flops, factorisations weighted, see [`Tuning`]).
+    /// `log10` of each parameter (a relative tolerance, a forcing term, ...), clamped to
+    /// its range.
+    pub log10_values: Vec<f64>,
+    /// Total work of the simulations (flops, factorisations weighted, see [`Tuning`]).
     pub work: f64,
-    /// Max position error against the reference, relative to the positions' scale.
+    /// Max position error against the references, relative to the positions' scale.
     pub error: f64,
     /// The penalised cost the optimiser saw.
     pub cost: f64,
@@ -38,8 +42,8 @@ pub struct TuningSample {
 /// The result of tuning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TuningResult {
-    /// The best `log10` parameter value.
-    pub log10_value: f64,
+    /// The best `log10` parameter values.
+    pub log10_values: Vec<f64>,
     /// Its sample.
     pub best: TuningSample,
     /// Every evaluation, in order.
@@ -71,55 +75,61 @@ pub fn with_relative_tolerance(solver: &SolverSpec, rel: f64) -> Option<SolverSp
     })
 }
 
-/// Makes the policy for a parameter value, and may adjust the integrator's options for it
-/// (a Newton tolerance, ...); `None`: not a valid value.
-pub type PolicyOf<'a> = dyn Fn(f64, &mut IntegratorOptions) -> Option<Box<dyn SolverPolicy>> + 'a;
+/// Makes the policy for a parameter vector (log10 values, clamped to their ranges), and
+/// may adjust the integrator's options for it (a Newton tolerance, ...); `None`: not a
+/// valid value. Called once per simulation.
+pub type PolicyOf<'a> =
+    dyn Fn(&[f64], &mut IntegratorOptions) -> Option<Box<dyn SolverPolicy>> + 'a;
 
 struct Problem<'a> {
-    scene: &'a Scene,
-    origin: &'a Path,
+    runs: &'a [Run<'a>],
     make: &'a PolicyOf<'a>,
-    range: (f64, f64),
+    range: &'a [(f64, f64)],
     factor_weight: f64,
     fallback: bool,
-    steps: usize,
     accuracy: f64,
-    reference: Reference,
+    references: Vec<Reference>,
     samples: RefCell<Vec<TuningSample>>,
 }
 
 impl Problem<'_> {
-    fn evaluate(&self, log10_value: f64) -> TuningSample {
+    fn evaluate(&self, log10_values: &[f64]) -> TuningSample {
+        let values: Vec<f64> = log10_values
+            .iter()
+            .zip(self.range)
+            .map(|(v, r)| v.clamp(r.0, r.1))
+            .collect();
         let sample = |work: f64, error: f64, cost: f64| TuningSample {
-            log10_value,
+            log10_values: values.clone(),
             work,
             error,
             cost,
         };
-        let Ok(mut built) = self.scene.build(self.origin) else {
-            return sample(f64::NAN, f64::NAN, f64::INFINITY);
-        };
-        let mut options = built.integrator.options().clone();
-        let value = log10_value.clamp(self.range.0, self.range.1);
-        let Some(policy) = (self.make)(value, &mut options) else {
-            return sample(f64::NAN, f64::NAN, f64::INFINITY);
-        };
-        // No retries; no fallback unless the policy relies on it by design (then the failed
-        // attempt and the direct solve are both charged): a configuration that fails must show
-        // as failing, not as the direct solver's cost.
-        options.fallback_to_direct = self.fallback;
-        options.max_retries = 0;
-        if built.integrator.set_options(options).is_err() {
-            return sample(f64::NAN, f64::NAN, f64::INFINITY);
-        }
-        built.integrator.set_policy(policy);
         let (mut work, mut error) = (0.0, 0.0f64);
-        for n in 0..self.steps {
-            match built.integrator.step(&mut built.state) {
-                Ok(r) => work += r.work(self.factor_weight),
-                Err(_) => return sample(f64::NAN, f64::INFINITY, f64::INFINITY),
+        for ((scene, origin, steps), reference) in self.runs.iter().zip(&self.references) {
+            let Ok(mut built) = scene.build(origin) else {
+                return sample(f64::NAN, f64::NAN, f64::INFINITY);
+            };
+            let mut options = built.integrator.options().clone();
+            let Some(policy) = (self.make)(&values, &mut options) else {
+                return sample(f64::NAN, f64::NAN, f64::INFINITY);
+            };
+            // No retries; no fallback unless the policy relies on it by design (then the
+            // failed attempt and the direct solve are both charged): a configuration that
+            // fails must show as failing, not as the direct solver's cost.
+            options.fallback_to_direct = self.fallback;
+            options.max_retries = 0;
+            if built.integrator.set_options(options).is_err() {
+                return sample(f64::NAN, f64::NAN, f64::INFINITY);
             }
-            error = error.max(self.reference.error(n, &built.state.x));
+            built.integrator.set_policy(policy);
+            for n in 0..*steps {
+                match built.integrator.step(&mut built.state) {
+                    Ok(r) => work += r.work(self.factor_weight),
+                    Err(_) => return sample(f64::NAN, f64::INFINITY, f64::INFINITY),
+                }
+                error = error.max(reference.error(n, &built.state.x));
+            }
         }
         let penalty = if error > self.accuracy {
             1.0 + 10.0 * error / self.accuracy
@@ -135,7 +145,7 @@ impl CostFunction for Problem<'_> {
     type Output = f64;
 
     fn cost(&self, p: &Vec<f64>) -> Result<f64, ArgminError> {
-        let s = self.evaluate(p[0]);
+        let s = self.evaluate(p);
         let cost = s.cost;
         self.samples.borrow_mut().push(s);
         Ok(if cost.is_finite() { cost } else { f64::MAX })
@@ -162,20 +172,18 @@ pub fn tune_relative_tolerance(
             reason: "tolerance tuning needs an iterative solver".into(),
         });
     }
-    let make = |log10_value: f64, _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
-        let spec = with_relative_tolerance(solver, 10f64.powf(log10_value))?;
+    let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
+        let spec = with_relative_tolerance(solver, 10f64.powf(p[0]))?;
         Some(Box::new(Fixed(spec)))
     };
     tune_policy(
-        scene,
-        origin,
+        &[(scene.clone(), origin, steps)],
         &make,
-        Tuning {
-            start: (-3.0, -8.0),
-            range: (-14.0, -0.5),
+        &Tuning {
+            start: vec![vec![-3.0], vec![-8.0]],
+            range: vec![(-14.0, -0.5)],
             factor_weight: 1.0,
             fallback: false,
-            steps,
             accuracy,
             max_iterations,
         },
@@ -246,56 +254,62 @@ impl Reference {
 }
 
 /// What [`tune_policy`] searches and how it scores.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Tuning {
-    /// The two vertices of the initial simplex (log10 of the parameter).
-    pub start: (f64, f64),
-    /// Values are clamped to this range (log10).
-    pub range: (f64, f64),
+    /// The `n + 1` vertices of the initial simplex (log10 of the `n` parameters).
+    pub start: Vec<Vec<f64>>,
+    /// Each parameter is clamped to its range (log10).
+    pub range: Vec<(f64, f64)>,
     /// Factorisation flops count this much (1: plain flops).
     pub factor_weight: f64,
     /// Let the integrator fall back to the direct solver when a solve fails (for policies
     /// that rely on it, such as the learned one); the failed attempt is charged too.
     pub fallback: bool,
-    /// Steps simulated per evaluation.
-    pub steps: usize,
     /// Relative max-norm position error allowed against the reference.
     pub accuracy: f64,
     /// Nelder-Mead iterations.
     pub max_iterations: u64,
 }
 
-/// Tunes the log10 of a scalar parameter of the policy `make` builds, for the least work
-/// on `tuning.steps` steps of `scene` within `tuning.accuracy` of the direct solver's
-/// trajectory (see [`reference_scene`]). Every evaluation is returned in `samples`.
+/// Tunes the log10 of the parameters of the policy `make` builds, for the least total work
+/// on `runs` (scene, folder of its paths, steps) within `tuning.accuracy` of the direct
+/// solver's trajectories (see [`reference_scene`]). Every evaluation is returned in
+/// `samples`.
 ///
 /// # Errors
-/// [`FitError`] when the reference simulation fails or no value works.
+/// [`FitError`] when a reference simulation fails, the simplex does not match the ranges,
+/// or no value works.
 pub fn tune_policy(
-    scene: &Scene,
-    origin: &Path,
+    runs: &[Run<'_>],
     make: &PolicyOf<'_>,
-    tuning: Tuning,
+    tuning: &Tuning,
 ) -> Result<TuningResult, FitError> {
     let fail = |e: String| FitError::Data {
         index: 0,
         reason: e,
     };
-    let steps = tuning.steps;
-    let reference = Reference::simulate(scene, origin, steps)?;
+    let n = tuning.range.len();
+    if tuning.start.len() != n + 1 || tuning.start.iter().any(|v| v.len() != n) {
+        return Err(fail(format!(
+            "the initial simplex needs {} vertices of {n} values",
+            n + 1
+        )));
+    }
+    let references = runs
+        .iter()
+        .map(|(scene, origin, steps)| Reference::simulate(scene, origin, *steps))
+        .collect::<Result<Vec<_>, _>>()?;
     let problem = Problem {
-        scene,
-        origin,
+        runs,
         make,
-        range: tuning.range,
+        range: &tuning.range,
         factor_weight: tuning.factor_weight,
         fallback: tuning.fallback,
-        steps,
         accuracy: tuning.accuracy,
-        reference,
+        references,
         samples: RefCell::new(Vec::new()),
     };
-    let simplex = NelderMead::new(vec![vec![tuning.start.0], vec![tuning.start.1]])
+    let simplex = NelderMead::new(tuning.start.clone())
         .with_sd_tolerance(1e-3)
         .map_err(|e| fail(e.to_string()))?;
     let result = Executor::new(&problem, simplex)
@@ -309,7 +323,7 @@ pub fn tune_policy(
         .cloned()
         .ok_or_else(|| fail(format!("no value worked ({:?})", result.err())))?;
     Ok(TuningResult {
-        log10_value: best.log10_value,
+        log10_values: best.log10_values.clone(),
         best,
         samples,
     })

@@ -45,7 +45,7 @@ mod precond;
 mod spec;
 mod stats;
 
-pub use direct::{Cholesky, Indefinite};
+pub use direct::{Cholesky, Indefinite, Precision};
 pub use error::SolverError;
 pub use iterative::{Iterative, Method, Tolerance};
 pub use operator::LinearOperator;

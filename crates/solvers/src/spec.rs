@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::direct::{Cholesky, Indefinite};
+use crate::direct::{Cholesky, Indefinite, Precision};
 use crate::iterative::{Iterative, Method, Tolerance};
 use crate::ordering::Ordering;
 use crate::precond::PreconditionerSpec;
@@ -55,6 +55,9 @@ pub enum SolverSpec {
         /// 55k DOFs. `false` keeps every factorisation on one thread.
         #[serde(default = "yes")]
         parallel: bool,
+        /// Factor in double (default), or in single precision refined in double.
+        #[serde(default)]
+        precision: Precision,
     },
     /// An iterative solver on a matrix-free operator instead of the assembled matrix: the
     /// caller supplies products with element-by-element force differentials (the
@@ -109,9 +112,11 @@ impl SolverSpec {
                 ordering,
                 indefinite,
                 parallel,
+                precision,
             } => {
                 let mut c = Cholesky::new(ordering, indefinite);
                 c.set_parallel(parallel);
+                c.set_precision(precision);
                 Box::new(c)
             }
             SolverSpec::MatrixFree(ref inner) => match **inner {

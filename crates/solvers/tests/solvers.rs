@@ -91,6 +91,7 @@ proptest! {
             "Direct(ordering: Amd)",
             "Direct(ordering: NestedDissection)",
             "Direct(ordering: Natural, indefinite: Ldlt)",
+            "Direct(precision: Mixed)",
         ] {
             let mut x = vec![1.0; n];
             let stats = run(spec, &a, &b, &mut x).unwrap_or_else(|e| panic!("{spec}: {e}"));
