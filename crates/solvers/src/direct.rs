@@ -134,6 +134,12 @@ impl Cholesky {
         self.symbolic.as_ref().map_or(0, |s| factor_counts(s).0)
     }
 
+    /// Floating-point operations of one numeric factorisation with the held analysis (0
+    /// before `analyze`): the deterministic work figure of `SetupStats::flops`.
+    pub fn factor_flops(&self) -> u64 {
+        self.symbolic.as_ref().map_or(0, |s| factor_counts(s).1)
+    }
+
     /// The order of the held analysis (`None` before `analyze`).
     pub fn nrows(&self) -> Option<usize> {
         self.symbolic.as_ref().map(SymbolicCholesky::nrows)
