@@ -28,7 +28,7 @@ pub struct DemoArgs {
     pub quiet: bool,
 }
 
-const EXPERIMENTS: [(&str, &str); 6] = [
+const EXPERIMENTS: [(&str, &str); 8] = [
     (
         "tune_backward_euler",
         "the story: a 4x coarser Backward Euler tuned with the base's data, against the untuned one",
@@ -52,6 +52,14 @@ const EXPERIMENTS: [(&str, &str); 6] = [
     (
         "tune_solver",
         "solver optimisation: the least-work tolerance that keeps the trajectory",
+    ),
+    (
+        "tune_jacobi",
+        "solver optimisation: Jacobi's relaxation and tolerance, jointly",
+    ),
+    (
+        "tune_refactor",
+        "solver optimisation: when stale-factor PCG refactorises, and its tolerance",
     ),
 ];
 

@@ -960,53 +960,68 @@ pub fn run(args: ExperimentArgs) -> Result<String> {
         }
         Task::TuneSolver {
             solver,
+            parameters,
+            factor_weight,
             accuracy,
             max_iterations,
         } => {
             let steps = data.meta.trajectories.first().map_or(0, |t| t.steps);
-            let tuned = deform_learn::tuning::tune_relative_tolerance(
+            let tuned = deform_learn::tuning::tune_solver(
                 &scene,
                 &experiment.scene,
                 solver,
+                parameters,
                 steps,
                 *accuracy,
+                *factor_weight,
                 *max_iterations,
             )?;
-            let mut csv = String::from("log10_rel,flops,error,cost\n");
+            let names: Vec<String> = parameters.iter().map(|p| format!("{p:?}")).collect();
+            let mut csv = names
+                .iter()
+                .map(|n| format!("log10_{n}"))
+                .collect::<Vec<_>>()
+                .join(",");
+            csv += ",work,error,cost\n";
             for sample in &tuned.samples {
+                for v in &sample.log10_values {
+                    write!(csv, "{v},")?;
+                }
                 writeln!(
                     csv,
-                    "{},{:e},{:e},{:e}",
-                    sample.log10_values[0], sample.work, sample.error, sample.cost
+                    "{:e},{:e},{:e}",
+                    sample.work, sample.error, sample.cost
                 )?;
             }
             write_text(&out.join("tuning.csv"), &csv)?;
+            let values = |v: &[f64]| {
+                names
+                    .iter()
+                    .zip(v)
+                    .map(|(n, x)| format!("{n} {:.3e}", 10f64.powf(*x)))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            let configured = &tuned.samples[0];
             writeln!(
                 report,
-                "Tuned `{}`: relative tolerance 1e{:.2}, {:.4e} flops over {steps} steps, trajectory error {:.1e} (bound {accuracy:e}); {} evaluations (`tuning.csv`).",
+                "Tuned `{}` ({}): {}, work {:.4e} over {steps} steps (factorisation flops x {factor_weight}), trajectory error {:.1e} (bound {accuracy:e}); {} evaluations (`tuning.csv`).\n\nAs configured ({}): work {:.4e}, error {:.1e}; tuned / configured: {:.3}.",
                 deform_integrator::spec_name(solver),
-                tuned.log10_values[0],
+                names.join(", "),
+                values(&tuned.log10_values),
                 tuned.best.work,
                 tuned.best.error,
-                tuned.samples.len()
+                tuned.samples.len(),
+                values(&configured.log10_values),
+                configured.work,
+                configured.error,
+                tuned.best.work / configured.work
             )?;
-            if let Some(default) = tuned
-                .samples
-                .iter()
-                .find(|x| (x.log10_values[0] + 8.0).abs() < 1e-9)
-            {
-                writeln!(
-                    report,
-                    "At 1e-8: {:.4e} flops; tuned / 1e-8: {:.3}.",
-                    default.work,
-                    tuned.best.work / default.work
-                )?;
-                summary = format!(
-                    "tolerance 1e{:.2}: {:.2}x the flops of 1e-8",
-                    tuned.log10_values[0],
-                    tuned.best.work / default.work
-                );
-            }
+            summary = format!(
+                "{}: {:.2}x the work as configured",
+                values(&tuned.log10_values),
+                tuned.best.work / configured.work
+            );
         }
     }
     writeln!(

@@ -145,6 +145,12 @@ pub enum Task {
     TuneSolver {
         /// The iterative configuration.
         solver: deform_solvers::SolverSpec,
+        /// What to tune, jointly (default: the relative tolerance).
+        #[serde(default = "relative_tolerance")]
+        parameters: Vec<crate::tuning::SolverParameter>,
+        /// Work of a factorisation flop relative to a solve flop.
+        #[serde(default = "unit")]
+        factor_weight: f64,
         /// Relative max-norm position accuracy to keep.
         #[serde(default = "accuracy")]
         accuracy: f64,
@@ -152,6 +158,10 @@ pub enum Task {
         #[serde(default = "twenty")]
         max_iterations: u64,
     },
+}
+
+fn relative_tolerance() -> Vec<crate::tuning::SolverParameter> {
+    vec![crate::tuning::SolverParameter::RelativeTolerance]
 }
 
 fn five() -> usize {

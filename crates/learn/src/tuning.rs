@@ -5,7 +5,8 @@
 //!
 //! One mechanism, [`tune_policy`]: parameters (in log10) that make a solver policy and may
 //! set the integrator's options (the relative tolerance of a fixed iterative solver,
-//! [`tune_relative_tolerance`]; the learned policy's largest forcing term; Newton's
+//! Jacobi's omega, stale-factor PCG's refactorisation threshold: [`tune_solver`]; the
+//! learned policy's largest forcing term; Newton's
 //! tolerance; ...) are tuned by argmin's Nelder-Mead on one or more training simulations.
 //! The cost of a parameter vector is the simulations' total work (flops, factorisations
 //! weighted by `factor_weight`, see `SetupStats::work`), multiplied by a penalty
@@ -17,7 +18,7 @@ use std::path::Path;
 
 use argmin::core::{CostFunction, Error as ArgminError, Executor};
 use argmin::solver::neldermead::NelderMead;
-use deform_integrator::{Fixed, IntegratorOptions, Scene, SolverPolicy};
+use deform_integrator::{Fixed, IntegratorOptions, Scene, SolverPolicy, StaleFactor};
 
 use crate::solver_data::Run;
 use deform_solvers::{SolverSpec, Tolerance};
@@ -152,37 +153,135 @@ impl CostFunction for Problem<'_> {
     }
 }
 
-/// Tunes the relative tolerance of the iterative `solver` (the same at every Newton
-/// iteration) for the least flops on `steps` steps of `scene`, keeping the trajectory within
-/// `accuracy` (relative max-norm) of the direct solver's ([`reference_scene`]).
+/// A parameter of a solver configuration that [`tune_solver`] can tune (each in log10).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum SolverParameter {
+    /// The relative residual tolerance of an iterative solver (the same at every Newton
+    /// iteration), in `[1e-14, 10^-0.5]`.
+    RelativeTolerance,
+    /// The relaxation `omega` of the Jacobi iteration, in `[0.1, 1.99]`.
+    Omega,
+    /// The refactorisation threshold of stale-factor PCG (the `StaleFactor` hand schedule:
+    /// refactorise after a solve above this many iterations), in `[1, 1000]`; the solver
+    /// must be PCG with a `StaleCholesky` preconditioner.
+    RefactorAbove,
+}
+
+impl SolverParameter {
+    /// `(lower, upper)` bounds in log10.
+    fn range(self) -> (f64, f64) {
+        match self {
+            Self::RelativeTolerance => (-14.0, -0.5),
+            Self::Omega => (-1.0, 1.99f64.log10()),
+            Self::RefactorAbove => (0.0, 3.0),
+        }
+    }
+
+    /// The configured value (log10) and the second vertex of the initial simplex.
+    fn start(self, solver: &SolverSpec) -> Option<(f64, f64)> {
+        Some(match (self, solver) {
+            (Self::RelativeTolerance, _) => {
+                let rel = solver.tolerance()?.rel.log10();
+                (rel, if rel < -4.0 { -3.0 } else { rel - 3.0 })
+            }
+            (Self::Omega, SolverSpec::Jacobi { omega, .. }) => (omega.log10(), 0.0),
+            (
+                Self::RefactorAbove,
+                SolverSpec::Pcg {
+                    preconditioner: deform_solvers::PreconditionerSpec::StaleCholesky { .. },
+                    ..
+                },
+            ) => (20f64.log10(), 5f64.log10()),
+            _ => return None,
+        })
+    }
+}
+
+/// `solver` with `parameters` set to `10^values` (none of them `RefactorAbove`).
+fn with_parameters(
+    solver: &SolverSpec,
+    parameters: &[SolverParameter],
+    values: &[f64],
+) -> Option<SolverSpec> {
+    let mut spec = solver.clone();
+    for (p, v) in parameters.iter().zip(values) {
+        let value = 10f64.powf(*v);
+        spec = match p {
+            SolverParameter::RelativeTolerance => with_relative_tolerance(&spec, value)?,
+            SolverParameter::Omega => match spec {
+                SolverSpec::Jacobi { tolerance, .. } => SolverSpec::Jacobi {
+                    omega: value,
+                    tolerance,
+                },
+                _ => return None,
+            },
+            SolverParameter::RefactorAbove => spec,
+        };
+    }
+    Some(spec)
+}
+
+/// Tunes `parameters` of the iterative `solver` jointly (Nelder-Mead in log10 from the
+/// configured values) for the least work (factorisations weighted by `factor_weight`) on
+/// `steps` steps of `scene`, within `accuracy` of the direct solver's trajectory. With
+/// `RefactorAbove` the solver runs as the `StaleFactor` hand schedule. The first sample is
+/// the configuration as given.
 ///
 /// # Errors
-/// [`FitError`] when the reference simulation fails or the solver is not iterative.
-pub fn tune_relative_tolerance(
+/// [`FitError`] when a parameter does not apply to the solver, or the reference fails.
+#[allow(clippy::too_many_arguments)]
+pub fn tune_solver(
     scene: &Scene,
     origin: &Path,
     solver: &SolverSpec,
+    parameters: &[SolverParameter],
     steps: usize,
     accuracy: f64,
+    factor_weight: f64,
     max_iterations: u64,
 ) -> Result<TuningResult, FitError> {
-    if with_relative_tolerance(solver, 1e-8).is_none() {
+    let starts = parameters
+        .iter()
+        .map(|p| {
+            p.start(solver).ok_or_else(|| FitError::Data {
+                index: 0,
+                reason: format!(
+                    "{p:?} does not apply to {}",
+                    deform_integrator::spec_name(solver)
+                ),
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    if parameters.is_empty() {
         return Err(FitError::Data {
             index: 0,
-            reason: "tolerance tuning needs an iterative solver".into(),
+            reason: "no parameter to tune".into(),
         });
     }
+    let first: Vec<f64> = starts.iter().map(|s| s.0).collect();
+    let mut start = vec![first.clone()];
+    for (i, s) in starts.iter().enumerate() {
+        let mut v = first.clone();
+        v[i] = s.1;
+        start.push(v);
+    }
+    let refactor = parameters
+        .iter()
+        .position(|p| *p == SolverParameter::RefactorAbove);
     let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
-        let spec = with_relative_tolerance(solver, 10f64.powf(p[0]))?;
-        Some(Box::new(Fixed(spec)))
+        let spec = with_parameters(solver, parameters, p)?;
+        Some(match refactor {
+            Some(i) => Box::new(StaleFactor::new(spec, 10f64.powf(p[i]).round() as usize)),
+            None => Box::new(Fixed(spec)),
+        })
     };
     tune_policy(
         &[(scene.clone(), origin, steps)],
         &make,
         &Tuning {
-            start: vec![vec![-3.0], vec![-8.0]],
-            range: vec![(-14.0, -0.5)],
-            factor_weight: 1.0,
+            start,
+            range: parameters.iter().map(|p| p.range()).collect(),
+            factor_weight,
             fallback: false,
             accuracy,
             max_iterations,

@@ -599,16 +599,22 @@ fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
     let mut s = scene("", "Beam(2)");
     s.integrator.newton.rel = 1e-8;
     let solver: deform_solvers::SolverSpec =
-        ron::from_str("Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))").unwrap();
+        ron::from_str("Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))").unwrap();
     let accuracy = 1e-6;
-    let tuned =
-        deform_learn::tuning::tune_relative_tolerance(&s, Path::new("t"), &solver, 5, accuracy, 20)
-            .unwrap();
-    let tight = tuned
-        .samples
-        .iter()
-        .find(|x| (x.log10_values[0] + 8.0).abs() < 1e-12)
-        .unwrap();
+    let tuned = deform_learn::tuning::tune_solver(
+        &s,
+        Path::new("t"),
+        &solver,
+        &[deform_learn::tuning::SolverParameter::RelativeTolerance],
+        5,
+        accuracy,
+        1.0,
+        20,
+    )
+    .unwrap();
+    // The first sample is the configuration as given.
+    let tight = &tuned.samples[0];
+    assert!((tight.log10_values[0] + 8.0).abs() < 1e-12);
     eprintln!(
         "tuned rel = 1e{:.2}: {:.3e} flops, error {:.1e}; rel = 1e-8: {:.3e} flops; {} evaluations",
         tuned.log10_values[0],
@@ -623,6 +629,68 @@ fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
         tuned.log10_values[0] > -8.0,
         "a looser tolerance than 1e-8 suffices"
     );
+}
+
+#[test]
+fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
+    use deform_learn::tuning::{SolverParameter, tune_solver};
+    let mut s = scene("", "Beam(2)");
+    s.integrator.newton.rel = 1e-8;
+    let t = Path::new("t");
+    // Jacobi's relaxation, alone: the configured 0.5 is not the best.
+    let jacobi: deform_solvers::SolverSpec =
+        ron::from_str("Jacobi(omega: 0.5, tolerance: (rel: 1e-8, max_iterations: 5000))").unwrap();
+    let tuned = tune_solver(&s, t, &jacobi, &[SolverParameter::Omega], 5, 1e-6, 1.0, 15).unwrap();
+    let omega = 10f64.powf(tuned.log10_values[0]);
+    eprintln!(
+        "omega {omega:.3}: {:.3e} vs {:.3e}",
+        tuned.best.work, tuned.samples[0].work
+    );
+    assert!(omega > 0.5 && omega < 1.99, "{omega}");
+    assert!(tuned.best.work < tuned.samples[0].work);
+    assert!(tuned.best.error <= 1e-6);
+    // The hand schedule's threshold, alone, with factorisations weighted as in the experiments.
+    let stale: deform_solvers::SolverSpec =
+        ron::from_str("Pcg(preconditioner: StaleCholesky(max_age: 100), tolerance: (rel: 1e-8))")
+            .unwrap();
+    // On the n = 4 beam swinging sideways the factor ages within a few steps.
+    let mut swing = scene("", "Beam(4)");
+    swing.integrator.newton.rel = 1e-8;
+    swing.initial.velocity = [0.0, 0.5, 0.0];
+    let tuned = tune_solver(
+        &swing,
+        t,
+        &stale,
+        &[SolverParameter::RefactorAbove],
+        5,
+        1e-6,
+        0.1,
+        15,
+    )
+    .unwrap();
+    eprintln!(
+        "refactor above {:.0}: {:.3e} vs {:.3e}",
+        10f64.powf(tuned.log10_values[0]),
+        tuned.best.work,
+        tuned.samples[0].work
+    );
+    assert!((tuned.samples[0].log10_values[0] - 20f64.log10()).abs() < 1e-12);
+    assert!(tuned.best.work < tuned.samples[0].work);
+    assert!(tuned.best.error <= 1e-6);
+    // A parameter that does not apply is an error naming it.
+    let err = tune_solver(
+        &s,
+        t,
+        &jacobi,
+        &[SolverParameter::RefactorAbove],
+        5,
+        1e-6,
+        1.0,
+        5,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("RefactorAbove"), "{err}");
 }
 
 #[test]
