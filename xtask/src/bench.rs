@@ -167,6 +167,7 @@ fn solvers(args: SolversArgs) -> Result<()> {
         ("direct_one_thread", false, Precision::Double),
         ("direct", true, Precision::Double),
         ("direct_mixed", true, Precision::Mixed),
+        ("direct_mixed_one_thread", false, Precision::Mixed),
     ] {
         if args.no_direct {
             break;
