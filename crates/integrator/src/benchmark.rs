@@ -50,3 +50,14 @@ pub fn beam_system(n: usize) -> CsMat<f64> {
         .expect("same pattern");
     reduced.matrix
 }
+
+/// Rest positions of the free vertices of [`beam_system`], one per 3 rows in row order (for
+/// geometric orderings, `LinearSolver::set_coordinates`).
+pub fn beam_free_coordinates(n: usize) -> Vec<[f64; 3]> {
+    let (mesh, _, _) = beam(n);
+    mesh.rest_positions()
+        .iter()
+        .filter(|p| p.x != 0.0)
+        .map(|p| [p.x, p.y, p.z])
+        .collect()
+}

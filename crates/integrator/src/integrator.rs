@@ -809,6 +809,7 @@ impl Integrator {
             asm: &self.asm,
             mass: &self.mass,
             dofs: &self.dofs,
+            rest: &self.rest,
             options: &self.options,
             a_free: &self.a_free.matrix,
             point,
@@ -829,6 +830,7 @@ impl Integrator {
             asm: &self.asm,
             mass: &self.mass,
             dofs: &self.dofs,
+            rest: &self.rest,
             options: &self.options,
             a_free: &self.a_free.matrix,
             point,
@@ -876,6 +878,8 @@ struct System<'a> {
     asm: &'a Assembly,
     mass: &'a Mass,
     dofs: &'a DofMap,
+    /// Rest positions, for geometric orderings of new direct solvers.
+    rest: &'a [Vector3<f64>],
     options: &'a IntegratorOptions,
     a_free: &'a CsMat<f64>,
     point: NewtonPoint<'a>,
@@ -893,7 +897,16 @@ impl System<'_> {
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), FailedSolve> {
         if !spec.is_matrix_free() {
-            return solve_with(list, self.a_free, spec, rel_tolerance, refresh, rhs, x);
+            return solve_with(
+                list,
+                self,
+                self.a_free,
+                spec,
+                rel_tolerance,
+                refresh,
+                rhs,
+                x,
+            );
         }
         // The operator adds a diagonal mass: lumped only.
         if self.options.mass != MassKind::Lumped {
@@ -909,14 +922,16 @@ impl System<'_> {
         })?;
         let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k);
         let reduced = Restricted::new(&op, self.dofs);
-        solve_with(list, &reduced, spec, rel_tolerance, refresh, rhs, x)
+        solve_with(list, self, &reduced, spec, rel_tolerance, refresh, rhs, x)
     }
 }
 
 /// Factorises (or sets up) and solves with the instance of `spec` kept in `list` (built on
 /// first use).
+#[allow(clippy::too_many_arguments)]
 fn solve_with(
     list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    system: &System<'_>,
     a: &dyn LinearOperator,
     spec: &SolverSpec,
     rel_tolerance: Option<f64>,
@@ -927,7 +942,20 @@ fn solve_with(
     let index = match list.iter().position(|(s, _)| s == spec) {
         Some(i) => i,
         None => {
-            list.push((spec.clone(), spec.build()?));
+            let mut solver = spec.build()?;
+            // The free vertices' rest positions, in row order: geometric nested dissection.
+            let coordinates: Vec<[f64; 3]> = system
+                .dofs
+                .free_dofs()
+                .iter()
+                .step_by(3)
+                .map(|&d| {
+                    let p = system.rest[d / 3];
+                    [p.x, p.y, p.z]
+                })
+                .collect();
+            solver.set_coordinates(Some(&coordinates));
+            list.push((spec.clone(), solver));
             list.len() - 1
         }
     };

@@ -96,6 +96,8 @@ pub struct Iterative {
     refresh: bool,
     /// Jacobi's inverse diagonal, set by `factorize`.
     inv_diag: Vec<f64>,
+    /// Node positions for a stale-Cholesky factor's ordering.
+    coordinates: Option<Vec<[f64; 3]>>,
 }
 
 impl Iterative {
@@ -126,6 +128,7 @@ impl Iterative {
             precond: None,
             refresh: false,
             inv_diag: Vec::new(),
+            coordinates: None,
         })
     }
 
@@ -271,6 +274,10 @@ impl Iterative {
 }
 
 impl LinearSolver for Iterative {
+    fn set_coordinates(&mut self, coordinates: Option<&[[f64; 3]]>) {
+        self.coordinates = coordinates.map(<[[f64; 3]]>::to_vec);
+    }
+
     fn name(&self) -> String {
         match self.method {
             Method::Jacobi { omega } => format!("jacobi(omega={omega})"),
@@ -344,7 +351,7 @@ impl LinearSolver for Iterative {
                 } else {
                     // Drop the old set-up first: a stale factor can be large.
                     self.precond = None;
-                    let (m, flops) = Preconditioner::setup(&spec, a)?;
+                    let (m, flops) = Preconditioner::setup(&spec, a, self.coordinates.as_deref())?;
                     setup.flops = flops;
                     if let Preconditioner::Cholesky { factor, .. } = &m {
                         setup.factor_nnz = factor.factor_nnz();

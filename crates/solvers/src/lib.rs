@@ -88,6 +88,12 @@ pub trait LinearSolver: Send {
     /// preconditioner); a no-op for solvers that keep nothing.
     fn refresh(&mut self) {}
 
+    /// Positions of the matrix's nodes, one per 3 rows (a mesh's free vertices in row order),
+    /// for fill-reducing orderings that use geometry (nested dissection by median planes,
+    /// [`Cholesky::set_coordinates`]); a no-op for solvers that do not factorise. Takes effect
+    /// at the next analysis.
+    fn set_coordinates(&mut self, _coordinates: Option<&[[f64; 3]]>) {}
+
     /// Solves `a x = b`; `x` holds the initial guess on entry and the solution on exit.
     ///
     /// # Errors

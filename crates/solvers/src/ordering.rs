@@ -4,10 +4,14 @@
 //! the orderings work on the vertex graph (one node per 3 rows) and expand each node to its
 //! three rows, which keeps the blocks contiguous and makes the graph 9x smaller.
 //!
-//! [`nested_dissection`] is a pure-Rust nested dissection: recursive vertex separators taken
-//! as the middle level of a breadth-first level structure rooted at a pseudo-peripheral node,
-//! trimmed of nodes that separate nothing, with approximate minimum degree (faer's AMD) on
-//! the leaves. On mesh graphs it gives far less fill than AMD on the whole matrix.
+//! [`nested_dissection_with`] is a pure-Rust nested dissection: recursive vertex separators
+//! taken as the middle level of a breadth-first level structure rooted at a pseudo-peripheral
+//! node, trimmed of nodes that separate nothing, with approximate minimum degree (faer's AMD)
+//! on the leaves. On mesh graphs it gives far less fill than AMD on the whole matrix. Given
+//! the nodes' coordinates, each part is cut instead by the median plane across its longest
+//! extent (the separator being the smaller side's boundary): level sets of a graph distance
+//! run diagonally through box-like parts, planes across them are smaller (on the 55k-DOF
+//! beam: 19 % fewer factorisation flops).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SymbolicSparseColMatRef;
@@ -75,7 +79,12 @@ impl Graph {
 
 /// The elimination order (new position -> old row) of a symmetric pattern (full storage,
 /// CSR or CSC alike). [`Ordering::Auto`] is resolved by the caller (it gets AMD here).
-pub(crate) fn order_rows(ordering: Ordering, indptr: &[usize], indices: &[usize]) -> Vec<usize> {
+pub(crate) fn order_rows(
+    ordering: Ordering,
+    indptr: &[usize],
+    indices: &[usize],
+    coords: Option<&[[f64; 3]]>,
+) -> Vec<usize> {
     let n = indptr.len() - 1;
     if ordering == Ordering::Natural {
         return (0..n).collect();
@@ -87,7 +96,10 @@ pub(crate) fn order_rows(ordering: Ordering, indptr: &[usize], indices: &[usize]
             let all: Vec<usize> = (0..graph.len()).collect();
             amd_order(&graph, &all)
         }
-        Ordering::NestedDissection => nested_dissection(&graph),
+        Ordering::NestedDissection => nested_dissection_with(
+            &graph,
+            coords.filter(|c| block == 3 && c.len() == graph.len()),
+        ),
     };
     nodes
         .iter()
@@ -99,7 +111,9 @@ pub(crate) fn order_rows(ordering: Ordering, indptr: &[usize], indices: &[usize]
 const LEAF_SIZE: usize = 128;
 
 /// Nested-dissection order of all nodes of `graph` (new position -> node).
-pub(crate) fn nested_dissection(graph: &Graph) -> Vec<usize> {
+/// Nested dissection with separators from the graph's level structures, or, given node
+/// coordinates, from median planes across each part's longest extent.
+pub(crate) fn nested_dissection_with(graph: &Graph, coords: Option<&[[f64; 3]]>) -> Vec<usize> {
     let n = graph.len();
     let mut order = Vec::with_capacity(n);
     // `label[v]` names the part `v` currently belongs to; parts get fresh labels as they split.
@@ -119,14 +133,18 @@ pub(crate) fn nested_dissection(graph: &Graph) -> Vec<usize> {
                     order.extend(amd_order_subset(graph, &nodes, &label, part));
                     continue;
                 }
-                match split(
-                    graph,
-                    &nodes,
-                    &mut label,
-                    part,
-                    &mut next_label,
-                    &mut scratch,
-                ) {
+                let parts = match coords {
+                    Some(c) => split_geometric(graph, c, &nodes, &mut label, part, &mut next_label),
+                    None => split(
+                        graph,
+                        &nodes,
+                        &mut label,
+                        part,
+                        &mut next_label,
+                        &mut scratch,
+                    ),
+                };
+                match parts {
                     Some((a, b, sep)) => {
                         // Popped in reverse: a, then b, then the separator.
                         stack.push(Task::Emit(sep));
@@ -283,6 +301,58 @@ fn split(
     Some(((la, a), (lb, b), sep))
 }
 
+/// Splits the part by the median plane across its longest extent: the nodes below and above
+/// it, and as separator the smaller of the two sides' boundaries (its nodes with a
+/// neighbour on the other side). `None` when a side would be empty.
+fn split_geometric(
+    graph: &Graph,
+    coords: &[[f64; 3]],
+    nodes: &[usize],
+    label: &mut [usize],
+    part: usize,
+    next_label: &mut usize,
+) -> Option<(Part, Part, Vec<usize>)> {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for &v in nodes {
+        for k in 0..3 {
+            lo[k] = lo[k].min(coords[v][k]);
+            hi[k] = hi[k].max(coords[v][k]);
+        }
+    }
+    let axis = (0..3)
+        .max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b])))
+        .expect("three axes");
+    let mut sorted = nodes.to_vec();
+    sorted.sort_by(|&a, &b| coords[a][axis].total_cmp(&coords[b][axis]).then(a.cmp(&b)));
+    let median = coords[sorted[sorted.len() / 2]][axis];
+    let (la, lb, ls) = (*next_label, *next_label + 1, *next_label + 2);
+    *next_label += 3;
+    for &v in nodes {
+        label[v] = if coords[v][axis] < median { la } else { lb };
+    }
+    let boundary = |own: usize, other: usize, label: &[usize]| -> Vec<usize> {
+        nodes
+            .iter()
+            .copied()
+            .filter(|&v| label[v] == own && graph.neighbours(v).iter().any(|&w| label[w] == other))
+            .collect()
+    };
+    let (ba, bb) = (boundary(la, lb, label), boundary(lb, la, label));
+    let sep = if bb.len() <= ba.len() { bb } else { ba };
+    for &v in &sep {
+        label[v] = ls;
+    }
+    let a: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == la).collect();
+    let b: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == lb).collect();
+    if a.is_empty() || b.is_empty() {
+        for &v in nodes {
+            label[v] = part;
+        }
+        return None;
+    }
+    Some(((la, a), (lb, b), sep))
+}
+
 /// Breadth-first search inside one part: `(node, level)` in visiting order.
 fn bfs(
     graph: &Graph,
@@ -415,13 +485,54 @@ mod tests {
     fn nested_dissection_is_a_permutation_even_for_disconnected_graphs() {
         for (a, b, c, extra) in [(1, 1, 1, 0), (3, 2, 1, 5), (12, 11, 10, 0), (20, 8, 8, 300)] {
             let g = grid(a, b, c, extra);
-            let order = nested_dissection(&g);
-            let mut seen = vec![false; g.len()];
-            for &v in &order {
-                assert!(!seen[v], "node {v} twice");
-                seen[v] = true;
+            // Grid coordinates; the detached path sits on a line (and repeats a point).
+            let coords: Vec<[f64; 3]> = (0..g.len())
+                .map(|v| {
+                    if v < a * b * c {
+                        [(v / (b * c)) as f64, ((v / c) % b) as f64, (v % c) as f64]
+                    } else {
+                        [-1.0, ((v - a * b * c) / 2) as f64, 0.0]
+                    }
+                })
+                .collect();
+            for geometry in [None, Some(coords.as_slice())] {
+                let order = nested_dissection_with(&g, geometry);
+                let mut seen = vec![false; g.len()];
+                for &v in &order {
+                    assert!(!seen[v], "node {v} twice");
+                    seen[v] = true;
+                }
+                assert!(seen.iter().all(|&s| s), "{a}x{b}x{c}+{extra}");
             }
-            assert!(seen.iter().all(|&s| s), "{a}x{b}x{c}+{extra}");
+        }
+    }
+
+    #[test]
+    fn median_planes_cut_a_box_across_its_longest_side() {
+        // 30 x 8 x 8 with coordinates: the cut is one 8 x 8 cross-section.
+        let g = grid(30, 8, 8, 0);
+        let n = g.len();
+        let coords: Vec<[f64; 3]> = (0..n)
+            .map(|v| [(v / 64) as f64, ((v / 8) % 8) as f64, (v % 8) as f64])
+            .collect();
+        let mut label = vec![0; n];
+        let mut next = 1;
+        let nodes: Vec<usize> = (0..n).collect();
+        let ((la, a), (lb, b), sep) =
+            split_geometric(&g, &coords, &nodes, &mut label, 0, &mut next).expect("a box splits");
+        assert_eq!(sep.len(), 64);
+        assert!(
+            sep.iter().all(|&v| coords[v][0] == 15.0),
+            "a plane x = const"
+        );
+        assert_eq!(a.len() + b.len() + sep.len(), n);
+        assert!(a.len().abs_diff(b.len()) <= 64);
+        for &v in &a {
+            assert_eq!(label[v], la);
+            assert!(
+                g.neighbours(v).iter().all(|&w| label[w] != lb),
+                "edge across"
+            );
         }
     }
 

@@ -70,10 +70,12 @@ pub(crate) struct LowerCsr {
 }
 
 impl Preconditioner {
-    /// Sets up the preconditioner for `a`; returns it with the set-up flops.
+    /// Sets up the preconditioner for `a`; returns it with the set-up flops. `coordinates`
+    /// (one per 3 rows) order a stale-Cholesky factor geometrically.
     pub fn setup(
         spec: &PreconditionerSpec,
         a: &dyn LinearOperator,
+        coordinates: Option<&[[f64; 3]]>,
     ) -> Result<(Self, u64), SolverError> {
         let n = a.nrows();
         let nu = n as u64;
@@ -155,6 +157,7 @@ impl Preconditioner {
             }
             PreconditionerSpec::StaleCholesky { ordering, .. } => {
                 let mut factor = Box::new(Cholesky::new(ordering, Indefinite::Error));
+                factor.set_coordinates(coordinates);
                 let stats = factor.factorize(a)?;
                 (Preconditioner::Cholesky { factor, age: 0 }, stats.flops)
             }
