@@ -260,11 +260,17 @@ fn step(args: StepArgs) -> Result<()> {
     for (name, policy) in [
         ("direct", "Fixed(Direct())"),
         ("direct_one_thread", "Fixed(Direct(parallel: false))"),
+        ("direct_mixed", "Fixed(Direct(precision: Mixed))"),
         (
             // Factorise once (PCG with a fresh factor converges in one iteration), then reuse
             // the stale factor in later Newton iterations and steps.
             "stale_cholesky_pcg",
             "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20), tolerance: (rel: 1e-8)))",
+        ),
+        (
+            // The same with the factor in single precision.
+            "stale_cholesky_pcg_mixed",
+            "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20, precision: Mixed), tolerance: (rel: 1e-8)))",
         ),
         (
             // The hand schedule: refactorise after a solve needing more than 20 iterations.

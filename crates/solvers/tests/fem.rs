@@ -132,6 +132,7 @@ fn every_preconditioner_beats_plain_cg_and_all_solvers_agree() {
         PreconditionerSpec::Ssor { omega: 1.2 },
         PreconditionerSpec::Ic0,
         PreconditionerSpec::StaleCholesky {
+            precision: Default::default(),
             max_age: 0,
             ordering: Ordering::Amd,
         },
@@ -286,6 +287,7 @@ fn symbolic_analysis_is_reused_and_redone_when_the_pattern_changes() {
 fn stale_cholesky_preconditions_nearby_matrices_in_a_few_iterations() {
     let mesh = beam(2);
     let spec = PreconditionerSpec::StaleCholesky {
+        precision: Default::default(),
         max_age: 3,
         ordering: Ordering::NestedDissection,
     };
@@ -529,4 +531,40 @@ fn mixed_precision_cholesky_refines_to_double_accuracy_and_falls_back_when_it_ca
         setup.flops
     );
     assert!(distance(&xm, &xd) <= 1e-12, "{:e}", distance(&xm, &xd));
+}
+
+#[test]
+fn a_single_precision_stale_factor_preconditions_as_well_as_a_double_one() {
+    let mesh = beam(2);
+    let b = rhs(3 * mesh.num_vertices());
+    let run = |precision| {
+        let mut s = pcg(PreconditionerSpec::StaleCholesky {
+            max_age: 10,
+            ordering: Ordering::NestedDissection,
+            precision,
+        });
+        (0..6)
+            .map(|step| {
+                let a = newton_matrix(&mesh, &bent(&mesh, 0.01 * step as f64), 100.0);
+                s.factorize(&a).unwrap();
+                let mut x = vec![0.0; b.len()];
+                let st = s.solve(&a, &b, &mut x).unwrap();
+                // PCG runs in double: the same accuracy either way.
+                assert!(residual(&a, &x, &b) < 1e-7, "{precision:?}");
+                st.iterations
+            })
+            .collect::<Vec<_>>()
+    };
+    let (double, single) = (
+        run(deform_solvers::Precision::Double),
+        run(deform_solvers::Precision::Mixed),
+    );
+    eprintln!("iterations: double {double:?}, single {single:?}");
+    assert!(
+        single[0] <= 3,
+        "a fresh single-precision factor: {single:?}"
+    );
+    for (d, s) in double.iter().zip(&single) {
+        assert!(*s <= d + 2, "double {double:?}, single {single:?}");
+    }
 }
