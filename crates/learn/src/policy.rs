@@ -279,13 +279,17 @@ impl LearnedPolicy {
                 (d, i)
             })
             .collect();
-        // Ties broken by sample index: deterministic.
-        order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        order
-            .iter()
-            .take(self.options.neighbours.max(1))
-            .map(|&(_, i)| &self.samples[i])
-            .collect()
+        // Ties broken by sample index: a total order, so the k nearest are deterministic.
+        // Selecting them first (linear) rather than sorting all samples matters: the renewal
+        // rule asks for neighbours at every factor age, many times per decision.
+        let by = |a: &(f64, usize), b: &(f64, usize)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        let k = self.options.neighbours.max(1);
+        if order.len() > k {
+            order.select_nth_unstable_by(k - 1, by);
+            order.truncate(k);
+        }
+        order.sort_by(by);
+        order.iter().map(|&(_, i)| &self.samples[i]).collect()
     }
 
     /// Success rate and iterations (geometric mean over the successful neighbours) of
