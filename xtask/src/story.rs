@@ -58,8 +58,6 @@ struct Totals {
     fallbacks: usize,
 }
 
-/// Runs `sim` from the first state of each trajectory for its length (times `refine` finer
-/// steps), comparing with the data at the coarse times; writes frames of the first one.
 /// Runs of each model whose whole-step times are reduced to their median (tiny problems:
 /// one run's time varies by tens of percent here).
 const TIME_REPEATS: usize = 3;
@@ -83,6 +81,8 @@ fn run_model_timed(
     Ok(totals)
 }
 
+/// Runs `sim` from the first state of each trajectory for its length (times `refine` finer
+/// steps), comparing with the data at the coarse times; writes frames of the first one.
 fn run_model(
     make: &dyn Fn() -> Result<(Integrator, deform_mesh::TetMesh)>,
     tests: &[&Trajectory],

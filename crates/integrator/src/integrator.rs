@@ -200,9 +200,9 @@ pub struct Integrator {
     k: CsMat<f64>,
     a: CsMat<f64>,
     a_free: ReducedMatrix,
-    solvers: Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    solvers: KeptSolvers,
     /// Counterfactual candidates, each with its own kept instance.
-    candidates: Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    candidates: KeptSolvers,
     policy: Box<dyn SolverPolicy>,
     observer: Box<dyn Observer>,
     steps_taken: usize,
@@ -219,6 +219,10 @@ impl std::fmt::Debug for Integrator {
             .finish_non_exhaustive()
     }
 }
+
+/// Solver instances kept across solves (factorisations, stale preconditioners), one per
+/// configuration.
+type KeptSolvers = Vec<(SolverSpec, Box<dyn LinearSolver>)>;
 
 /// The direct solver used as the fallback.
 fn fallback_spec() -> SolverSpec {
@@ -805,16 +809,29 @@ impl Integrator {
         rhs: &[f64],
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), FailedSolve> {
-        let system = System {
-            asm: &self.asm,
-            mass: &self.mass,
-            dofs: &self.dofs,
-            rest: &self.rest,
-            options: &self.options,
-            a_free: &self.a_free.matrix,
-            point,
-        };
-        system.solve(&mut self.solvers, spec, rel_tolerance, refresh, rhs, x)
+        let (system, solvers, _) = self.system(point);
+        system.solve(solvers, spec, rel_tolerance, refresh, rhs, x)
+    }
+
+    /// The Newton system at `point`, and the kept solver instances (the policy's and the
+    /// counterfactual candidates'), borrowed apart.
+    fn system<'a>(
+        &'a mut self,
+        point: NewtonPoint<'a>,
+    ) -> (System<'a>, &'a mut KeptSolvers, &'a mut KeptSolvers) {
+        (
+            System {
+                asm: &self.asm,
+                mass: &self.mass,
+                dofs: &self.dofs,
+                rest: &self.rest,
+                options: &self.options,
+                a_free: &self.a_free.matrix,
+                point,
+            },
+            &mut self.solvers,
+            &mut self.candidates,
+        )
     }
 
     /// Runs every counterfactual candidate on the current system.
@@ -826,20 +843,12 @@ impl Integrator {
     ) -> Vec<CandidateOutcome> {
         let specs: Vec<SolverSpec> = self.candidates.iter().map(|(s, _)| s.clone()).collect();
         let chosen_norm = chosen.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let system = System {
-            asm: &self.asm,
-            mass: &self.mass,
-            dofs: &self.dofs,
-            rest: &self.rest,
-            options: &self.options,
-            a_free: &self.a_free.matrix,
-            point,
-        };
+        let (system, _, candidates) = self.system(point);
         specs
             .iter()
             .map(|spec| {
                 let mut x = vec![0.0; rhs.len()];
-                let outcome = system.solve(&mut self.candidates, spec, None, false, rhs, &mut x);
+                let outcome = system.solve(candidates, spec, None, false, rhs, &mut x);
                 match outcome {
                     Ok((setup, solve)) => {
                         let diff = x
@@ -889,7 +898,7 @@ impl System<'_> {
     /// Solves with the instance of `spec` kept in `list` on the operator `spec` asks for.
     fn solve(
         &self,
-        list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+        list: &mut KeptSolvers,
         spec: &SolverSpec,
         rel_tolerance: Option<f64>,
         refresh: bool,
@@ -930,7 +939,7 @@ impl System<'_> {
 /// first use).
 #[allow(clippy::too_many_arguments)]
 fn solve_with(
-    list: &mut Vec<(SolverSpec, Box<dyn LinearSolver>)>,
+    list: &mut KeptSolvers,
     system: &System<'_>,
     a: &dyn LinearOperator,
     spec: &SolverSpec,

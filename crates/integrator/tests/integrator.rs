@@ -812,3 +812,55 @@ fn projection_when_needed_switches_once_the_exact_tangent_fails_and_charges_the_
         .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
     assert!(diff <= 1e-6 * scale, "{diff:e}");
 }
+
+#[test]
+fn a_failed_choice_falls_back_to_the_direct_solver_and_is_charged() {
+    let mesh = beam();
+    let capped = "Fixed(Jacobi(tolerance: (rel: 1e-10, max_iterations: 2)))";
+    let mut s = sim(&mesh, clamp(&mesh), IntegratorOptions::default(), capped);
+    let mut state = s.rest_state();
+    let report = s.step(&mut state).unwrap();
+    assert!(report.converged);
+    for it in &report.iterations {
+        assert!(it.fallback, "the capped Jacobi cannot converge");
+        assert_eq!(it.discarded.len(), 1);
+        let failed = &it.discarded[0];
+        let solve = failed
+            .solve
+            .as_ref()
+            .expect("the failed solve's statistics");
+        assert_eq!(solve.iterations, 2);
+        assert!(solve.flops > 0 && failed.error.is_some());
+        assert!(it.work(1.0) > it.setup.work(1.0) + it.solve.flops as f64);
+    }
+    let used: u64 = report
+        .iterations
+        .iter()
+        .map(|i| i.setup.flops + i.solve.flops)
+        .sum();
+    assert!(report.flops() > used);
+    // The same trajectory as the direct solver's, which did the work.
+    let mut d = sim(
+        &mesh,
+        clamp(&mesh),
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let mut direct = d.rest_state();
+    d.step(&mut direct).unwrap();
+    let diff = state
+        .x
+        .iter()
+        .zip(&direct.x)
+        .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-12, "{diff:e}");
+    // Without the fallback the failure is the step's error.
+    let options = IntegratorOptions {
+        fallback_to_direct: false,
+        max_retries: 0,
+        ..IntegratorOptions::default()
+    };
+    let mut s = sim(&mesh, clamp(&mesh), options, capped);
+    let mut state = s.rest_state();
+    assert!(matches!(s.step(&mut state), Err(StepError::Solver { .. })));
+}

@@ -26,6 +26,11 @@ fn scene(extra: &str, mesh: &str) -> Scene {
     ron::from_str(&text).unwrap()
 }
 
+/// Solver configurations from their RON texts.
+fn specs(texts: &[&str]) -> Vec<deform_solvers::SolverSpec> {
+    texts.iter().map(|t| ron::from_str(t).unwrap()).collect()
+}
+
 fn make(scene: &Scene, count: usize, steps: usize) -> Dataset {
     generate(
         scene,
@@ -499,14 +504,11 @@ fn the_generating_model_carries_the_ensemble() {
 #[test]
 fn solver_datasets_log_every_candidate_and_round_trip() {
     let s = scene("", "Beam(1)");
-    let specs: Vec<deform_solvers::SolverSpec> = [
+    let specs = specs(&[
         "Direct()",
         "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))",
         "Jacobi(tolerance: (rel: 1e-8, max_iterations: 2))",
-    ]
-    .iter()
-    .map(|t| ron::from_str(t).unwrap())
-    .collect();
+    ]);
     let data = deform_learn::solver_data::collect(&s, Path::new("t"), &specs, 3, |_| {}).unwrap();
     assert!(data.len() >= 3, "{} samples", data.len());
     for (f, o) in data.features.iter().zip(&data.outcomes) {
@@ -535,15 +537,12 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
     // Learn on one release, test on another (different initial velocity).
     let mut s = scene("", "Beam(2)");
     s.integrator.newton.rel = 1e-9;
-    let specs: Vec<deform_solvers::SolverSpec> = [
+    let specs = specs(&[
         "Direct()",
         "Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-10))",
         "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))",
         "Cg(tolerance: (rel: 1e-10))",
-    ]
-    .iter()
-    .map(|t| ron::from_str(t).unwrap())
-    .collect();
+    ]);
     let data = deform_learn::solver_data::collect(&s, Path::new("t"), &specs, 6, |_| {}).unwrap();
     let young = 1e5;
     let mut test_scene = s.clone();
@@ -795,14 +794,11 @@ fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
     // keeps it for several solves, and the policy is no costlier than the best fixed solver.
     let mut train = scene("", "Beam(2)");
     train.integrator.newton.rel = 1e-8;
-    let specs: Vec<deform_solvers::SolverSpec> = [
+    let specs = specs(&[
         "Direct()",
         "Pcg(preconditioner: StaleCholesky(max_age: 100), tolerance: (rel: 1e-10))",
         "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))",
-    ]
-    .iter()
-    .map(|t| ron::from_str(t).unwrap())
-    .collect();
+    ]);
     let data =
         deform_learn::solver_data::collect(&train, Path::new("t"), &specs, 8, |_| {}).unwrap();
     let mut held_out = scene("", "Beam(6)");

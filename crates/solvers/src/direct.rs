@@ -243,6 +243,31 @@ impl Cholesky {
     }
 }
 
+/// `L L^T` of `matrix` into `values` (sized to the analysis), in the precision of `T`; the
+/// outer error is an allocation failure, the inner one faer's non-positive pivot.
+fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
+    symbolic: &SymbolicCholesky<usize>,
+    values: &mut Vec<T>,
+    matrix: SparseColMatRef<'_, usize, T>,
+    par: Par,
+) -> Result<Result<(), faer::linalg::cholesky::llt::factor::LltError>, SolverError> {
+    values.clear();
+    values.resize(symbolic.len_val(), T::default());
+    let req = symbolic.factorize_numeric_llt_scratch::<T>(par, Default::default());
+    let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+    Ok(symbolic
+        .factorize_numeric_llt(
+            values,
+            matrix,
+            Side::Lower,
+            LltRegularization::default(),
+            par,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map(|_| ()))
+}
+
 /// The set-up stats of a factorisation that failed: charged as a whole one.
 fn spent(symbolic: &SymbolicCholesky<usize>, mut setup: SetupStats, start: Instant) -> SetupStats {
     let (nnz, flops) = factor_counts(symbolic);
@@ -355,47 +380,23 @@ impl LinearSolver for Cholesky {
             self.matrix32.clear();
             self.matrix32.extend(csr.data().iter().map(|&v| v as f32));
             let matrix = SparseColMatRef::new(pattern, &self.matrix32);
-            self.values32.clear();
-            self.values32.resize(symbolic.len_val(), 0.0);
-            let req = symbolic.factorize_numeric_llt_scratch::<f32>(par, Default::default());
-            let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-            let single = symbolic.factorize_numeric_llt(
-                &mut self.values32,
-                matrix,
-                Side::Lower,
-                LltRegularization::default(),
-                par,
-                MemStack::new(&mut mem),
-                Default::default(),
-            );
+            let single = numeric_llt(symbolic, &mut self.values32, matrix, par)?;
             let (nnz, flops) = factor_counts(symbolic);
             setup.flops += flops;
             setup.factor_nnz = nnz;
             if single.is_ok() && self.values32.iter().all(|v| v.is_finite()) {
                 self.kind = Some(Kind::Llt32);
+                // The double factor of an earlier fallback is not needed any more.
+                self.values = Vec::new();
                 setup.seconds += start.elapsed().as_secs_f64();
                 return Ok(setup);
             }
             // Not positive definite in single precision: try double (both charged).
         }
+        // A double factor replaces any single one.
+        self.values32 = Vec::new();
         let matrix = SparseColMatRef::new(pattern, csr.data());
-        self.values.clear();
-        self.values.resize(symbolic.len_val(), 0.0);
-        let llt = {
-            let req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default());
-            let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-            symbolic
-                .factorize_numeric_llt(
-                    &mut self.values,
-                    matrix,
-                    Side::Lower,
-                    LltRegularization::default(),
-                    par,
-                    MemStack::new(&mut mem),
-                    Default::default(),
-                )
-                .map(|_| ())
-        };
+        let llt = numeric_llt(symbolic, &mut self.values, matrix, par)?;
         let kind = match llt {
             Ok(()) => Kind::Llt,
             Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) => {
@@ -461,13 +462,7 @@ impl LinearSolver for Cholesky {
         if self.kind == Some(Kind::Llt32) {
             self.refine(a, b, x, &mut stats)?;
         } else {
-            x.copy_from_slice(b);
-            self.solve_in_place(x)?;
-            // One residual evaluation, so callers see the accuracy they got.
-            let r = residual(a, b, x);
-            stats.residuals.push(norm(&r));
-            stats.matvecs = 1;
-            stats.flops = self.solve_flops() + a.apply_flops() + 3 * n as u64;
+            self.double_solve(a, b, x, &mut stats)?;
         }
         stats.seconds = start.elapsed().as_secs_f64();
         stats.termination = if stats.final_residual().is_finite() {
@@ -498,14 +493,15 @@ impl Cholesky {
         let step_flops = self.solve_flops() + a.apply_flops() + 5 * n as u64;
         let bn = norm(b).max(f64::MIN_POSITIVE);
         x.iter_mut().for_each(|v| *v = 0.0);
-        let mut r = b.to_vec();
-        let mut best = (f64::INFINITY, x.to_vec());
+        let (mut r, mut d) = (b.to_vec(), vec![0.0; n]);
+        let mut best = (f64::INFINITY, vec![0.0; n]);
         for _ in 0..REFINE_MAX_STEPS {
-            self.solve_in_place(&mut r)?;
-            for (xi, di) in x.iter_mut().zip(&r) {
+            d.copy_from_slice(&r);
+            self.solve_in_place(&mut d)?;
+            for (xi, di) in x.iter_mut().zip(&d) {
                 *xi += di;
             }
-            r = residual(a, b, x);
+            residual_into(a, b, x, &mut r);
             let rn = norm(&r);
             stats.residuals.push(rn);
             stats.iterations += 1;
@@ -513,7 +509,8 @@ impl Cholesky {
             stats.flops += step_flops;
             let stalled = !(rn < REFINE_STALL * best.0);
             if rn < best.0 {
-                best = (rn, x.to_vec());
+                best.0 = rn;
+                best.1.copy_from_slice(x);
             }
             if rn <= REFINE_RELATIVE * bn || stalled {
                 break;
@@ -532,24 +529,35 @@ impl Cholesky {
         let setup = self.factorize(a)?;
         self.precision = Precision::Mixed;
         stats.flops += setup.flops;
+        self.double_solve(a, b, x, stats)
+    }
+
+    /// `x = A^-1 b` with the held double factor and one residual evaluation, so callers see
+    /// the accuracy they got.
+    fn double_solve(
+        &self,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+        stats: &mut SolveStats,
+    ) -> Result<(), SolverError> {
         x.copy_from_slice(b);
         self.solve_in_place(x)?;
-        let r = residual(a, b, x);
+        let mut r = vec![0.0; b.len()];
+        residual_into(a, b, x, &mut r);
         stats.residuals.push(norm(&r));
         stats.matvecs += 1;
-        stats.flops += self.solve_flops() + a.apply_flops() + 3 * n as u64;
+        stats.flops += self.solve_flops() + a.apply_flops() + 3 * b.len() as u64;
         Ok(())
     }
 }
 
-/// `b - A x`.
-fn residual(a: &dyn LinearOperator, b: &[f64], x: &[f64]) -> Vec<f64> {
-    let mut r = vec![0.0; b.len()];
-    a.apply(x, &mut r);
+/// `r = b - A x`.
+fn residual_into(a: &dyn LinearOperator, b: &[f64], x: &[f64], r: &mut [f64]) {
+    a.apply(x, r);
     for (ri, bi) in r.iter_mut().zip(b) {
         *ri = bi - *ri;
     }
-    r
 }
 
 /// Orders and factorises a pattern symbolically.

@@ -289,10 +289,21 @@ fn split(
             sep.push(v);
         }
     }
+    sides(nodes, label, part, (la, lb), sep)
+}
+
+/// The two sides of a split part, labelled `la` and `lb`, with its separator; `None` when a
+/// side is empty, and the nodes are given back to the part (ordered as a leaf).
+fn sides(
+    nodes: &[usize],
+    label: &mut [usize],
+    part: usize,
+    (la, lb): (usize, usize),
+    sep: Vec<usize>,
+) -> Option<(Part, Part, Vec<usize>)> {
     let a: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == la).collect();
     let b: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == lb).collect();
     if a.is_empty() || b.is_empty() {
-        // Give the nodes back to the part; it is ordered as a leaf.
         for &v in nodes {
             label[v] = part;
         }
@@ -323,8 +334,11 @@ fn split_geometric(
         .max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b])))
         .expect("three axes");
     let mut sorted = nodes.to_vec();
-    sorted.sort_by(|&a, &b| coords[a][axis].total_cmp(&coords[b][axis]).then(a.cmp(&b)));
-    let median = coords[sorted[sorted.len() / 2]][axis];
+    let mid = sorted.len() / 2;
+    let (_, &mut m, _) = sorted.select_nth_unstable_by(mid, |&a, &b| {
+        coords[a][axis].total_cmp(&coords[b][axis]).then(a.cmp(&b))
+    });
+    let median = coords[m][axis];
     let (la, lb, ls) = (*next_label, *next_label + 1, *next_label + 2);
     *next_label += 3;
     for &v in nodes {
@@ -342,15 +356,7 @@ fn split_geometric(
     for &v in &sep {
         label[v] = ls;
     }
-    let a: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == la).collect();
-    let b: Vec<usize> = nodes.iter().copied().filter(|&v| label[v] == lb).collect();
-    if a.is_empty() || b.is_empty() {
-        for &v in nodes {
-            label[v] = part;
-        }
-        return None;
-    }
-    Some(((la, a), (lb, b), sep))
+    sides(nodes, label, part, (la, lb), sep)
 }
 
 /// Breadth-first search inside one part: `(node, level)` in visiting order.

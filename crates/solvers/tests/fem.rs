@@ -92,6 +92,15 @@ fn residual(a: &CsMat<f64>, x: &[f64], b: &[f64]) -> f64 {
     (num / den).sqrt()
 }
 
+/// `f` run in a pool of `threads` threads.
+fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}
+
 fn pcg(p: PreconditionerSpec) -> Iterative {
     Iterative::try_new(
         Method::Pcg(p),
@@ -368,17 +377,13 @@ fn direct_solves_do_not_depend_on_the_thread_count() {
     let a = newton_matrix(&mesh, &bent(&mesh, 0.05), 100.0);
     let b = rhs(a.rows());
     let solve = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
-                s.factorize(&a).unwrap();
-                let mut x = vec![0.0; b.len()];
-                s.solve(&a, &b, &mut x).unwrap();
-                x
-            })
+        on_threads(threads, || {
+            let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+            s.factorize(&a).unwrap();
+            let mut x = vec![0.0; b.len()];
+            s.solve(&a, &b, &mut x).unwrap();
+            x
+        })
     };
     let one = solve(1);
     assert_eq!(one, solve(2));
@@ -397,17 +402,13 @@ fn iterative_solves_do_not_depend_on_the_thread_count() {
         "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))",
     ] {
         let solve = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| {
-                    let mut s = ron::from_str::<SolverSpec>(spec).unwrap().build().unwrap();
-                    s.factorize(&a).unwrap();
-                    let mut x = vec![0.0; b.len()];
-                    let stats = s.solve(&a, &b, &mut x).unwrap();
-                    (x, stats.residuals, stats.flops)
-                })
+            on_threads(threads, || {
+                let mut s = ron::from_str::<SolverSpec>(spec).unwrap().build().unwrap();
+                s.factorize(&a).unwrap();
+                let mut x = vec![0.0; b.len()];
+                let stats = s.solve(&a, &b, &mut x).unwrap();
+                (x, stats.residuals, stats.flops)
+            })
         };
         let one = solve(1);
         assert_eq!(one, solve(2), "{spec}");
@@ -426,17 +427,13 @@ fn the_parallel_factorisation_is_identical_for_any_thread_count() {
     let a = newton_matrix(&mesh, &bent(&mesh, 0.02), 100.0);
     let b = rhs(a.rows());
     let solve = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
-                s.factorize(&a).unwrap();
-                let mut x = vec![0.0; b.len()];
-                s.solve(&a, &b, &mut x).unwrap();
-                x.iter().map(|v| v.to_bits()).collect::<Vec<u64>>()
-            })
+        on_threads(threads, || {
+            let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+            s.factorize(&a).unwrap();
+            let mut x = vec![0.0; b.len()];
+            s.solve(&a, &b, &mut x).unwrap();
+            x.iter().map(|v| v.to_bits()).collect::<Vec<u64>>()
+        })
     };
     assert!(a.rows() >= 20_000);
     let one = solve(1);
