@@ -17,7 +17,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
 use crate::operator::{LinearOperator, norm};
-use crate::ordering::{Ordering, order_rows};
+use crate::ordering::{Elimination, Ordering, order_rows};
+use crate::split::{Failure, Split};
 use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::{LinearSolver, SolverError};
 
@@ -90,6 +91,11 @@ pub struct Cholesky {
     matrix32: Vec<f32>,
     /// Coordinates of the nodes (one per 3 rows) for geometric nested dissection.
     coordinates: Option<Vec<[f64; 3]>>,
+    /// The factor split at nested dissection's first cut (instead of `symbolic`), for large
+    /// parallel factorisations.
+    pub(crate) split: Option<Box<Split>>,
+    /// Rows from which a parallel nested-dissection factorisation is split.
+    pub(crate) split_min_rows: usize,
 }
 
 impl Cholesky {
@@ -108,6 +114,8 @@ impl Cholesky {
             values32: Vec::new(),
             matrix32: Vec::new(),
             coordinates: None,
+            split: None,
+            split_min_rows: PARALLEL_MIN_ROWS,
         }
     }
 
@@ -125,10 +133,13 @@ impl Cholesky {
         self.precision = precision;
     }
 
-    /// Whether a large factorisation (at least `PARALLEL_MIN_ROWS` rows) is split into
-    /// `PARALLEL_TASKS` parallel tasks (the default) or runs on one thread. The split is
-    /// fixed, not the pool's thread count, so the result is bit-identical on any pool; small
-    /// matrices always run on one thread, where parallel overhead outweighs the gain.
+    /// Whether a large factorisation (at least `PARALLEL_MIN_ROWS` rows) runs as
+    /// `PARALLEL_TASKS` parallel tasks (the default) or on one thread. With a nested
+    /// dissection ordering the tasks are the two parts of its first cut, factorised
+    /// concurrently, and the separator's Schur complement after them; otherwise faer's
+    /// kernels are split. The tasks are fixed, not the pool's thread count, so the result is
+    /// bit-identical on any pool; small matrices always run on one thread, where parallel
+    /// overhead outweighs the gain.
     pub fn set_parallel(&mut self, parallel: bool) {
         self.parallel = parallel;
     }
@@ -143,18 +154,29 @@ impl Cholesky {
 
     /// Nonzeros stored for the factor `L` (0 before `analyze`).
     pub fn factor_nnz(&self) -> usize {
-        self.symbolic.as_ref().map_or(0, |s| factor_counts(s).0)
+        self.counts().0
     }
 
     /// Floating-point operations of one numeric factorisation with the held analysis (0
     /// before `analyze`): the deterministic work figure of `SetupStats::flops`.
     pub fn factor_flops(&self) -> u64 {
-        self.symbolic.as_ref().map_or(0, |s| factor_counts(s).1)
+        self.counts().1
+    }
+
+    fn counts(&self) -> (usize, u64) {
+        match (&self.split, &self.symbolic) {
+            (Some(split), _) => split.counts(),
+            (None, Some(s)) => factor_counts(s),
+            (None, None) => (0, 0),
+        }
     }
 
     /// The order of the held analysis (`None` before `analyze`).
     pub fn nrows(&self) -> Option<usize> {
-        self.symbolic.as_ref().map(SymbolicCholesky::nrows)
+        match (&self.split, &self.symbolic) {
+            (Some(split), _) => Some(split.nrows()),
+            (None, s) => s.as_ref().map(SymbolicCholesky::nrows),
+        }
     }
 
     /// Whether a factor for the current values exists.
@@ -186,6 +208,17 @@ impl Cholesky {
 
     /// Solves with the held factor, in place (`x` holds `b` on entry).
     pub(crate) fn solve_in_place(&self, x: &mut [f64]) -> Result<(), SolverError> {
+        if let (Some(split), Some(_)) = (&self.split, self.kind) {
+            if x.len() != split.nrows() {
+                return Err(SolverError::DimensionMismatch {
+                    what: "x",
+                    expected: split.nrows(),
+                    found: x.len(),
+                });
+            }
+            split.solve_in_place(x);
+            return Ok(());
+        }
         let (symbolic, kind) = match (&self.symbolic, self.kind) {
             (Some(s), Some(k)) => (s, k),
             _ => return Err(SolverError::NotFactorized),
@@ -245,7 +278,7 @@ impl Cholesky {
 
 /// `L L^T` of `matrix` into `values` (sized to the analysis), in the precision of `T`; the
 /// outer error is an allocation failure, the inner one faer's non-positive pivot.
-fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
+pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
     symbolic: &SymbolicCholesky<usize>,
     values: &mut Vec<T>,
     matrix: SparseColMatRef<'_, usize, T>,
@@ -278,7 +311,7 @@ fn spent(symbolic: &SymbolicCholesky<usize>, mut setup: SetupStats, start: Insta
 }
 
 /// `(nnz(L), flops of the numeric factorisation)` from the symbolic structure.
-fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) {
+pub(crate) fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) {
     match symbolic.raw() {
         SymbolicCholeskyRaw::Simplicial(s) => {
             let cp = s.col_ptr();
@@ -328,6 +361,23 @@ impl LinearSolver for Cholesky {
         let indptr_view = csr.indptr();
         let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
         let coords = self.coordinates.as_deref();
+        self.kind = None;
+        self.split = None;
+        self.symbolic = None;
+        let n = indptr.len() - 1;
+        let nested = self.ordering == Ordering::NestedDissection
+            || (self.ordering == Ordering::Auto && indptr.len() > AUTO_ND_ONLY_ROWS);
+        if nested && self.parallel && n >= self.split_min_rows {
+            let elim = order_rows(Ordering::NestedDissection, indptr, indices, coords);
+            if let Some(split) = Split::new(indptr, indices, &elim)? {
+                self.split = Some(Box::new(split));
+            } else {
+                self.symbolic = Some(symbolic_of(&elim, indptr, indices)?);
+            }
+            self.pattern = Some((indptr.to_vec(), indices.to_vec()));
+            self.analyze_seconds = start.elapsed().as_secs_f64();
+            return Ok(());
+        }
         let symbolic = match self.ordering {
             // Past about 10k vertices nested dissection has won on every mesh measured (by
             // 25 % fill on the 55k-DOF beam), so the AMD analysis is not worth its time.
@@ -371,10 +421,51 @@ impl LinearSolver for Cholesky {
             setup.seconds += self.analyze_seconds;
         }
         let start = Instant::now();
-        let symbolic = self.symbolic.as_ref().expect("analyzed above");
         let n = csr.rows();
-        let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
         self.kind = None;
+        if let Some(split) = self.split.as_mut() {
+            match self.precision {
+                Precision::Mixed => match split.factorize(csr.data(), true) {
+                    Ok(()) => return Ok(self.split_done(Kind::Llt32, setup, start)),
+                    // Charged, and the double factorisation is tried.
+                    Err(Failure::Pivot(_) | Failure::NonFinite) => setup.flops += split.counts().1,
+                    Err(Failure::Error(e)) => return Err(e),
+                },
+                Precision::Double => {}
+            }
+            match split.factorize(csr.data(), false) {
+                Ok(()) => return Ok(self.split_done(Kind::Llt, setup, start)),
+                Err(Failure::Error(e)) => return Err(e),
+                Err(Failure::NonFinite) => {
+                    return Err(SolverError::NonFinite {
+                        what: "factor",
+                        index: 0,
+                    });
+                }
+                Err(Failure::Pivot(row)) if self.indefinite == Indefinite::Error => {
+                    setup.flops += split.counts().1;
+                    setup.factor_nnz = split.counts().0;
+                    setup.seconds += start.elapsed().as_secs_f64();
+                    return Err(SolverError::NotPositiveDefinite {
+                        pivot: row,
+                        value: f64::NAN,
+                        spent: Some(Box::new(setup)),
+                    });
+                }
+                Err(Failure::Pivot(_)) => {
+                    // `L D L^T` of the whole matrix in the same order, kept for this pattern.
+                    setup.flops += split.counts().1;
+                    let order = Elimination {
+                        order: std::mem::take(&mut split.order),
+                        top: None,
+                    };
+                    self.split = None;
+                    self.symbolic = Some(symbolic_of(&order, indptr, indices)?);
+                }
+            }
+        }
+        let symbolic = self.symbolic.as_ref().expect("analyzed above");
+        let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
         let par = self.par(n);
         if self.precision == Precision::Mixed {
             self.matrix32.clear();
@@ -454,7 +545,7 @@ impl LinearSolver for Cholesky {
         let n = a.nrows();
         check_vector("b", b, n)?;
         check_vector("x", x, n)?;
-        if self.symbolic.as_ref().is_none_or(|s| s.nrows() != n) || self.kind.is_none() {
+        if self.nrows() != Some(n) || self.kind.is_none() {
             return Err(SolverError::NotFactorized);
         }
         let start = Instant::now();
@@ -480,6 +571,16 @@ impl LinearSolver for Cholesky {
 }
 
 impl Cholesky {
+    /// Records a split factorisation that succeeded.
+    fn split_done(&mut self, kind: Kind, mut setup: SetupStats, start: Instant) -> SetupStats {
+        let (nnz, flops) = self.counts();
+        self.kind = Some(kind);
+        setup.flops += flops;
+        setup.factor_nnz = nnz;
+        setup.seconds += start.elapsed().as_secs_f64();
+        setup
+    }
+
     /// Mixed precision: `x = 0`, then `x += solve_32(b - A x)` until the residual is below
     /// `REFINE_RELATIVE ||b||` or stalls; refactorises in double when it stalls far above.
     fn refine(
@@ -567,16 +668,29 @@ fn symbolic_with(
     indices: &[usize],
     coords: Option<&[[f64; 3]]>,
 ) -> Result<SymbolicCholesky<usize>, SolverError> {
+    symbolic_of(
+        &order_rows(ordering, indptr, indices, coords),
+        indptr,
+        indices,
+    )
+}
+
+/// The symbolic factorisation of a pattern in a given elimination order.
+fn symbolic_of(
+    elim: &Elimination,
+    indptr: &[usize],
+    indices: &[usize],
+) -> Result<SymbolicCholesky<usize>, SolverError> {
     let n = indptr.len() - 1;
     let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
     // Always a custom permutation: faer's `Identity` ordering reads the pattern as given,
     // while the permuting path extracts the requested triangle of full storage.
-    let fwd = order_rows(ordering, indptr, indices, coords);
+    let fwd = &elim.order;
     let mut inv = vec![0; n];
     for (new, &old) in fwd.iter().enumerate() {
         inv[old] = new;
     }
-    let ordering = SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, n));
+    let ordering = SymmetricOrdering::Custom(PermRef::new_checked(fwd, &inv, n));
     factorize_symbolic_cholesky(
         pattern,
         Side::Lower,
@@ -601,7 +715,7 @@ fn permuted_row(symbolic: &SymbolicCholesky<usize>, index: usize) -> usize {
 /// Tasks a parallel factorisation is split into, whatever the pool's size: faer's
 /// parallel kernels partition by this number, so fixing it (rather than asking rayon for its
 /// thread count) makes the factor's bits independent of the thread count.
-const PARALLEL_TASKS: usize = 2;
+pub(crate) const PARALLEL_TASKS: usize = 2;
 
 /// Rows below which factorisations and solves run on one thread.
 const PARALLEL_MIN_ROWS: usize = 20_000;

@@ -43,6 +43,7 @@ mod operator;
 mod ordering;
 mod precond;
 mod spec;
+mod split;
 mod stats;
 
 pub use direct::{Cholesky, Indefinite, Precision};

@@ -77,34 +77,50 @@ impl Graph {
     }
 }
 
-/// The elimination order (new position -> old row) of a symmetric pattern (full storage,
-/// CSR or CSC alike). [`Ordering::Auto`] is resolved by the caller (it gets AMD here).
+/// An elimination order and, for nested dissection, its first cut.
+#[derive(Debug, Clone)]
+pub(crate) struct Elimination {
+    /// New position -> old row.
+    pub order: Vec<usize>,
+    /// Rows of the two parts of the first dissection, `(a, b)`: the order is `a`'s rows,
+    /// then `b`'s, then the separator's. `None` for orderings without one.
+    pub top: Option<(usize, usize)>,
+}
+
+/// The elimination order of a symmetric pattern (full storage, CSR or CSC alike).
+/// [`Ordering::Auto`] is resolved by the caller (it gets AMD here).
 pub(crate) fn order_rows(
     ordering: Ordering,
     indptr: &[usize],
     indices: &[usize],
     coords: Option<&[[f64; 3]]>,
-) -> Vec<usize> {
+) -> Elimination {
     let n = indptr.len() - 1;
     if ordering == Ordering::Natural {
-        return (0..n).collect();
+        return Elimination {
+            order: (0..n).collect(),
+            top: None,
+        };
     }
     let block = if n.is_multiple_of(3) { 3 } else { 1 };
     let graph = Graph::from_pattern(indptr, indices, block);
-    let nodes = match ordering {
+    let (nodes, top) = match ordering {
         Ordering::Natural | Ordering::Auto | Ordering::Amd => {
             let all: Vec<usize> = (0..graph.len()).collect();
-            amd_order(&graph, &all)
+            (amd_order(&graph, &all), None)
         }
         Ordering::NestedDissection => nested_dissection_with(
             &graph,
             coords.filter(|c| block == 3 && c.len() == graph.len()),
         ),
     };
-    nodes
-        .iter()
-        .flat_map(|&v| block * v..block * (v + 1))
-        .collect()
+    Elimination {
+        order: nodes
+            .iter()
+            .flat_map(|&v| block * v..block * (v + 1))
+            .collect(),
+        top: top.map(|(a, b)| (block * a, block * b)),
+    }
 }
 
 /// Below this many nodes a part is ordered by AMD instead of being dissected further.
@@ -113,8 +129,13 @@ const LEAF_SIZE: usize = 128;
 /// Nested-dissection order of all nodes of `graph` (new position -> node).
 /// Nested dissection with separators from the graph's level structures, or, given node
 /// coordinates, from median planes across each part's longest extent.
-pub(crate) fn nested_dissection_with(graph: &Graph, coords: Option<&[[f64; 3]]>) -> Vec<usize> {
+/// Also returns the node counts of the first cut's two parts (`None` when it was not cut).
+pub(crate) fn nested_dissection_with(
+    graph: &Graph,
+    coords: Option<&[[f64; 3]]>,
+) -> (Vec<usize>, Option<(usize, usize)>) {
     let n = graph.len();
+    let mut top = None;
     let mut order = Vec::with_capacity(n);
     // `label[v]` names the part `v` currently belongs to; parts get fresh labels as they split.
     let mut label = vec![0usize; n];
@@ -146,6 +167,9 @@ pub(crate) fn nested_dissection_with(graph: &Graph, coords: Option<&[[f64; 3]]>)
                 };
                 match parts {
                     Some((a, b, sep)) => {
+                        if part == 0 {
+                            top = Some((a.1.len(), b.1.len()));
+                        }
                         // Popped in reverse: a, then b, then the separator.
                         stack.push(Task::Emit(sep));
                         stack.push(Task::Split(b.0, b.1));
@@ -157,7 +181,7 @@ pub(crate) fn nested_dissection_with(graph: &Graph, coords: Option<&[[f64; 3]]>)
         }
     }
     debug_assert_eq!(order.len(), n);
-    order
+    (order, top)
 }
 
 enum Task {
@@ -502,7 +526,7 @@ mod tests {
                 })
                 .collect();
             for geometry in [None, Some(coords.as_slice())] {
-                let order = nested_dissection_with(&g, geometry);
+                let (order, _) = nested_dissection_with(&g, geometry);
                 let mut seen = vec![false; g.len()];
                 for &v in &order {
                     assert!(!seen[v], "node {v} twice");

@@ -7,7 +7,7 @@ use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
 use deform_mesh::topology::BlockPattern;
 use deform_solvers::{
-    Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, PreconditionerSpec,
+    Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, Precision, PreconditionerSpec,
     SolverError, SolverSpec, Termination, Tolerance,
 };
 use sprs::CsMat;
@@ -439,6 +439,45 @@ fn the_parallel_factorisation_is_identical_for_any_thread_count() {
     let one = solve(1);
     for threads in [2, 3, 4] {
         assert_eq!(one, solve(threads), "{threads} threads");
+    }
+}
+
+#[test]
+fn the_factor_split_at_the_first_cut_solves_as_the_whole_one() {
+    // Above 20,000 rows a parallel nested-dissection factorisation factorises the two parts
+    // of the first cut concurrently and the separator's Schur complement after them; on one
+    // thread the whole matrix is factorised at once, in the same order.
+    let mesh = beam(12);
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.02), 100.0);
+    let b = rhs(a.rows());
+    let coordinates: Vec<[f64; 3]> = mesh
+        .rest_positions()
+        .iter()
+        .map(|p| [p.x, p.y, p.z])
+        .collect();
+    let solve = |parallel: bool, precision: Precision| {
+        let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+        s.set_parallel(parallel);
+        s.set_precision(precision);
+        s.set_coordinates(Some(&coordinates));
+        s.factorize(&a).unwrap();
+        let mut x = vec![0.0; b.len()];
+        s.solve(&a, &b, &mut x).unwrap();
+        (x, s.factor_nnz())
+    };
+    let (whole, whole_nnz) = solve(false, Precision::Double);
+    let scale = whole.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for precision in [Precision::Double, Precision::Mixed] {
+        let (x, nnz) = solve(true, precision);
+        let diff = x
+            .iter()
+            .zip(&whole)
+            .map(|(u, v)| (u - v).abs())
+            .fold(0.0, f64::max);
+        assert!(diff <= 1e-10 * scale, "{precision:?}: {diff} of {scale}");
+        assert!(residual(&a, &x, &b) < 1e-14, "{precision:?}");
+        // The same factor stored (the halves' trailing blocks are scratch).
+        assert_eq!(nnz, whole_nnz, "{precision:?}");
     }
 }
 
