@@ -128,19 +128,20 @@ impl Split {
         let n = elim.order.len();
         let sep_rows = elim.order[na + nb..].to_vec();
         let s = sep_rows.len();
-        let mut local = vec![usize::MAX; n];
-        let mut halves = Vec::with_capacity(2);
-        for (start, len) in [(0, na), (na, nb)] {
+        let half = |start: usize, len: usize| {
             let rows: Vec<usize> = elim.order[start..start + len]
                 .iter()
                 .chain(&sep_rows)
                 .copied()
                 .collect();
-            match Half::new(indptr, indices, rows, len, &mut local)? {
-                Some(h) => halves.push(h),
-                None => return Ok(None),
-            }
-        }
+            Half::new(indptr, indices, rows, len)
+        };
+        // The two symbolic factorisations are independent too.
+        let (a, b) = rayon::join(|| half(0, na), || half(na, nb));
+        let (Some(a), Some(b)) = (a?, b?) else {
+            return Ok(None);
+        };
+        let mut local = vec![usize::MAX; n];
         for (j, &r) in sep_rows.iter().enumerate() {
             local[r] = j;
         }
@@ -153,7 +154,6 @@ impl Split {
                 }
             }
         }
-        let [a, b] = <[Half; 2]>::try_from(halves).expect("two halves");
         Ok(Some(Self {
             halves: [a, b],
             sep_rows,
@@ -278,8 +278,8 @@ impl Half {
         indices: &[usize],
         rows: Vec<usize>,
         part: usize,
-        local: &mut [usize],
     ) -> Result<Option<Self>, SolverError> {
+        let mut local = vec![usize::MAX; indptr.len() - 1];
         for (i, &r) in rows.iter().enumerate() {
             local[r] = i;
         }
@@ -296,9 +296,6 @@ impl Half {
                 }
             }
             col_ptr.push(row_idx.len());
-        }
-        for &r in &rows {
-            local[r] = usize::MAX;
         }
         if !separates {
             return Ok(None);
