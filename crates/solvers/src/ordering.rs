@@ -11,7 +11,9 @@
 //! the nodes' coordinates, each part is cut instead by the median plane across its longest
 //! extent (the separator being the smaller side's boundary): level sets of a graph distance
 //! run diagonally through box-like parts, planes across them are smaller (on the 55k-DOF
-//! beam: 19 % fewer factorisation flops).
+//! beam: 13 % fewer factorisation flops). The first cut, whose two sides the parallel
+//! factorisation runs as concurrent tasks, is balanced more tightly (each side at least 48 %
+//! of the nodes instead of a third: 7 % fewer flops on that beam, and equal tasks).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SymbolicSparseColMatRef;
@@ -123,6 +125,13 @@ pub(crate) fn order_rows(
     }
 }
 
+/// A level-set separator is the smallest level leaving each side at least this share of the
+/// part's nodes ...
+const SIDE: f64 = 1.0 / 3.0;
+/// ... and at the first cut this share, since the parallel factorisation runs the two sides
+/// as concurrent tasks.
+const TOP_SIDE: f64 = 0.48;
+
 /// Below this many nodes a part is ordered by AMD instead of being dissected further.
 const LEAF_SIZE: usize = 128;
 
@@ -163,6 +172,7 @@ pub(crate) fn nested_dissection_with(
                         part,
                         &mut next_label,
                         &mut scratch,
+                        if part == 0 { TOP_SIDE } else { SIDE },
                     ),
                 };
                 match parts {
@@ -205,6 +215,7 @@ fn split(
     part: usize,
     next_label: &mut usize,
     s: &mut Scratch,
+    min_side: f64,
 ) -> Option<(Part, Part, Vec<usize>)> {
     // Disconnected parts split along a component boundary with an empty separator.
     let root = nodes[0];
@@ -262,7 +273,7 @@ fn split(
         return None;
     }
 
-    // Level sizes and the smallest level that leaves both sides at least a third of the nodes.
+    // Level sizes and the smallest level that leaves both sides at least `min_side` of the nodes.
     let mut size = vec![0usize; depth + 1];
     for &(_, l) in &levels {
         size[l] += 1;
@@ -277,7 +288,10 @@ fn split(
             if before <= total / 2 {
                 middle = l;
             }
-            if 3 * before >= total && 3 * after >= total && best.is_none_or(|(_, sz)| size[l] < sz)
+            let least = min_side * total as f64;
+            if before as f64 >= least
+                && after as f64 >= least
+                && best.is_none_or(|(_, sz)| size[l] < sz)
             {
                 best = Some((l, size[l]));
             }
@@ -580,7 +594,7 @@ mod tests {
         };
         let nodes: Vec<usize> = (0..n).collect();
         let ((la, a), (lb, b), sep) =
-            split(&g, &nodes, &mut label, 0, &mut next, &mut scratch).expect("a grid splits");
+            split(&g, &nodes, &mut label, 0, &mut next, &mut scratch, SIDE).expect("a grid splits");
         assert_eq!(a.len() + b.len() + sep.len(), n);
         assert!(3 * a.len() >= n - sep.len() && 3 * b.len() >= n - sep.len() - 3);
         assert!(sep.len() <= 128, "separator of {}", sep.len());

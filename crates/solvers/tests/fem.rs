@@ -227,14 +227,17 @@ fn nested_dissection_beats_amd_and_median_planes_beat_level_sets_on_the_55k_dof_
     let n = indptr.len() - 1;
     let data = vec![1.0; indices.len()];
     let a = CsMat::new((n, n), indptr, indices, data);
+    // Unsplit (`parallel: false`): the flops of the orderings alone.
     let fill = |ordering| {
         let mut s = Cholesky::new(ordering, Indefinite::Error);
+        s.set_parallel(false);
         s.analyze(&a).unwrap();
         s.factor_nnz()
     };
     let (amd, nd) = (fill(Ordering::Amd), fill(Ordering::NestedDissection));
     assert!(5 * nd < 4 * amd, "nested dissection {nd}, AMD {amd}");
     let mut s = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+    s.set_parallel(false);
     let t = std::time::Instant::now();
     s.analyze(&a).unwrap();
     eprintln!(
@@ -243,9 +246,10 @@ fn nested_dissection_beats_amd_and_median_planes_beat_level_sets_on_the_55k_dof_
         s.factor_flops() as f64,
         t.elapsed().as_secs_f64()
     );
-    // Median planes from the vertex coordinates: at least 15 % fewer factorisation flops
-    // (19 % measured).
+    // Median planes from the vertex coordinates: at least 10 % fewer factorisation flops
+    // (13 % measured: 3.30e10 vs 3.78e10; 19 % before the level sets' first cut was balanced).
     let mut g = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
+    g.set_parallel(false);
     let coordinates: Vec<[f64; 3]> = mesh
         .rest_positions()
         .iter()
@@ -261,7 +265,7 @@ fn nested_dissection_beats_amd_and_median_planes_beat_level_sets_on_the_55k_dof_
         t.elapsed().as_secs_f64()
     );
     assert!(
-        g.factor_flops() * 100 < s.factor_flops() * 85,
+        g.factor_flops() * 100 < s.factor_flops() * 90,
         "{} vs {}",
         g.factor_flops(),
         s.factor_flops()
