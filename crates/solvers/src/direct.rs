@@ -139,9 +139,13 @@ impl Cholesky {
     /// concurrently, and the separator's Schur complement after them; otherwise faer's
     /// kernels are split. The tasks are fixed, not the pool's thread count, so the result is
     /// bit-identical on any pool; small matrices always run on one thread, where parallel
-    /// overhead outweighs the gain.
+    /// overhead outweighs the gain. A change takes effect at the next analysis (the split is
+    /// part of it), which `factorize` then redoes.
     pub fn set_parallel(&mut self, parallel: bool) {
-        self.parallel = parallel;
+        if parallel != self.parallel {
+            self.parallel = parallel;
+            self.pattern = None;
+        }
     }
 
     fn par(&self, rows: usize) -> Par {
