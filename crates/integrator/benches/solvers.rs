@@ -5,7 +5,8 @@
 //! the machine's memory bandwidth. Iteration counts and bandwidths are printed to stderr.
 //!
 //! `cargo bench -p deform-integrator --bench solvers`; `DEFORM_BENCH_SIZES=8,16` picks sizes
-//! (default 8,16; the direct solver is skipped above 16: its factor needs several GB).
+//! (default 8,16; the direct solver is skipped above 16: its factor needs 4 GB and a minute
+//! per factorisation there; `cargo xtask bench solvers --n 32` runs it once).
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};

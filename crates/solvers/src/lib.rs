@@ -10,7 +10,9 @@
 //! Solvers: weighted Jacobi, CG, PCG with Jacobi, 3x3 block-Jacobi, SSOR, IC(0) and
 //! stale-Cholesky preconditioners, and a sparse direct Cholesky ([`Cholesky`], faer's
 //! supernodal/simplicial factorisation behind a nested-dissection ordering of the vertex
-//! graph, LDLT on request for indefinite matrices).
+//! graph or of the vertices' positions; above 20,000 rows the two halves of the first cut
+//! are factorised concurrently and the separator's Schur complement after them; single
+//! precision with double refinement on request; LDLT on request for indefinite matrices).
 //!
 //! ```
 //! use deform_solvers::{LinearSolver, SolverSpec};
