@@ -369,39 +369,44 @@ impl LinearSolver for Cholesky {
         self.split = None;
         self.symbolic = None;
         let n = indptr.len() - 1;
-        let nested = self.ordering == Ordering::NestedDissection
-            || (self.ordering == Ordering::Auto && indptr.len() > AUTO_ND_ONLY_ROWS);
-        if nested && self.parallel && n >= self.split_min_rows {
-            let elim = order_rows(Ordering::NestedDissection, indptr, indices, coords);
-            if let Some(split) = Split::new(indptr, indices, &elim)? {
-                self.split = Some(Box::new(split));
-            } else {
-                self.symbolic = Some(symbolic_of(&elim, indptr, indices)?);
-            }
-            self.pattern = Some((indptr.to_vec(), indices.to_vec()));
-            self.analyze_seconds = start.elapsed().as_secs_f64();
-            return Ok(());
-        }
-        let symbolic = match self.ordering {
+        let order = |ordering| order_rows(ordering, indptr, indices, coords);
+        // The order, and its symbolic factorisation when it had to be computed to choose.
+        let (elim, whole) = match self.ordering {
             // Past about 10k vertices nested dissection has won on every mesh measured (by
             // 25 % fill on the 55k-DOF beam), so the AMD analysis is not worth its time.
             Ordering::Auto if indptr.len() > AUTO_ND_ONLY_ROWS => {
-                symbolic_with(Ordering::NestedDissection, indptr, indices, coords)?
+                (order(Ordering::NestedDissection), None)
             }
             Ordering::Auto => {
-                let amd = symbolic_with(Ordering::Amd, indptr, indices, coords)?;
-                let nd = symbolic_with(Ordering::NestedDissection, indptr, indices, coords)?;
-                if factor_counts(&nd).1 < factor_counts(&amd).1 {
-                    nd
+                let (amd, nd) = (order(Ordering::Amd), order(Ordering::NestedDissection));
+                let (sa, sn) = (
+                    symbolic_of(&amd, indptr, indices)?,
+                    symbolic_of(&nd, indptr, indices)?,
+                );
+                if factor_counts(&sn).1 < factor_counts(&sa).1 {
+                    (nd, Some(sn))
                 } else {
-                    amd
+                    (amd, Some(sa))
                 }
             }
-            ordering => symbolic_with(ordering, indptr, indices, coords)?,
+            ordering => (order(ordering), None),
         };
-        self.symbolic = Some(symbolic);
+        // A nested-dissection order has a first cut: large parallel factorisations split there.
+        let split = if self.parallel && n >= self.split_min_rows {
+            Split::new(indptr, indices, &elim)?
+        } else {
+            None
+        };
+        match split {
+            Some(split) => self.split = Some(Box::new(split)),
+            None => {
+                self.symbolic = Some(match whole {
+                    Some(s) => s,
+                    None => symbolic_of(&elim, indptr, indices)?,
+                });
+            }
+        }
         self.pattern = Some((indptr.to_vec(), indices.to_vec()));
-        self.kind = None;
         self.analyze_seconds = start.elapsed().as_secs_f64();
         Ok(())
     }
@@ -663,20 +668,6 @@ fn residual_into(a: &dyn LinearOperator, b: &[f64], x: &[f64], r: &mut [f64]) {
     for (ri, bi) in r.iter_mut().zip(b) {
         *ri = bi - *ri;
     }
-}
-
-/// Orders and factorises a pattern symbolically.
-fn symbolic_with(
-    ordering: Ordering,
-    indptr: &[usize],
-    indices: &[usize],
-    coords: Option<&[[f64; 3]]>,
-) -> Result<SymbolicCholesky<usize>, SolverError> {
-    symbolic_of(
-        &order_rows(ordering, indptr, indices, coords),
-        indptr,
-        indices,
-    )
 }
 
 /// The symbolic factorisation of a pattern in a given elimination order.

@@ -577,6 +577,12 @@ mod tests {
         let mut whole = solver(false, Precision::Double, &coords);
         let reference = solve(&mut whole, &a);
         assert!(whole.split.is_none());
+        // AMD has no cut to split at.
+        let mut amd = Cholesky::new(Ordering::Amd, Indefinite::Error);
+        amd.split_min_rows = 0;
+        let x = solve(&mut amd, &a);
+        assert!(amd.split.is_none());
+        assert!(x.iter().zip(&reference).all(|(p, q)| (p - q).abs() < 1e-9));
         for precision in [Precision::Double, Precision::Mixed] {
             let mut split = solver(true, precision, &coords);
             let x = solve(&mut split, &a);
