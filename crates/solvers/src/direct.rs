@@ -432,6 +432,8 @@ impl LinearSolver for Cholesky {
         let start = Instant::now();
         let n = csr.rows();
         self.kind = None;
+        // Set when the split `L L^T` found the matrix indefinite: straight to `L D L^T`.
+        let mut indefinite = false;
         if let Some(split) = self.split.as_mut() {
             match self.precision {
                 Precision::Mixed => match split.factorize(csr.data(), true) {
@@ -470,13 +472,14 @@ impl LinearSolver for Cholesky {
                     };
                     self.split = None;
                     self.symbolic = Some(symbolic_of(&order, indptr, indices)?);
+                    indefinite = true;
                 }
             }
         }
         let symbolic = self.symbolic.as_ref().expect("analyzed above");
         let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
         let par = self.par(n);
-        if self.precision == Precision::Mixed {
+        if self.precision == Precision::Mixed && !indefinite {
             self.matrix32.clear();
             self.matrix32.extend(csr.data().iter().map(|&v| v as f32));
             let matrix = SparseColMatRef::new(pattern, &self.matrix32);
@@ -496,17 +499,23 @@ impl LinearSolver for Cholesky {
         // A double factor replaces any single one.
         self.values32 = Vec::new();
         let matrix = SparseColMatRef::new(pattern, csr.data());
-        let llt = numeric_llt(symbolic, &mut self.values, matrix, par)?;
+        let llt = (!indefinite)
+            .then(|| numeric_llt(symbolic, &mut self.values, matrix, par))
+            .transpose()?;
         let kind = match llt {
-            Ok(()) => Kind::Llt,
-            Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) => {
-                if self.indefinite == Indefinite::Error {
-                    return Err(SolverError::NotPositiveDefinite {
-                        pivot: permuted_row(symbolic, index),
-                        value: f64::NAN,
-                        spent: Some(Box::new(spent(symbolic, setup, start))),
-                    });
-                }
+            Some(Ok(())) => Kind::Llt,
+            Some(Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot {
+                index,
+            })) if self.indefinite == Indefinite::Error => {
+                return Err(SolverError::NotPositiveDefinite {
+                    pivot: permuted_row(symbolic, index),
+                    value: f64::NAN,
+                    spent: Some(Box::new(spent(symbolic, setup, start))),
+                });
+            }
+            _ => {
+                self.values.clear();
+                self.values.resize(symbolic.len_val(), 0.0);
                 let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
                 let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
                 symbolic

@@ -632,23 +632,33 @@ mod tests {
             }
             other => panic!("expected not positive definite, got {other:?}"),
         }
-        let mut ldlt = Cholesky::new(Ordering::NestedDissection, Indefinite::Ldlt);
-        ldlt.split_min_rows = 0;
-        ldlt.set_coordinates(Some(&coords));
-        let x = solve(&mut ldlt, &a);
-        assert!(ldlt.is_ldlt() && ldlt.split.is_none());
-        let b: Vec<f64> = (0..a.rows())
-            .map(|i| ((i * 37) % 11) as f64 - 5.0)
-            .collect();
-        let mut ax = vec![0.0; a.rows()];
-        crate::LinearOperator::apply(&a, &x, &mut ax);
-        let r = ax
-            .iter()
-            .zip(&b)
-            .map(|(p, q)| (p - q).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        let bn = b.iter().map(|v| v * v).sum::<f64>().sqrt();
-        assert!(r <= 1e-8 * bn, "{r}");
+        for precision in [Precision::Double, Precision::Mixed] {
+            let mut ldlt = Cholesky::new(Ordering::NestedDissection, Indefinite::Ldlt);
+            ldlt.split_min_rows = 0;
+            ldlt.set_precision(precision);
+            ldlt.set_coordinates(Some(&coords));
+            ldlt.analyze(&a).unwrap();
+            let split_flops = ldlt.factor_flops();
+            let setup = ldlt.factorize(&a).unwrap();
+            assert!(ldlt.is_ldlt() && ldlt.split.is_none());
+            // The failed split attempts (one per precision tried) and the L D L^T are charged.
+            let tries = if precision == Precision::Mixed { 2 } else { 1 };
+            assert_eq!(setup.flops, tries * split_flops + ldlt.factor_flops());
+            let b: Vec<f64> = (0..a.rows())
+                .map(|i| ((i * 37) % 11) as f64 - 5.0)
+                .collect();
+            let mut x = vec![0.0; a.rows()];
+            ldlt.solve(&a, &b, &mut x).unwrap();
+            let mut ax = vec![0.0; a.rows()];
+            crate::LinearOperator::apply(&a, &x, &mut ax);
+            let r = ax
+                .iter()
+                .zip(&b)
+                .map(|(p, q)| (p - q).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let bn = b.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!(r <= 1e-8 * bn, "{precision:?}: {r}");
+        }
     }
 }
