@@ -454,8 +454,9 @@ impl LinearSolver for Cholesky {
                     });
                 }
                 Err(Failure::Pivot(row)) if self.indefinite == Indefinite::Error => {
-                    setup.flops += split.counts().1;
-                    setup.factor_nnz = split.counts().0;
+                    let (nnz, flops) = split.counts();
+                    setup.flops += flops;
+                    setup.factor_nnz = nnz;
                     setup.seconds += start.elapsed().as_secs_f64();
                     return Err(SolverError::NotPositiveDefinite {
                         pivot: row,

@@ -13,7 +13,8 @@
 //! run diagonally through box-like parts, planes across them are smaller (on the 55k-DOF
 //! beam: 13 % fewer factorisation flops). The first cut, whose two sides the parallel
 //! factorisation runs as concurrent tasks, is balanced more tightly (each side at least 48 %
-//! of the nodes instead of a third: 7 % fewer flops on that beam, and equal tasks).
+//! of the nodes instead of a third, or else the middle level: 7 % fewer flops on that beam,
+//! and equal tasks).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::SymbolicSparseColMatRef;
@@ -129,7 +130,7 @@ pub(crate) fn order_rows(
 /// part's nodes ...
 const SIDE: f64 = 1.0 / 3.0;
 /// ... and at the first cut this share, since the parallel factorisation runs the two sides
-/// as concurrent tasks.
+/// as concurrent tasks (when no level leaves that much, the middle level is taken).
 const TOP_SIDE: f64 = 0.48;
 
 /// Below this many nodes a part is ordered by AMD instead of being dissected further.
@@ -549,6 +550,23 @@ mod tests {
                 assert!(seen.iter().all(|&s| s), "{a}x{b}x{c}+{extra}");
             }
         }
+    }
+
+    #[test]
+    fn the_first_level_set_cut_is_balanced_for_the_two_parallel_tasks() {
+        // Below the first cut the sides need only a third each (on a uniform grid every
+        // middle level is as small, and the first third-way one would be taken); the first
+        // cut, which the split factorisation runs as two concurrent tasks, takes the smallest
+        // level leaving each side TOP_SIDE, or the middle level when levels are too coarse for
+        // that window: balanced to within one separator either way.
+        let g = grid(30, 8, 8, 0);
+        let n = g.len();
+        let (order, top) = nested_dissection_with(&g, None);
+        assert_eq!(order.len(), n);
+        let (a, b) = top.expect("a grid is cut");
+        let sep = n - a - b;
+        assert!(2 * (a.min(b) + sep) >= n, "{a} + {b} + {sep}");
+        assert!(sep <= 2 * 8 * 8, "separator of {sep}");
     }
 
     #[test]
