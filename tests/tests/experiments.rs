@@ -24,14 +24,20 @@ fn bad_experiments_are_reported() {
     let path = dir.path().join("bad.ron");
     let base = r#"Experiment(name: "x", scene: "s.ron", dataset: (trajectories: 5, steps: 3, seed: 1), task: SelectModel(members: []))"#;
     std::fs::write(&path, base.replace("seed: 1", "seed: 1, colour: 2")).unwrap();
-    let e = Experiment::load(&path).unwrap_err();
+    let e = Experiment::load(&path).unwrap_err().to_string();
     assert!(e.contains("bad.ron") && e.contains("colour"), "{e}");
     std::fs::write(&path, base.replace("trajectories: 5", "trajectories: 2")).unwrap();
     assert!(
         Experiment::load(&path)
             .unwrap_err()
+            .to_string()
             .contains("trajectories")
     );
     std::fs::write(&path, base.replace("seed: 1", "seed: 1, split: (0.9, 0.2)")).unwrap();
-    assert!(Experiment::load(&path).unwrap_err().contains("split"));
+    assert!(
+        Experiment::load(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("split")
+    );
 }

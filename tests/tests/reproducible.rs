@@ -4,6 +4,7 @@
 //! differs.)
 
 use deform_integrator::Scene;
+use deform_learn::DatasetSpec;
 use deform_learn::dataset::generate;
 use deform_learn::policy::{LearnedPolicy, PolicyOptions};
 use deform_learn::{OutputErrorOptions, Split, Variations, fit_equation_error, fit_output_error};
@@ -17,16 +18,16 @@ fn pipeline() -> Vec<u64> {
     let data = generate(
         &scene,
         &path,
-        3,
-        6,
-        11,
-        &Variations {
-            speed: 1.0,
-            spin: 2.0,
-            stretch: 0.1,
-            rest: false,
+        &DatasetSpec {
+            variations: Variations {
+                speed: 1.0,
+                spin: 2.0,
+                stretch: 0.1,
+                rest: false,
+            },
+            split: (0.5, 0.2),
+            ..DatasetSpec::new(3, 6, 11)
         },
-        (0.5, 0.2),
         |_, _| {},
     )
     .unwrap();

@@ -15,6 +15,7 @@ use clap::Args;
 use deform_mesh::io::write_atomic;
 
 use crate::experiment::{self, ExperimentArgs};
+use crate::render;
 use crate::simulate;
 
 /// Arguments of `demo`.
@@ -97,13 +98,12 @@ pub fn run(args: DemoArgs) -> Result<()> {
     for (name, what) in EXPERIMENTS {
         let t = Instant::now();
         let out = args.out.join(name);
-        let summary = experiment::run(ExperimentArgs {
+        let (result, text) = experiment::run(ExperimentArgs {
             experiment: root.join(format!("assets/experiments/{name}.ron")),
             out: Some(out.clone()),
             quiet: args.quiet,
         })?;
-        let text = std::fs::read_to_string(out.join("report.md"))
-            .with_context(|| format!("reading {}", out.join("report.md").display()))?;
+        let summary = render::headline(&result);
         // Demote the experiment's title under the demo's.
         writeln!(
             report,

@@ -7,9 +7,8 @@ mod demo;
 mod experiment;
 mod mesh;
 mod plots;
-mod policies;
+mod render;
 mod simulate;
-mod story;
 
 use clap::{Parser, Subcommand};
 

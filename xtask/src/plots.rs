@@ -6,6 +6,7 @@ use std::path::Path;
 use std::sync::Once;
 
 use anyhow::{Context, Result, anyhow};
+use deform_learn::experiment::Series;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font};
@@ -34,13 +35,13 @@ pub fn plot(
     title: &str,
     x_label: &str,
     y_label: &str,
-    series: &[(String, Vec<f64>)],
+    series: &[Series],
     log: bool,
 ) -> Result<()> {
     let points: Points = series
         .iter()
-        .map(|(name, v)| {
-            let p = v
+        .map(|Series { name, values }| {
+            let p = values
                 .iter()
                 .enumerate()
                 .filter(|(_, y)| y.is_finite() && (!log || **y > 0.0))

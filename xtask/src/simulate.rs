@@ -2,12 +2,13 @@
 //! bar and writes `.vtu` frames, a `.pvd` series, a per-step CSV and a summary.
 
 use std::fmt::Write as _;
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use deform_integrator::{Scene, StepReport};
+use deform_integrator::{Observer, RunOptions, Scene, State, StepReport};
 use deform_mesh::io::{Pvd, Vtu, write_atomic};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -102,59 +103,39 @@ pub fn simulate(
         )
         .expect("a valid template"),
     );
-    let mut csv = String::from(
-        "step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n",
-    );
-    let masses = sim.assembly().vertex_masses(sim.mass());
-    let (mut newton, mut linear, mut seconds) = (0, 0, 0.0);
+    let mut log = StepLog {
+        csv: String::from(
+            "step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n",
+        ),
+        masses: sim.assembly().vertex_masses(sim.mass()),
+        tracked,
+        bar: &bar,
+        frame: &mut |step: usize, state: &State| {
+            if scene.output.every > 0 && step.is_multiple_of(scene.output.every) {
+                write_frame(&mut pvd, step, &state.x, &state.v, state.t)?;
+            }
+            Ok(())
+        },
+        error: None,
+    };
     let started = Instant::now();
-    for step in 1..=steps {
-        let report: StepReport = sim.step(&mut state).with_context(|| {
-            format!(
-                "{}: step {step} (t = {:.4} s) failed",
-                scene_path.display(),
-                state.t
-            )
-        })?;
-        newton += report.newton_iterations();
-        linear += report.linear_iterations();
-        seconds += report.seconds;
-        let kinetic: f64 = state
-            .v
-            .iter()
-            .enumerate()
-            .map(|(i, v)| 0.5 * masses[i / 3] * v * v)
-            .sum();
-        writeln!(
-            csv,
-            "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9}",
-            report.t,
-            report.dt,
-            report.newton_iterations(),
-            report.linear_iterations(),
-            report.initial_residual,
-            report.final_residual,
-            report.energy,
-            kinetic,
-            report.flops(),
-            report.seconds,
-            report.retries,
-            state.x[3 * tracked],
-            state.x[3 * tracked + 1],
-            state.x[3 * tracked + 2]
-        )?;
-        if scene.output.every > 0 && step % scene.output.every == 0 {
-            write_frame(&mut pvd, step, &state.x, &state.v, state.t)?;
-        }
-        bar.set_message(format!(
-            "t={:.3}s newton={} linear={} {:.0} ms/step",
-            state.t,
-            report.newton_iterations(),
-            report.linear_iterations(),
-            1e3 * report.seconds
-        ));
-        bar.inc(1);
+    let run = sim.run(&mut state, &RunOptions::steps(steps), &mut log);
+    if let Some(e) = log.error {
+        return Err(e);
     }
+    let run = run.into_result().with_context(|| {
+        format!(
+            "{}: step (t = {:.4} s) failed",
+            scene_path.display(),
+            state.t
+        )
+    })?;
+    let csv = log.csv;
+    let (newton, linear, seconds) = (
+        run.newton_iterations,
+        run.linear_iterations,
+        run.step_seconds,
+    );
     bar.finish_and_clear();
     write_atomic(&out.join("steps.csv"), |w| w.write_all(csv.as_bytes()))?;
     let summary = RunSummary {
@@ -187,4 +168,58 @@ pub fn simulate(
     );
     write_atomic(&out.join("summary.txt"), |w| w.write_all(text.as_bytes()))?;
     Ok(summary)
+}
+
+/// Writes `steps.csv` rows and frames and moves the bar, step by step.
+struct StepLog<'a> {
+    csv: String,
+    masses: Vec<f64>,
+    tracked: usize,
+    bar: &'a ProgressBar,
+    frame: &'a mut dyn FnMut(usize, &State) -> Result<()>,
+    error: Option<anyhow::Error>,
+}
+
+impl Observer for StepLog<'_> {
+    fn step(&mut self, report: &StepReport, state: &State) -> ControlFlow<()> {
+        let step = report.step + 1;
+        let kinetic: f64 = state
+            .v
+            .iter()
+            .enumerate()
+            .map(|(i, v)| 0.5 * self.masses[i / 3] * v * v)
+            .sum();
+        let tracked = &state.x[3 * self.tracked..3 * self.tracked + 3];
+        let _ = writeln!(
+            self.csv,
+            "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9}",
+            report.t,
+            report.dt,
+            report.newton_iterations(),
+            report.linear_iterations(),
+            report.initial_residual,
+            report.final_residual,
+            report.energy,
+            kinetic,
+            report.flops(),
+            report.seconds,
+            report.retries,
+            tracked[0],
+            tracked[1],
+            tracked[2]
+        );
+        if let Err(e) = (self.frame)(step, state) {
+            self.error = Some(e);
+            return ControlFlow::Break(());
+        }
+        self.bar.set_message(format!(
+            "t={:.3}s newton={} linear={} {:.0} ms/step",
+            state.t,
+            report.newton_iterations(),
+            report.linear_iterations(),
+            1e3 * report.seconds
+        ));
+        self.bar.inc(1);
+        ControlFlow::Continue(())
+    }
 }

@@ -17,9 +17,8 @@ use thiserror::Error;
 
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{PolicyContext, SolverPolicy, spec_name};
-use crate::report::{
-    CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport,
-};
+use crate::report::{CandidateOutcome, IterationReport, StepError, StepReport};
+use crate::run::{NoObserver, Observer};
 use crate::state::{Constraint, State};
 
 /// Lumped or consistent mass.
@@ -204,7 +203,6 @@ pub struct Integrator {
     /// Counterfactual candidates, each with its own kept instance.
     candidates: KeptSolvers,
     policy: Box<dyn SolverPolicy>,
-    observer: Box<dyn Observer>,
     steps_taken: usize,
 }
 
@@ -295,7 +293,6 @@ impl Integrator {
             solvers: Vec::new(),
             candidates: Vec::new(),
             policy,
-            observer: Box::new(NoObserver),
             steps_taken: 0,
         })
     }
@@ -360,11 +357,6 @@ impl Integrator {
         Ok(())
     }
 
-    /// Replaces the observer.
-    pub fn set_observer(&mut self, observer: Box<dyn Observer>) {
-        self.observer = observer;
-    }
-
     /// Gravity forces `M g`.
     pub fn gravity_forces(&self) -> &[f64] {
         &self.gravity_forces
@@ -405,13 +397,25 @@ impl Integrator {
     /// # Errors
     /// [`StepError`] with the report up to the failure.
     pub fn step(&mut self, state: &mut State) -> Result<StepReport, StepError> {
+        self.step_observed(state, &mut NoObserver)
+    }
+
+    /// [`step`](Self::step), with every Newton iteration going to `observer` (its `step`
+    /// method is the run executor's to call, [`Integrator::run`]).
+    ///
+    /// # Errors
+    /// [`StepError`] with the report up to the failure.
+    pub fn step_observed(
+        &mut self,
+        state: &mut State,
+        observer: &mut dyn Observer,
+    ) -> Result<StepReport, StepError> {
         let start = Instant::now();
         let dt = self.options.dt;
-        let mut report = self.advance(state, dt, 0)?;
+        let mut report = self.advance(state, dt, 0, observer)?;
         report.step = self.steps_taken;
         report.seconds = start.elapsed().as_secs_f64();
         self.steps_taken += 1;
-        self.observer.step(&report);
         Ok(report)
     }
 
@@ -421,8 +425,9 @@ impl Integrator {
         state: &mut State,
         dt: f64,
         depth: usize,
+        observer: &mut dyn Observer,
     ) -> Result<StepReport, StepError> {
-        match self.newton(state, Mode::Dynamic { dt }) {
+        match self.newton(state, Mode::Dynamic { dt }, observer) {
             Ok((next, report)) => {
                 *state = next;
                 Ok(report)
@@ -431,10 +436,10 @@ impl Integrator {
                 let earlier = e.report().iterations.clone();
                 let mut half = state.clone();
                 let first = self
-                    .advance(&mut half, dt / 2.0, depth + 1)
+                    .advance(&mut half, dt / 2.0, depth + 1, observer)
                     .map_err(|e2| e2.with_earlier(&earlier, depth + 1))?;
                 let second = self
-                    .advance(&mut half, dt / 2.0, depth + 1)
+                    .advance(&mut half, dt / 2.0, depth + 1, observer)
                     .map_err(|e2| e2.with_earlier(&earlier, depth + 1))?;
                 *state = half;
                 let mut iterations = earlier;
@@ -459,14 +464,19 @@ impl Integrator {
     /// [`StepError`] with the report.
     pub fn solve_static(&mut self, state: &mut State) -> Result<StepReport, StepError> {
         let start = Instant::now();
-        let (next, mut report) = self.newton(state, Mode::Static)?;
+        let (next, mut report) = self.newton(state, Mode::Static, &mut NoObserver)?;
         *state = next;
         report.seconds = start.elapsed().as_secs_f64();
         Ok(report)
     }
 
     /// Newton on the unknown `u` (`v` when dynamic, `x` when static).
-    fn newton(&mut self, state: &State, mode: Mode) -> Result<(State, StepReport), StepError> {
+    fn newton(
+        &mut self,
+        state: &State,
+        mode: Mode,
+        observer: &mut dyn Observer,
+    ) -> Result<(State, StepReport), StepError> {
         let n = self.asm.num_dofs();
         let opts = self.options.clone();
         let (t1, dt) = match mode {
@@ -740,7 +750,7 @@ impl Integrator {
                 candidates,
                 discarded: std::mem::take(&mut discarded),
             };
-            self.observer.iteration(&it);
+            observer.iteration(&it);
             self.policy.observe(&context(&report.iterations), &it);
             report.iterations.push(it);
             iteration += 1;

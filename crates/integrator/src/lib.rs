@@ -37,6 +37,7 @@ mod integrator;
 mod matrix_free;
 mod policy;
 mod report;
+mod run;
 pub mod scene;
 mod state;
 
@@ -48,6 +49,7 @@ pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,
     StaleFactor, is_stale_cholesky, spec_name,
 };
-pub use report::{CandidateOutcome, IterationReport, NoObserver, Observer, StepError, StepReport};
+pub use report::{CandidateOutcome, IterationReport, StepError, StepReport};
+pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};
 pub use scene::{Scene, SceneError};
 pub use state::{Constraint, Motion, State};

@@ -126,6 +126,11 @@ impl StepReport {
         self.iterations.len()
     }
 
+    /// Iterations whose chosen solver failed and the direct one was used instead.
+    pub fn fallbacks(&self) -> usize {
+        self.iterations.iter().filter(|i| i.fallback).count()
+    }
+
     /// Linear-solver iterations summed over the step.
     pub fn linear_iterations(&self) -> usize {
         self.iterations.iter().map(|i| i.solve.iterations).sum()
@@ -229,17 +234,3 @@ impl StepError {
         self
     }
 }
-
-/// Receives every iteration and step as they happen (progress bars, logs, learning data).
-pub trait Observer: Send {
-    /// After each Newton iteration.
-    fn iteration(&mut self, _report: &IterationReport) {}
-    /// After each step.
-    fn step(&mut self, _report: &StepReport) {}
-}
-
-/// The default observer: does nothing.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct NoObserver;
-
-impl Observer for NoObserver {}

@@ -1,12 +1,13 @@
 //! Backward Euler against analytic cases (free fall, momentum), dissipation, equilibrium,
 //! agreement of every solver policy, kinematic constraints, typed failures and reports.
 
-use std::sync::{Arc, Mutex};
+use std::ops::ControlFlow;
 
 use deform_assembly::MaterialField;
 use deform_integrator::{
     Constraint, Integrator, IntegratorError, IntegratorOptions, IterationReport, Motion,
-    NewtonOptions, Observer, PolicySpec, State, StepError, StepReport,
+    NewtonOptions, NoObserver, Observer, PolicySpec, RunOptions, State, StepError, StepReport,
+    Termination, Until,
 };
 use deform_materials::MaterialSpec;
 use deform_mesh::TetMesh;
@@ -431,16 +432,17 @@ fn halved_retries_recover_from_a_hard_step() {
 struct Recorder {
     iterations: Vec<IterationReport>,
     steps: Vec<StepReport>,
+    times: Vec<f64>,
 }
 
-struct Shared(Arc<Mutex<Recorder>>);
-
-impl Observer for Shared {
+impl Observer for Recorder {
     fn iteration(&mut self, r: &IterationReport) {
-        self.0.lock().unwrap().iterations.push(r.clone());
+        self.iterations.push(r.clone());
     }
-    fn step(&mut self, r: &StepReport) {
-        self.0.lock().unwrap().steps.push(r.clone());
+    fn step(&mut self, r: &StepReport, state: &State) -> ControlFlow<()> {
+        self.steps.push(r.clone());
+        self.times.push(state.t);
+        ControlFlow::Continue(())
     }
 }
 
@@ -453,13 +455,16 @@ fn observers_see_every_iteration_and_newton_converges_fast() {
         IntegratorOptions::default(),
         "Fixed(Direct())",
     );
-    let recorder = Arc::new(Mutex::new(Recorder::default()));
-    s.set_observer(Box::new(Shared(recorder.clone())));
+    let mut recorder = Recorder::default();
     let mut state = s.rest_state();
-    let mut total = 0;
-    for _ in 0..3 {
-        let r = s.step(&mut state).unwrap();
-        total += r.newton_iterations();
+    let summary = s.run(
+        &mut state,
+        &RunOptions::steps(3).keeping_reports(),
+        &mut recorder,
+    );
+    assert!(matches!(summary.termination, Termination::Completed));
+    assert_eq!(summary.steps, 3);
+    for r in &summary.reports {
         assert!(
             r.newton_iterations() <= 6,
             "{} Newton iterations",
@@ -470,10 +475,96 @@ fn observers_see_every_iteration_and_newton_converges_fast() {
         );
         assert!(r.flops() > 0);
     }
-    let rec = recorder.lock().unwrap();
-    assert_eq!(rec.iterations.len(), total);
-    assert_eq!(rec.steps.len(), 3);
-    assert_eq!(rec.steps[2].step, 2);
+    // The summary's totals are the sums of the steps' figures.
+    let total: usize = summary.reports.iter().map(|r| r.newton_iterations()).sum();
+    assert_eq!(summary.newton_iterations, total);
+    assert_eq!(
+        summary.flops,
+        summary.reports.iter().map(|r| r.flops()).sum::<u64>()
+    );
+    assert_eq!(recorder.iterations.len(), total);
+    assert_eq!(recorder.steps.len(), 3);
+    assert_eq!(recorder.steps[2].step, 2);
+    for (k, t) in recorder.times.iter().enumerate() {
+        assert!(
+            (t - 0.01 * (k + 1) as f64).abs() < 1e-15,
+            "t = {t} after step {k}"
+        );
+    }
+}
+
+#[test]
+fn runs_end_at_a_time_when_the_observer_stops_or_when_a_step_fails() {
+    let mesh = beam();
+    let mut s = sim(
+        &mesh,
+        clamp(&mesh),
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    // Until a time: 0.025 s at dt 0.01 is three whole steps, 0.03 is three too (rounding).
+    let mut state = s.rest_state();
+    let summary = s.run(
+        &mut state,
+        &RunOptions {
+            until: Until::Time(0.025),
+            factor_weight: 1.0,
+            keep_reports: false,
+        },
+        &mut NoObserver,
+    );
+    assert_eq!(summary.steps, 3);
+    let mut state = s.rest_state();
+    let summary = s.run(
+        &mut state,
+        &RunOptions {
+            until: Until::Time(0.03),
+            factor_weight: 1.0,
+            keep_reports: false,
+        },
+        &mut NoObserver,
+    );
+    assert_eq!(summary.steps, 3);
+    // The observer stops after the second step.
+    struct StopAt(usize);
+    impl Observer for StopAt {
+        fn step(&mut self, r: &StepReport, _: &State) -> ControlFlow<()> {
+            if r.step + 1 >= self.0 {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        }
+    }
+    let mut s = sim(
+        &mesh,
+        clamp(&mesh),
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let mut state = s.rest_state();
+    let summary = s.run(&mut state, &RunOptions::steps(10), &mut StopAt(2));
+    assert!(matches!(
+        summary.termination,
+        Termination::Stopped { after: 1 }
+    ));
+    assert_eq!(summary.steps, 2);
+    // A step that cannot converge: the state before it is kept, the error is typed.
+    let mut opts = IntegratorOptions::default();
+    opts.newton.max_iterations = 1;
+    opts.newton.rel = 1e-14;
+    opts.newton.abs = 0.0;
+    opts.max_retries = 0;
+    let mut s = sim(&mesh, clamp(&mesh), opts, "Fixed(Direct())");
+    let mut state = s.rest_state();
+    let before = state.clone();
+    let summary = s.run(&mut state, &RunOptions::steps(4), &mut NoObserver);
+    assert!(summary.failed());
+    assert_eq!(summary.steps, 0);
+    assert_eq!(state.x, before.x);
+    let err = summary.into_result().unwrap_err();
+    assert_eq!(err.step, 0);
+    assert!(matches!(*err.source, StepError::NotConverged { .. }));
 }
 
 /// Total energy: kinetic + elastic + gravitational (`-x . M g`).

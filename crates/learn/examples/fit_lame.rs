@@ -6,6 +6,7 @@
 use std::path::Path;
 
 use deform_integrator::Scene;
+use deform_learn::DatasetSpec;
 use deform_learn::{
     EquationErrorOptions, Noise, OutputErrorOptions, Split, Variations, dataset,
     fit_equation_error, fit_output_error,
@@ -28,11 +29,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut data = dataset::generate(
         &scene,
         origin,
-        5,
-        20,
-        42,
-        &Variations::default(),
-        (0.6, 0.2),
+        &DatasetSpec {
+            variations: Variations::default(),
+            split: (0.6, 0.2),
+            ..DatasetSpec::new(5, 20, 42)
+        },
         |_, _| {},
     )?;
     let mut sim = scene.build(origin)?.integrator;

@@ -13,7 +13,7 @@
 use std::path::{Path, PathBuf};
 
 use deform_integrator::scene::{Built, Initial};
-use deform_integrator::{Scene, State, StepError};
+use deform_integrator::{OnStep, RunOptions, Scene, State, StepError, StepReport, Termination};
 use deform_mesh::io::write_atomic;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -180,22 +180,72 @@ fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
     }
 }
 
-/// Generates `count` trajectories of `steps` steps from `scene` (its `initial` is replaced
-/// by random variations drawn from `seed`), split `(train, validation)` by fraction, the
-/// rest test. `progress` is called after every step.
+/// How to make the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetSpec {
+    /// Number of trajectories.
+    pub trajectories: usize,
+    /// Steps per trajectory.
+    pub steps: usize,
+    /// Seed of the initial-condition variations.
+    pub seed: u64,
+    /// Initial-condition variations.
+    #[serde(default)]
+    pub variations: Variations,
+    /// Train and validation fractions (the rest is test).
+    #[serde(default = "default_split")]
+    pub split: (f64, f64),
+    /// Noise added to the data.
+    #[serde(default)]
+    pub noise: Option<Noise>,
+    /// Learn a model that steps `subsample` times coarser than the base: the data keep every
+    /// `subsample`-th state and the learned scene uses `subsample x dt` (the seed's accuracy
+    /// claim: a cheap model fitted to an accurate one). 1 learns at the base's own step.
+    #[serde(default = "one")]
+    pub subsample: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+fn default_split() -> (f64, f64) {
+    (0.6, 0.2)
+}
+
+impl DatasetSpec {
+    /// `trajectories` trajectories of `steps` steps from `seed`, no variations beyond the
+    /// defaults, split 0.6 / 0.2, no noise, the base's own step.
+    pub fn new(trajectories: usize, steps: usize, seed: u64) -> Self {
+        Self {
+            trajectories,
+            steps,
+            seed,
+            variations: Variations::default(),
+            split: default_split(),
+            noise: None,
+            subsample: 1,
+        }
+    }
+}
+
+/// Generates `spec.trajectories` trajectories of `spec.steps` steps from `scene` (its
+/// `initial` is replaced by random variations drawn from `spec.seed`), split
+/// `(train, validation)` by `spec.split`, the rest test. `progress(trajectory, step)` is
+/// called after every step. Noise and subsampling are the caller's ([`Dataset::add_noise`],
+/// [`Dataset::subsample`]).
 ///
 /// # Errors
 /// [`DatasetError`] naming the trajectory and step that failed.
 pub fn generate(
     scene: &Scene,
     origin: &Path,
-    count: usize,
-    steps: usize,
-    seed: u64,
-    variations: &Variations,
-    fractions: (f64, f64),
+    spec: &DatasetSpec,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<Dataset, DatasetError> {
+    let (count, steps, seed) = (spec.trajectories, spec.steps, spec.seed);
+    let (variations, fractions) = (&spec.variations, spec.split);
     let mut rng = Rng::new(seed);
     let mut trajectories = Vec::with_capacity(count);
     let mut metas = Vec::with_capacity(count);
@@ -233,17 +283,21 @@ pub fn generate(
             x: vec![state.x.clone()],
             v: vec![state.v.clone()],
         };
-        for step in 0..steps {
-            integrator
-                .step(&mut state)
-                .map_err(|e| DatasetError::Step {
-                    trajectory: k,
-                    step,
-                    source: Box::new(e),
-                })?;
-            traj.x.push(state.x.clone());
-            traj.v.push(state.v.clone());
-            progress(k, step);
+        let summary = integrator.run(
+            &mut state,
+            &RunOptions::steps(steps),
+            &mut OnStep(|report: &StepReport, state: &State| {
+                traj.x.push(state.x.clone());
+                traj.v.push(state.v.clone());
+                progress(k, report.step);
+            }),
+        );
+        if let Termination::Failed { step, error } = summary.termination {
+            return Err(DatasetError::Step {
+                trajectory: k,
+                step,
+                source: error,
+            });
         }
         metas.push(TrajectoryMeta {
             name: format!("traj_{k:03}"),

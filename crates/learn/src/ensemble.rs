@@ -1,5 +1,6 @@
 //! Model selection (seed: "an ensemble ... learn the best configuration of the weights"):
-//! a weighted sum of linear, corotated, StVK, Neo-Hookean and stable Neo-Hookean energies,
+//! a weighted sum of linear, corotated, fixed corotated, StVK, Neo-Hookean and stable
+//! Neo-Hookean energies ([`Member`]),
 //! fitted by the equation error with non-negative coefficients. Each member `m` contributes
 //! the term pair `w_m (mu_m, lambda_m)`, so the fit finds every member's effective Lame pair
 //! at once; a member the data do not support gets zero. Stage 2 ([`refine_ensemble`]) then
@@ -18,33 +19,61 @@ use crate::dataset::Trajectory;
 use crate::fit::{EquationErrorOptions, FitError, fit_equation_error};
 use crate::output::{OutputErrorFit, OutputErrorOptions, fit_output_error, term_coefficients};
 
-/// The candidate members, by name.
-pub const MEMBERS: [&str; 5] = [
-    "LinearElastic",
-    "CorotatedLinear",
-    "StVenantKirchhoff",
-    "NeoHookean",
-    "StableNeoHookean",
-];
+/// An ensemble member: one of deform's single energy models. In RON: `NeoHookean`, ...
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Member {
+    /// Linear isotropic (small strain).
+    LinearElastic,
+    /// Corotated linear.
+    CorotatedLinear,
+    /// Fixed corotated (Stomakhin et al. 2012).
+    FixedCorotated,
+    /// St. Venant-Kirchhoff.
+    StVenantKirchhoff,
+    /// Neo-Hookean.
+    NeoHookean,
+    /// Stable Neo-Hookean (Smith et al. 2018).
+    StableNeoHookean,
+}
 
-fn member_spec(name: &str, lame: Moduli) -> MaterialSpec {
-    match name {
-        "LinearElastic" => MaterialSpec::LinearElastic(lame),
-        "CorotatedLinear" => MaterialSpec::CorotatedLinear {
-            moduli: lame,
-            lagged_rotation: false,
-        },
-        "StVenantKirchhoff" => MaterialSpec::StVenantKirchhoff(lame),
-        "NeoHookean" => MaterialSpec::NeoHookean(lame),
-        _ => MaterialSpec::StableNeoHookean(lame),
+impl Member {
+    /// Every member.
+    pub const ALL: [Member; 6] = [
+        Member::LinearElastic,
+        Member::CorotatedLinear,
+        Member::FixedCorotated,
+        Member::StVenantKirchhoff,
+        Member::NeoHookean,
+        Member::StableNeoHookean,
+    ];
+
+    /// The member's material with the given moduli.
+    pub fn spec(self, moduli: Moduli) -> MaterialSpec {
+        match self {
+            Member::LinearElastic => MaterialSpec::LinearElastic(moduli),
+            Member::CorotatedLinear => MaterialSpec::CorotatedLinear {
+                moduli,
+                lagged_rotation: false,
+            },
+            Member::FixedCorotated => MaterialSpec::FixedCorotated(moduli),
+            Member::StVenantKirchhoff => MaterialSpec::StVenantKirchhoff(moduli),
+            Member::NeoHookean => MaterialSpec::NeoHookean(moduli),
+            Member::StableNeoHookean => MaterialSpec::StableNeoHookean(moduli),
+        }
+    }
+}
+
+impl std::fmt::Display for Member {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        std::fmt::Debug::fmt(self, f)
     }
 }
 
 /// One fitted member.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FittedMember {
-    /// Model name.
-    pub model: String,
+    /// The model.
+    pub model: Member,
     /// Effective `mu` (weight times the member's own).
     pub mu: f64,
     /// Effective `lambda`.
@@ -79,20 +108,17 @@ impl EnsembleFit {
             .filter(|m| m.kept())
             .map(|m| EnsembleMember {
                 weight: 1.0,
-                model: member_spec(
-                    &m.model,
-                    Moduli::Lame {
-                        mu: m.mu,
-                        lambda: m.lambda,
-                    },
-                ),
+                model: m.model.spec(Moduli::Lame {
+                    mu: m.mu,
+                    lambda: m.lambda,
+                }),
             })
             .collect();
         (!members.is_empty()).then_some(MaterialSpec::Ensemble(members))
     }
 }
 
-/// Fits an ensemble of the models `names` (from [`MEMBERS`]) to `train` with the equation
+/// Fits an ensemble of the models `names` to `train` with the equation
 /// error, using `scene`'s mesh, constraints and integrator options; reports energy shares on
 /// the states of `evaluate`.
 ///
@@ -101,7 +127,7 @@ impl EnsembleFit {
 pub fn fit_ensemble(
     scene: &Scene,
     origin: &Path,
-    names: &[&str],
+    names: &[Member],
     train: &[&Trajectory],
     evaluate: &[&Trajectory],
 ) -> Result<EnsembleFit, FitError> {
@@ -116,7 +142,7 @@ pub fn fit_ensemble(
             .iter()
             .map(|n| EnsembleMember {
                 weight: 1.0,
-                model: member_spec(n, start),
+                model: n.spec(start),
             })
             .collect(),
     );
@@ -129,7 +155,7 @@ pub fn fit_ensemble(
         .iter()
         .enumerate()
         .map(|(m, n)| FittedMember {
-            model: (*n).to_owned(),
+            model: *n,
             mu: fit.coefficients[2 * m],
             lambda: fit.coefficients[2 * m + 1],
             energy_share: 0.0,
@@ -190,7 +216,7 @@ fn energy_shares(
 ) -> Result<(), FitError> {
     let mut energy = vec![0.0; members.len()];
     for (m, member) in members.iter().enumerate() {
-        let Some(model) = model_of(&member.model, member.mu, member.lambda) else {
+        let Some(model) = model_of(member.model, member.mu, member.lambda) else {
             continue;
         };
         let mut asm =
@@ -217,18 +243,16 @@ fn energy_shares(
 
 /// A member with its effective Lame pair, or `None` when it carries nothing. The pair may
 /// have `lambda = 0` (then `Lame::try_new` is given a tiny positive bulk part if needed).
-fn model_of(name: &str, mu: f64, lambda: f64) -> Option<Model> {
+fn model_of(member: Member, mu: f64, lambda: f64) -> Option<Model> {
     if mu <= 0.0 && lambda <= 0.0 {
         return None;
     }
     let lame = Lame::try_new(mu.max(1e-12), lambda).ok()?;
-    member_spec(
-        name,
-        Moduli::Lame {
+    member
+        .spec(Moduli::Lame {
             mu: lame.mu,
             lambda: lame.lambda,
-        },
-    )
-    .build()
-    .ok()
+        })
+        .build()
+        .ok()
 }

@@ -6,19 +6,25 @@
 //! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]); every
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
 
+pub mod compare;
 pub mod dataset;
 pub mod ensemble;
+mod error;
 pub mod experiment;
 pub mod fit;
 pub mod npy;
 pub mod output;
 pub mod policy;
 pub mod rng;
+pub mod rollout;
 pub mod solver_data;
 pub mod tuning;
 
-pub use dataset::{Dataset, DatasetError, DatasetMeta, Noise, Split, Trajectory, Variations};
-pub use ensemble::{EnsembleFit, FittedMember, fit_ensemble, refine_ensemble};
+pub use dataset::{
+    Dataset, DatasetError, DatasetMeta, DatasetSpec, Noise, Split, Trajectory, Variations,
+};
+pub use ensemble::{EnsembleFit, FittedMember, Member, fit_ensemble, refine_ensemble};
+pub use error::LearnError;
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
 pub use output::{
     OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error,

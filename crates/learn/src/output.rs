@@ -33,7 +33,7 @@ use argmin::core::{
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 use deform_assembly::{Grouping, MaterialField, Tangent};
-use deform_integrator::{Integrator, State};
+use deform_integrator::{Integrator, OnStep, RunOptions, State, StepReport};
 use deform_materials::{MaterialError, Model, Parametric};
 use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
@@ -215,13 +215,21 @@ impl<'a> OutputError<'a> {
                     v: t.v[start].clone(),
                     t: start as f64 * dt,
                 }];
-                for k in 0..len {
-                    let mut s = states[k].clone();
-                    sim.step(&mut s).map_err(|e| FitError::Data {
+                let mut s = states[0].clone();
+                let summary = sim.run(
+                    &mut s,
+                    &RunOptions::steps(len),
+                    &mut OnStep(|_: &StepReport, state: &State| states.push(state.clone())),
+                );
+                if let Some(e) = summary.into_result().err() {
+                    return Err(FitError::Data {
                         index: ti,
-                        reason: format!("step {} at coefficients {c:?}: {e}", start + k),
-                    })?;
-                    states.push(s);
+                        reason: format!(
+                            "step {} at coefficients {c:?}: {}",
+                            start + e.step,
+                            e.source
+                        ),
+                    });
                 }
                 // Loss terms and their partial derivatives per predicted state.
                 let mut dl_dx = vec![vec![0.0; n]; len + 1];

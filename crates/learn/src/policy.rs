@@ -42,6 +42,13 @@ const USED: [usize; 7] = [1, 2, 3, 4, 5, 6, 7];
 /// Column of `log10_free_dofs` in `FEATURES`.
 const LOG_DOFS: usize = 6;
 
+/// Default neighbours of the iteration model.
+pub const DEFAULT_NEIGHBOURS: usize = 5;
+/// Default minimum predicted success rate.
+pub const DEFAULT_MIN_SUCCESS: f64 = 0.9;
+/// Default Eisenstat-Walker forcing terms `(eta_max, gamma)` of inexact Newton.
+pub const DEFAULT_FORCING: (f64, f64) = (0.1, 0.9);
+
 /// Options of the learned policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolicyOptions {

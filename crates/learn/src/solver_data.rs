@@ -12,7 +12,9 @@
 
 use std::path::{Path, PathBuf};
 
-use deform_integrator::{IterationReport, Scene};
+use deform_integrator::{
+    IterationReport, OnStep, RunOptions, Scene, State, StepReport, Termination,
+};
 use deform_mesh::io::write_atomic;
 use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
@@ -164,12 +166,8 @@ pub fn collect(
         outcomes: Vec::new(),
     };
     let mut ages = vec![0usize; candidates.len()];
-    for step in 0..steps {
-        let report = sim.step(&mut state).map_err(|e| DatasetError::Step {
-            trajectory: 0,
-            step,
-            source: Box::new(e),
-        })?;
+    let mut record = |report: &StepReport| {
+        let step = report.step;
         for k in 0..report.iterations.len() {
             data.features
                 .push(features(step, &report.iterations, k, dt, free, young));
@@ -203,6 +201,18 @@ pub fn collect(
             );
         }
         progress(step);
+    };
+    let summary = sim.run(
+        &mut state,
+        &RunOptions::steps(steps),
+        &mut OnStep(|report: &StepReport, _: &State| record(report)),
+    );
+    if let Termination::Failed { step, error } = summary.termination {
+        return Err(DatasetError::Step {
+            trajectory: 0,
+            step,
+            source: error,
+        });
     }
     Ok(data)
 }

@@ -18,7 +18,10 @@ use std::path::Path;
 
 use argmin::core::{CostFunction, Error as ArgminError, Executor};
 use argmin::solver::neldermead::NelderMead;
-use deform_integrator::{Fixed, IntegratorOptions, Scene, SolverPolicy, StaleFactor};
+use deform_integrator::{
+    Fixed, IntegratorOptions, OnStep, RunOptions, Scene, SolverPolicy, StaleFactor, State,
+    StepReport,
+};
 
 use crate::solver_data::Run;
 use deform_solvers::{SolverSpec, Tolerance};
@@ -124,13 +127,19 @@ impl Problem<'_> {
                 return sample(f64::NAN, f64::NAN, f64::INFINITY);
             }
             built.integrator.set_policy(policy);
-            for n in 0..*steps {
-                match built.integrator.step(&mut built.state) {
-                    Ok(r) => work += r.work(self.factor_weight),
-                    Err(_) => return sample(f64::NAN, f64::INFINITY, f64::INFINITY),
-                }
-                error = error.max(reference.error(n, &built.state.x));
+            let mut n = 0;
+            let summary = built.integrator.run(
+                &mut built.state,
+                &RunOptions::steps(*steps).with_factor_weight(self.factor_weight),
+                &mut OnStep(|_: &StepReport, state: &State| {
+                    error = error.max(reference.error(n, &state.x));
+                    n += 1;
+                }),
+            );
+            if summary.failed() {
+                return sample(f64::NAN, f64::INFINITY, f64::INFINITY);
             }
+            work += summary.work;
         }
         let penalty = if error > self.accuracy {
             1.0 + 10.0 * error / self.accuracy
@@ -321,13 +330,15 @@ impl Reference {
             .build(origin)
             .map_err(|e| fail(e.to_string()))?;
         let mut positions = Vec::with_capacity(steps);
-        for _ in 0..steps {
-            built
-                .integrator
-                .step(&mut built.state)
-                .map_err(|e| fail(e.to_string()))?;
-            positions.push(built.state.x.clone());
-        }
+        built
+            .integrator
+            .run(
+                &mut built.state,
+                &RunOptions::steps(steps),
+                &mut OnStep(|_: &StepReport, state: &State| positions.push(state.x.clone())),
+            )
+            .into_result()
+            .map_err(|e| fail(e.to_string()))?;
         let scale = positions
             .iter()
             .flatten()

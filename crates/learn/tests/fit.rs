@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use deform_integrator::Scene;
+use deform_learn::DatasetSpec;
 use deform_learn::dataset::{self, generate, import_trajectory};
 use deform_learn::fit::lame_of;
 use deform_learn::{
@@ -35,11 +36,11 @@ fn make(scene: &Scene, count: usize, steps: usize) -> Dataset {
     generate(
         scene,
         Path::new("test"),
-        count,
-        steps,
-        42,
-        &Variations::default(),
-        (0.6, 0.2),
+        &DatasetSpec {
+            variations: Variations::default(),
+            split: (0.6, 0.2),
+            ..DatasetSpec::new(count, steps, 42)
+        },
         |_, _| {},
     )
     .unwrap()
@@ -76,11 +77,11 @@ fn datasets_round_trip_through_disk_and_split_by_trajectory() {
     let other = generate(
         &s,
         Path::new("t"),
-        5,
-        4,
-        43,
-        &Variations::default(),
-        (0.6, 0.2),
+        &DatasetSpec {
+            variations: Variations::default(),
+            split: (0.6, 0.2),
+            ..DatasetSpec::new(5, 4, 43)
+        },
         |_, _| {},
     )
     .unwrap();
@@ -450,11 +451,12 @@ fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
 
 #[test]
 fn the_generating_model_carries_the_ensemble() {
+    use deform_learn::Member;
     let members = [
-        "LinearElastic",
-        "CorotatedLinear",
-        "StVenantKirchhoff",
-        "NeoHookean",
+        Member::LinearElastic,
+        Member::CorotatedLinear,
+        Member::StVenantKirchhoff,
+        Member::NeoHookean,
     ];
     let variations = Variations {
         speed: 2.0,
@@ -463,7 +465,7 @@ fn the_generating_model_carries_the_ensemble() {
         rest: false,
     };
     for base in members {
-        let spec = if base == "CorotatedLinear" {
+        let spec = if base == Member::CorotatedLinear {
             "CorotatedLinear(moduli: Young(e: 1e5, nu: 0.3))".to_owned()
         } else {
             format!("{base}(Young(e: 1e5, nu: 0.3))")
@@ -473,11 +475,11 @@ fn the_generating_model_carries_the_ensemble() {
         let data = generate(
             &s,
             Path::new("test"),
-            5,
-            12,
-            3,
-            &variations,
-            (0.6, 0.2),
+            &DatasetSpec {
+                variations: variations.clone(),
+                split: (0.6, 0.2),
+                ..DatasetSpec::new(5, 12, 3)
+            },
             |_, _| {},
         )
         .unwrap();

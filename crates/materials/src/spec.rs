@@ -53,6 +53,25 @@ pub struct EnsembleMember {
 }
 
 impl MaterialSpec {
+    /// The same single model with its moduli replaced (`None` for an ensemble, whose
+    /// members each have their own).
+    pub fn with_moduli(&self, moduli: Moduli) -> Option<MaterialSpec> {
+        Some(match self {
+            MaterialSpec::LinearElastic(_) => MaterialSpec::LinearElastic(moduli),
+            MaterialSpec::CorotatedLinear {
+                lagged_rotation, ..
+            } => MaterialSpec::CorotatedLinear {
+                moduli,
+                lagged_rotation: *lagged_rotation,
+            },
+            MaterialSpec::FixedCorotated(_) => MaterialSpec::FixedCorotated(moduli),
+            MaterialSpec::StVenantKirchhoff(_) => MaterialSpec::StVenantKirchhoff(moduli),
+            MaterialSpec::NeoHookean(_) => MaterialSpec::NeoHookean(moduli),
+            MaterialSpec::StableNeoHookean(_) => MaterialSpec::StableNeoHookean(moduli),
+            MaterialSpec::Ensemble(_) => return None,
+        })
+    }
+
     /// Validates and builds the model.
     ///
     /// # Errors

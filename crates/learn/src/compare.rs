@@ -1,16 +1,19 @@
-//! Solver policies compared on whole simulations: work, time and accuracy against direct
-//! solves at a tight Newton tolerance (`deform_learn::tuning::reference_scene`).
+//! Solver policies measured on whole simulations: deterministic work and flops, median
+//! solver and step times over repeats, Newton and linear iterations, and accuracy against
+//! direct solves at a tight Newton tolerance ([`crate::tuning::Reference`]).
 
 use std::path::Path;
 
-use anyhow::Result;
-use deform_integrator::{Scene, SolverPolicy};
-use deform_learn::tuning::Reference;
+use deform_integrator::{
+    IntegratorOptions, OnStep, RunOptions, Scene, SolverPolicy, State, StepReport,
+};
+use serde::{Deserialize, Serialize};
 
-/// Makes a fresh policy for each run.
-pub type PolicyMaker = Box<dyn Fn() -> Box<dyn SolverPolicy>>;
+use crate::error::LearnError;
+use crate::tuning::Reference;
 
 /// One or more simulations a policy is measured on together.
+#[derive(Debug, Clone)]
 pub struct Case<'a> {
     /// Name in reports.
     pub label: String,
@@ -20,11 +23,22 @@ pub struct Case<'a> {
     pub steps: usize,
 }
 
+impl Case<'_> {
+    /// Positions after every step of each run with the direct solver at a tight tolerance.
+    ///
+    /// # Errors
+    /// The reference simulation's.
+    pub fn references(&self) -> Result<Vec<Reference>, LearnError> {
+        self.runs
+            .iter()
+            .map(|(scene, origin)| Ok(Reference::simulate(scene, origin, self.steps)?))
+            .collect()
+    }
+}
+
 /// A policy's totals on a case.
-#[derive(Debug, Clone)]
-pub struct Row {
-    /// Policy name.
-    pub policy: String,
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Measured {
     /// Deterministic flops (set-up plus solves).
     pub flops: f64,
     /// Deterministic work: solve flops plus `factor_weight` times factorisation flops.
@@ -52,25 +66,20 @@ pub struct Row {
     pub choices: Vec<String>,
 }
 
-/// Positions after every step of each run with the direct solver at a tight tolerance.
-pub fn references(case: &Case<'_>) -> Result<Vec<Reference>> {
-    case.runs
-        .iter()
-        .map(|(scene, origin)| Ok(Reference::simulate(scene, origin, case.steps)?))
-        .collect()
-}
-
-/// Runs `make`'s policy `repeats` times on every run of `case`.
+/// Runs `make`'s policy `repeats` times on every run of `case`, with the scenes' Newton
+/// options changed by `options` first.
+///
+/// # Errors
+/// A scene that does not build.
 pub fn measure(
     case: &Case<'_>,
     references: &[Reference],
-    name: &str,
-    make: &PolicyMaker,
+    make: &dyn Fn() -> Box<dyn SolverPolicy>,
+    options: &dyn Fn(&mut IntegratorOptions),
     factor_weight: f64,
     repeats: usize,
-) -> Result<Row> {
-    let mut row = Row {
-        policy: name.to_owned(),
+) -> Result<Measured, LearnError> {
+    let mut row = Measured {
         flops: 0.0,
         work: 0.0,
         seconds: 0.0,
@@ -88,20 +97,36 @@ pub fn measure(
     for repeat in 0..repeats.max(1) {
         let (mut flops, mut seconds, mut step_seconds) = (0.0, 0.0, 0.0);
         for ((scene, origin), reference) in case.runs.iter().zip(references) {
+            let mut scene = scene.clone();
+            options(&mut scene.integrator);
             let mut built = scene.build(origin)?;
             built.integrator.set_policy(make());
-            for n in 0..reference.steps() {
-                let started = std::time::Instant::now();
-                let result = built.integrator.step(&mut built.state);
-                step_seconds += started.elapsed().as_secs_f64();
-                let Ok(r) = result else {
-                    row.failed = true;
-                    break;
-                };
-                flops += r.flops() as f64;
-                seconds += r.solver_seconds();
-                if repeat == 0 {
-                    row.work += r.work(factor_weight);
+            let mut n = 0;
+            let mut error = 0.0f64;
+            let run = RunOptions::steps(reference.steps()).with_factor_weight(factor_weight);
+            let summary = built.integrator.run(
+                &mut built.state,
+                &if repeat == 0 {
+                    run.keeping_reports()
+                } else {
+                    run
+                },
+                &mut OnStep(|_: &StepReport, s: &State| {
+                    error = error.max(reference.error(n, &s.x));
+                    n += 1;
+                }),
+            );
+            row.failed |= summary.failed();
+            flops += summary.flops as f64;
+            seconds += summary.solver_seconds;
+            step_seconds += summary.step_seconds;
+            if repeat == 0 {
+                row.work += summary.work;
+                row.newton += summary.newton_iterations;
+                row.linear += summary.linear_iterations;
+                row.fallbacks += summary.fallbacks;
+                row.error = row.error.max(error);
+                for r in &summary.reports {
                     row.per_step
                         .push((r.work(factor_weight), r.newton_iterations()));
                     row.choices.extend(r.iterations.iter().map(|i| {
@@ -111,10 +136,6 @@ pub fn measure(
                             i.solver.clone()
                         }
                     }));
-                    row.newton += r.newton_iterations();
-                    row.linear += r.linear_iterations();
-                    row.fallbacks += r.iterations.iter().filter(|i| i.fallback).count();
-                    row.error = row.error.max(reference.error(n, &built.state.x));
                 }
             }
         }

@@ -1,49 +1,14 @@
-//! Experiments as RON documents (unknown fields rejected): a base scene, how to make the
-//! dataset, and what to learn from it. The runner (`cargo xtask experiment`) adds progress
-//! bars, reports and plots; this module holds the configuration and the evaluation helpers.
+//! Experiment files: RON documents (unknown fields rejected) naming a base scene, how to
+//! make the dataset, and what to learn from it.
 
 use std::path::{Path, PathBuf};
 
-use deform_integrator::{Integrator, State};
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{Noise, Trajectory, Variations};
+use crate::dataset::DatasetSpec;
+use crate::error::LearnError;
 use crate::fit::EquationErrorOptions;
 use crate::output::OutputErrorOptions;
-
-/// How to make the dataset.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DatasetSpec {
-    /// Number of trajectories.
-    pub trajectories: usize,
-    /// Steps per trajectory.
-    pub steps: usize,
-    /// Seed of the initial-condition variations.
-    pub seed: u64,
-    /// Initial-condition variations.
-    #[serde(default)]
-    pub variations: Variations,
-    /// Train and validation fractions (the rest is test).
-    #[serde(default = "default_split")]
-    pub split: (f64, f64),
-    /// Noise added to the data.
-    #[serde(default)]
-    pub noise: Option<Noise>,
-    /// Learn a model that steps `subsample` times coarser than the base: the data keep every
-    /// `subsample`-th state and the learned scene uses `subsample x dt` (the seed's accuracy
-    /// claim: a cheap model fitted to an accurate one). 1 learns at the base's own step.
-    #[serde(default = "one")]
-    pub subsample: usize,
-}
-
-fn one() -> usize {
-    1
-}
-
-fn default_split() -> (f64, f64) {
-    (0.6, 0.2)
-}
 
 /// What to learn.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -63,10 +28,10 @@ pub enum Task {
         #[serde(default)]
         start: Option<deform_materials::Moduli>,
     },
-    /// Model selection: an ensemble of these models (names of `ensemble::MEMBERS`).
+    /// Model selection: an ensemble of these models ([`crate::ensemble::Member`]).
     SelectModel {
         /// The candidate models.
-        members: Vec<String>,
+        members: Vec<crate::ensemble::Member>,
         /// Stage 2 for the ensemble and each single model; `None` stops after stage 1.
         #[serde(default)]
         output_error: Option<OutputErrorOptions>,
@@ -123,11 +88,11 @@ pub enum Task {
         equation_error: EquationErrorOptions,
         /// Stage-2 options of the material fit.
         output_error: OutputErrorOptions,
-        /// Model selection: an ensemble of these models (names of `ensemble::MEMBERS`),
+        /// Model selection: an ensemble of these models ([`crate::ensemble::Member`]),
         /// fitted by both stages with the fitted damping, replaces the single model when its
         /// validation rollout error is lower. Empty: no selection.
         #[serde(default)]
-        members: Vec<String>,
+        members: Vec<crate::ensemble::Member>,
         /// Solver candidates of the learned policy.
         candidates: Vec<deform_solvers::SolverSpec>,
         /// Work of a factorisation flop relative to a solve flop.
@@ -160,12 +125,16 @@ pub enum Task {
     },
 }
 
+fn one() -> usize {
+    1
+}
+
 fn relative_tolerance() -> Vec<crate::tuning::SolverParameter> {
     vec![crate::tuning::SolverParameter::RelativeTolerance]
 }
 
 fn five() -> usize {
-    5
+    crate::policy::DEFAULT_NEIGHBOURS
 }
 
 fn twenty_usize() -> usize {
@@ -214,7 +183,7 @@ fn unit() -> f64 {
 }
 
 fn success() -> f64 {
-    0.9
+    crate::policy::DEFAULT_MIN_SUCCESS
 }
 
 fn accuracy() -> f64 {
@@ -240,14 +209,20 @@ pub struct Experiment {
 }
 
 impl Experiment {
-    /// Reads an experiment file; the scene path is made relative to its directory.
+    /// Reads an experiment file; scene paths are made relative to its directory.
     ///
     /// # Errors
-    /// A message naming the file (and line and column for syntax errors).
-    pub fn load(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let mut e: Experiment =
-            ron::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    /// [`LearnError::Io`], [`LearnError::Parse`] (with line and column) or
+    /// [`LearnError::Config`] naming the file and the field.
+    pub fn load(path: &Path) -> Result<Self, LearnError> {
+        let text = std::fs::read_to_string(path).map_err(|source| LearnError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut e: Experiment = ron::from_str(&text).map_err(|e| LearnError::Parse {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
         let dir = path.parent().unwrap_or(Path::new("."));
         if e.scene.is_relative() {
             e.scene = dir.join(&e.scene);
@@ -266,56 +241,39 @@ impl Experiment {
                 }
             }
         }
-        if e.dataset.trajectories < 3 {
-            return Err(format!(
-                "{}: dataset.trajectories must be at least 3 (train, validation, test)",
-                path.display()
-            ));
-        }
-        if e.dataset.subsample == 0 || e.dataset.steps < 2 * e.dataset.subsample {
-            return Err(format!(
-                "{}: dataset.subsample must be at least 1 and leave two coarse steps",
-                path.display()
-            ));
-        }
-        if e.dataset.steps == 0 {
-            return Err(format!(
-                "{}: dataset.steps must be at least 1",
-                path.display()
-            ));
-        }
-        let (a, b) = e.dataset.split;
-        if !(a > 0.0 && b >= 0.0 && a + b < 1.0) {
-            return Err(format!(
-                "{}: dataset.split ({a}, {b}) must leave room for a test split",
-                path.display()
-            ));
-        }
+        e.validate().map_err(|(field, reason)| LearnError::Config {
+            path: path.to_path_buf(),
+            field: field.to_owned(),
+            reason,
+        })?;
         Ok(e)
     }
-}
 
-/// Root-mean-square position error per step of a free rollout of `sim` from the
-/// trajectory's first state against the trajectory (entry 0 is the start, error 0).
-///
-/// # Errors
-/// The step error, as text, when the rollout fails.
-pub fn rollout_error(sim: &mut Integrator, t: &Trajectory) -> Result<Vec<f64>, String> {
-    let mut state = State {
-        x: t.x[0].clone(),
-        v: t.v[0].clone(),
-        t: 0.0,
-    };
-    let mut errors = vec![0.0];
-    for n in 1..t.x.len() {
-        sim.step(&mut state).map_err(|e| format!("step {n}: {e}"))?;
-        let sq: f64 = state
-            .x
-            .iter()
-            .zip(&t.x[n])
-            .map(|(a, b)| (a - b).powi(2))
-            .sum();
-        errors.push((sq / (state.x.len() / 3) as f64).sqrt());
+    /// Checks the values serde cannot: the field and why.
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        let d = &self.dataset;
+        if d.trajectories < 3 {
+            return Err((
+                "dataset.trajectories",
+                "must be at least 3 (train, validation, test)".into(),
+            ));
+        }
+        if d.steps == 0 {
+            return Err(("dataset.steps", "must be at least 1".into()));
+        }
+        if d.subsample == 0 || d.steps < 2 * d.subsample {
+            return Err((
+                "dataset.subsample",
+                "must be at least 1 and leave two coarse steps".into(),
+            ));
+        }
+        let (a, b) = d.split;
+        if !(a > 0.0 && b >= 0.0 && a + b < 1.0) {
+            return Err((
+                "dataset.split",
+                format!("({a}, {b}) must leave room for a test split"),
+            ));
+        }
+        Ok(())
     }
-    Ok(errors)
 }

@@ -1,0 +1,64 @@
+//! Runs an experiment file from Rust, without the runner: the dataset, the learning, and
+//! the report as data (printed here as its headline figures and as JSON-like debug output).
+//!
+//! ```sh
+//! cargo run --release -p deform-learn --example experiment -- assets/experiments/tune_solver.ron [OUT]
+//! ```
+
+use std::path::PathBuf;
+
+use deform_learn::experiment::{Experiment, ExperimentObserver, Stage, TaskReport, run};
+
+/// Prints each stage as it starts.
+struct Print;
+
+impl ExperimentObserver for Print {
+    fn start(&mut self, stage: Stage, total: u64) {
+        eprintln!("{} ({total} units)", stage.name());
+    }
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let path = PathBuf::from(
+        args.next()
+            .unwrap_or_else(|| "assets/experiments/tune_solver.ron".into()),
+    );
+    let out = args.next().map(PathBuf::from);
+    let experiment = Experiment::load(&path)?;
+    let report = run(&experiment, out.as_deref(), &mut Print)?;
+    println!(
+        "{}: {} vertices, {} tets, {:.1} s",
+        report.name, report.vertices, report.tets, report.seconds
+    );
+    match &report.task {
+        TaskReport::FitMaterial(r) => println!(
+            "E off by {:.3} %, nu by {:.3} %",
+            100.0 * r.young_error(),
+            100.0 * r.poisson_error()
+        ),
+        TaskReport::SelectModel(r) => {
+            for m in &r.ensemble.members {
+                println!("{}: {:.1} % of the energy", m.model, 100.0 * m.energy_share);
+            }
+        }
+        TaskReport::SelectSolver(r) => {
+            for case in &r.cases {
+                for row in &case.rows {
+                    println!(
+                        "{} | {}: work {:.3e}",
+                        case.label,
+                        row.contender.name(),
+                        row.measured.work
+                    );
+                }
+            }
+        }
+        TaskReport::TuneBackwardEuler(r) => {
+            let (e, w, t) = r.ratios();
+            println!("tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x");
+        }
+        TaskReport::TuneSolver(r) => println!("tuned / configured work: {:.3}", r.work_ratio()),
+    }
+    Ok(())
+}

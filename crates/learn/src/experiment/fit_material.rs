@@ -1,0 +1,190 @@
+//! Force-model optimisation: the scene's material family, its Lame pair fitted by equation
+//! error (stage 1) and then, optionally, by output error through the steps (stage 2); free
+//! rollouts on the test trajectories with the true, stage-1 and fitted parameters.
+
+use std::time::Instant;
+
+use deform_materials::Lame;
+use serde::{Deserialize, Serialize};
+
+use super::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout, with_lame};
+use crate::dataset::Split;
+use crate::error::LearnError;
+use crate::fit::fit_equation_error;
+use crate::output::{OutputError, OutputErrorFit, fit_output_error};
+use crate::rollout::mean_error;
+
+/// Which parameters a row of the fit table holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Estimate {
+    /// The base model's own.
+    Truth,
+    /// Stage 1.
+    EquationError,
+    /// Stage 2.
+    OutputError,
+}
+
+impl Estimate {
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimate::Truth => "truth",
+            Estimate::EquationError => "equation error",
+            Estimate::OutputError => "output error",
+        }
+    }
+}
+
+/// One estimate of the moduli.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModuliRow {
+    /// Which.
+    pub estimate: Estimate,
+    /// Young's modulus (Pa); NaN when the pair is not a valid material.
+    pub young: f64,
+    /// Poisson's ratio; NaN likewise.
+    pub poisson: f64,
+    /// Time the fit took, seconds (`None` for the truth).
+    pub seconds: Option<f64>,
+}
+
+/// What a material fit found.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitMaterialReport {
+    /// Truth, stage 1 and (when run) stage 2, in that order.
+    pub rows: Vec<ModuliRow>,
+    /// Stage 2's result, when it ran.
+    pub output_error: Option<OutputErrorFit>,
+    /// Stage 2 started from the prior, whose loss (first) beat the stage-1 estimate's.
+    pub started_from_prior: Option<(f64, f64)>,
+    /// Mean test rollout error per recorded state with the true, stage-1 and fitted
+    /// parameters.
+    pub rollouts: Vec<Series>,
+}
+
+impl FitMaterialReport {
+    /// The last estimate's relative error in Young's modulus.
+    pub fn young_error(&self) -> f64 {
+        let (truth, last) = (&self.rows[0], &self.rows[self.rows.len() - 1]);
+        (last.young - truth.young).abs() / truth.young
+    }
+
+    /// The last estimate's relative error in Poisson's ratio.
+    pub fn poisson_error(&self) -> f64 {
+        let (truth, last) = (&self.rows[0], &self.rows[self.rows.len() - 1]);
+        (last.poisson - truth.poisson).abs() / truth.poisson
+    }
+
+    /// Mean rollout error of the fitted parameters over the true parameters'.
+    pub fn rollout_ratio(&self) -> f64 {
+        mean_error(&self.rollouts[2].values)
+            / mean_error(&self.rollouts[0].values).max(f64::MIN_POSITIVE)
+    }
+}
+
+fn young(mu: f64, lambda: f64) -> (f64, f64) {
+    Lame::try_new(mu, lambda)
+        .map(|l| l.to_young())
+        .unwrap_or((f64::NAN, f64::NAN))
+}
+
+/// Runs [`Task::FitMaterial`].
+///
+/// # Errors
+/// [`LearnError`]; [`LearnError::Unsupported`] when the scene's material is not one model.
+pub fn run(
+    cx: Context<'_>,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<FitMaterialReport, LearnError> {
+    let Task::FitMaterial {
+        equation_error,
+        output_error,
+        start,
+    } = &cx.experiment.task
+    else {
+        unreachable!("dispatched on the task")
+    };
+    let origin = cx.experiment.scene.as_path();
+    let train = cx.data.split(Split::Train);
+    let t1 = Instant::now();
+    let stage1 = fit_equation_error(&cx.built.integrator, &train, *equation_error)?;
+    let stage1_seconds = t1.elapsed().as_secs_f64();
+    let (mu1, lambda1) = (stage1.coefficients[0], stage1.coefficients[1]);
+    let truth = cx.scene.material.build()?.lame().ok_or_else(|| {
+        LearnError::Unsupported("the scene's model has no single Lame pair".into())
+    })?;
+    let (e0, nu0) = truth.to_young();
+    let (e1, nu1) = young(mu1, lambda1);
+    let mut rows = vec![
+        ModuliRow {
+            estimate: Estimate::Truth,
+            young: e0,
+            poisson: nu0,
+            seconds: None,
+        },
+        ModuliRow {
+            estimate: Estimate::EquationError,
+            young: e1,
+            poisson: nu1,
+            seconds: Some(stage1_seconds),
+        },
+    ];
+    let mut fitted = (mu1, lambda1);
+    let mut report = FitMaterialReport {
+        rows: Vec::new(),
+        output_error: None,
+        started_from_prior: None,
+        rollouts: Vec::new(),
+    };
+    if let Some(options) = output_error {
+        let mut sim = cx.built.integrator;
+        observer.start(Stage::Fit, options.max_iterations);
+        let t2 = Instant::now();
+        // Start from the stage-1 estimate, or from the prior when it fits better (or the
+        // estimate cannot even be simulated).
+        let mut initial = stage1.coefficients.clone();
+        if let Some(prior) = start {
+            let lame = prior.to_lame()?;
+            let prior = vec![lame.mu, lame.lambda];
+            let mut loss_at = |c: &[f64]| {
+                OutputError::new(&mut sim, &train, *options, |_, _| {})
+                    .and_then(|o| o.evaluate(c))
+                    .map_or(f64::INFINITY, |(l, _)| l)
+            };
+            let (l1, l0) = (loss_at(&initial), loss_at(&prior));
+            if l0 < l1 {
+                report.started_from_prior = Some((l0, l1));
+                initial = prior;
+            }
+        }
+        let fit = fit_output_error(&mut sim, &train, &initial, *options, |k, loss| {
+            observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
+        })?;
+        observer.finish();
+        let (e2, nu2) = young(fit.coefficients[0], fit.coefficients[1]);
+        rows.push(ModuliRow {
+            estimate: Estimate::OutputError,
+            young: e2,
+            poisson: nu2,
+            seconds: Some(t2.elapsed().as_secs_f64()),
+        });
+        fitted = (fit.coefficients[0], fit.coefficients[1]);
+        report.output_error = Some(fit);
+    }
+    // Rollouts on the test trajectories with each parameter set.
+    observer.start(Stage::Rollouts, 3);
+    let tests = cx.data.split(Split::Test);
+    for (name, (mu, lambda)) in [
+        ("true parameters", (truth.mu, truth.lambda)),
+        ("equation error", (mu1, lambda1)),
+        ("fitted", fitted),
+    ] {
+        let errors = mean_rollout(&with_lame(&cx.scene, mu, lambda)?, origin, &tests)?;
+        report.rollouts.push(Series::new(name, errors));
+        observer.advance(1);
+    }
+    observer.finish();
+    report.rows = rows;
+    Ok(report)
+}

@@ -1,0 +1,238 @@
+//! Experiments as library functions: [`run`] takes an [`Experiment`] (a RON file: a base
+//! scene, how to make the dataset, what to learn) and an [`ExperimentObserver`], makes the
+//! dataset, learns from it and returns an [`ExperimentReport`]: data (typed rows, series
+//! for plots, the files written), which the runner renders as markdown, CSV and plots.
+//!
+//! One function per task: [`fit_material`](fit_material::run) (force-model optimisation),
+//! [`select_model`](select_model::run) (ensembles), [`select_solver`](select_solver::run)
+//! (a learned solver policy against fixed solvers and schedules, [`crate::compare`]),
+//! [`tune_solver`](tune_solver::run) (a solver's parameters) and
+//! [`tune_backward_euler`](story::run) (all of them on one coarse model, the demo's story).
+//!
+//! ```no_run
+//! use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
+//!
+//! let experiment = Experiment::load("assets/experiments/fit_material.ron".as_ref())?;
+//! let report = run(&experiment, None, &mut NoProgress)?;
+//! if let TaskReport::FitMaterial(fit) = &report.task {
+//!     println!("E off by {:.3} %", 100.0 * fit.young_error());
+//! }
+//! # Ok::<(), deform_learn::LearnError>(())
+//! ```
+
+mod config;
+pub mod fit_material;
+mod report;
+pub mod select_model;
+pub mod select_solver;
+pub mod story;
+pub mod tune_solver;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use deform_integrator::Scene;
+use deform_integrator::scene::Built;
+
+pub use config::{Experiment, PolicyTune, SceneRun, Task};
+pub use report::{ExperimentReport, Series, TaskReport};
+
+pub use crate::dataset::DatasetSpec;
+
+use crate::dataset::{self, Dataset};
+use crate::error::LearnError;
+
+/// A stage of an experiment, for progress displays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Simulating the dataset (one unit per step).
+    Dataset,
+    /// Fitting parameters (one unit per iteration or loss evaluation).
+    Fit,
+    /// Fitting an ensemble (one unit per loss evaluation).
+    Ensemble,
+    /// Free rollouts on held-out data (one unit per model).
+    Rollouts,
+    /// Logging Newton systems for solver selection (one unit per step).
+    SolverData,
+    /// Tuning parameters (one unit per simulation of an evaluation).
+    Tune,
+    /// Measuring policies on whole simulations (one unit per run).
+    Policies,
+    /// Comparing models side by side (one unit per model).
+    Compare,
+}
+
+impl Stage {
+    /// Short name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Dataset => "dataset",
+            Stage::Fit => "fit",
+            Stage::Ensemble => "ensemble",
+            Stage::Rollouts => "rollouts",
+            Stage::SolverData => "logging",
+            Stage::Tune => "tune",
+            Stage::Policies => "policies",
+            Stage::Compare => "compare",
+        }
+    }
+}
+
+/// Watches an experiment's progress; every method does nothing by default.
+pub trait ExperimentObserver {
+    /// A stage starts, with its amount of work in its units.
+    fn start(&mut self, _stage: Stage, _total: u64) {}
+    /// `by` more units of the current stage are done.
+    fn advance(&mut self, _by: u64) {}
+    /// A status line for the current stage (e.g. the current loss).
+    fn message(&mut self, _text: &str) {}
+    /// The current stage is done.
+    fn finish(&mut self) {}
+}
+
+/// The observer that shows nothing.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoProgress;
+
+impl ExperimentObserver for NoProgress {}
+
+/// What every task gets: the experiment, the (coarse) scene the learned model steps with,
+/// the data subsampled to its step, and where to write files.
+pub struct Context<'a> {
+    /// The experiment.
+    pub experiment: &'a Experiment,
+    /// The learned model's scene: the base's with `subsample x dt`.
+    pub scene: Scene,
+    /// The base model's scene, at its own step.
+    pub base: Scene,
+    /// The learned model's scene built (mesh, integrator, initial state).
+    pub built: Built,
+    /// The data at the learned model's step.
+    pub data: Dataset,
+    /// Results folder, when files are written.
+    pub out: Option<&'a Path>,
+}
+
+impl Context<'_> {
+    /// The folder scene paths are relative to.
+    pub fn origin(&self) -> &Path {
+        &self.experiment.scene
+    }
+
+    /// `out/name`, when files are written.
+    pub fn path(&self, name: &str) -> Option<PathBuf> {
+        self.out.map(|o| o.join(name))
+    }
+}
+
+/// Runs an experiment: makes its dataset (saved in `out/dataset` when `out` is given),
+/// runs its task and returns the report. Files the task writes (datasets, solver data,
+/// ParaView frames) go to `out` and are listed in [`ExperimentReport::files`]; with `out`
+/// `None` nothing is written.
+///
+/// # Errors
+/// [`LearnError`] naming the file, field, trajectory or step.
+pub fn run(
+    experiment: &Experiment,
+    out: Option<&Path>,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<ExperimentReport, LearnError> {
+    let started = Instant::now();
+    let base = Scene::load(&experiment.scene)?;
+    if let Some(out) = out {
+        std::fs::create_dir_all(out).map_err(|source| LearnError::Io {
+            path: out.to_path_buf(),
+            source,
+        })?;
+    }
+    let spec = &experiment.dataset;
+    observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
+    let mut data = dataset::generate(&base, &experiment.scene, spec, |_, _| observer.advance(1))?;
+    observer.finish();
+    let built = base.build(&experiment.scene)?;
+    if let Some(noise) = spec.noise {
+        data.add_noise(noise, &built.integrator.dofs().constrained_vertices());
+    }
+    let mut files = Vec::new();
+    if let Some(out) = out {
+        data.save(&out.join("dataset"))?;
+        files.push(PathBuf::from("dataset"));
+    }
+    // The learned model may step coarser than the base (seed: cheap model, accurate data).
+    let k = spec.subsample;
+    let data = if k > 1 { data.subsample(k) } else { data };
+    let mut scene = base.clone();
+    scene.integrator.dt *= k as f64;
+    let built = if k > 1 {
+        scene.build(&experiment.scene)?
+    } else {
+        built
+    };
+    let (vertices, tets) = (built.mesh.num_vertices(), built.mesh.num_tets());
+    let learned_dt = scene.integrator.dt;
+    let cx_material = scene.material.clone();
+    let cx = Context {
+        experiment,
+        scene,
+        base,
+        built,
+        data,
+        out,
+    };
+    let task = match &experiment.task {
+        Task::FitMaterial { .. } => TaskReport::FitMaterial(fit_material::run(cx, observer)?),
+        Task::SelectModel { .. } => TaskReport::SelectModel(select_model::run(cx, observer)?),
+        Task::SelectSolver { .. } => {
+            TaskReport::SelectSolver(select_solver::run(cx, observer, &mut files)?)
+        }
+        Task::TuneBackwardEuler { .. } => {
+            TaskReport::TuneBackwardEuler(story::run(cx, observer, &mut files)?)
+        }
+        Task::TuneSolver { .. } => TaskReport::TuneSolver(tune_solver::run(cx)?),
+    };
+    Ok(ExperimentReport {
+        name: experiment.name.clone(),
+        scene: experiment.scene.clone(),
+        vertices,
+        tets,
+        material: cx_material,
+        dataset: experiment.dataset.clone(),
+        learned_dt,
+        task,
+        files,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The scene with its single material's moduli replaced by a Lame pair.
+///
+/// # Errors
+/// [`LearnError::Unsupported`] for an ensemble.
+pub(crate) fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene, LearnError> {
+    let material = scene
+        .material
+        .with_moduli(deform_materials::Moduli::Lame { mu, lambda })
+        .ok_or_else(|| {
+            LearnError::Unsupported(format!(
+                "fitting a material needs a single model, the scene has {:?}",
+                scene.material
+            ))
+        })?;
+    let mut s = scene.clone();
+    s.material = material;
+    Ok(s)
+}
+
+/// The mean over `trajectories` of the rollout error of `scene` at each recorded state.
+///
+/// # Errors
+/// The scene's or the rollout's.
+pub(crate) fn mean_rollout(
+    scene: &Scene,
+    origin: &Path,
+    trajectories: &[&crate::dataset::Trajectory],
+) -> Result<Vec<f64>, LearnError> {
+    let mut sim = scene.build(origin)?.integrator;
+    crate::rollout::mean_rollout_errors(&mut sim, trajectories)
+}

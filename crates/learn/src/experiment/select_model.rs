@@ -1,0 +1,151 @@
+//! Model selection: an ensemble of energy models fitted by equation error (and optionally
+//! refined by output error), each member's share of the elastic energy on the test
+//! trajectories, and each model alone against the ensemble by rollout error (validation to
+//! select, test to report).
+
+use deform_integrator::Scene;
+use deform_materials::MaterialSpec;
+use serde::{Deserialize, Serialize};
+
+use super::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout};
+use crate::dataset::{Split, Trajectory};
+use crate::ensemble::{EnsembleFit, Member, fit_ensemble, refine_ensemble};
+use crate::error::LearnError;
+use crate::output::OutputErrorFit;
+use crate::rollout::mean_error;
+
+/// A model (one member alone, or the ensemble) and its mean rollout errors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelErrors {
+    /// The member, or `None` for the ensemble.
+    pub member: Option<Member>,
+    /// Mean rollout error on the validation trajectories (m); infinite when it fails.
+    pub validation: f64,
+    /// The same on the test trajectories.
+    pub test: f64,
+}
+
+/// What model selection found.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SelectModelReport {
+    /// The ensemble (after stage 2 when it ran), energy shares on the test trajectories.
+    pub ensemble: EnsembleFit,
+    /// Stage 2 of the ensemble, when it ran.
+    pub stage2: Option<OutputErrorFit>,
+    /// Each member alone, then the ensemble (last).
+    pub models: Vec<ModelErrors>,
+    /// Mean test rollout error per recorded state of the base model and the ensemble.
+    pub rollouts: Vec<Series>,
+}
+
+impl SelectModelReport {
+    /// The single model with the least validation error.
+    pub fn best_single(&self) -> Option<&ModelErrors> {
+        self.models.iter().filter(|m| m.member.is_some()).fold(
+            None,
+            |best: Option<&ModelErrors>, m| match best {
+                Some(b) if b.validation <= m.validation => Some(b),
+                _ => Some(m),
+            },
+        )
+    }
+
+    /// The ensemble's row.
+    pub fn ensemble_errors(&self) -> Option<&ModelErrors> {
+        self.models.iter().find(|m| m.member.is_none())
+    }
+}
+
+/// Runs [`Task::SelectModel`].
+///
+/// # Errors
+/// [`LearnError`].
+pub fn run(
+    cx: Context<'_>,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<SelectModelReport, LearnError> {
+    let Task::SelectModel {
+        members,
+        output_error,
+    } = &cx.experiment.task
+    else {
+        unreachable!("dispatched on the task")
+    };
+    let origin = cx.experiment.scene.as_path();
+    let train = cx.data.split(Split::Train);
+    // Stage 1, then (optionally) stage 2 on the kept members.
+    let mut fit_models = |names: &[Member], evaluate: &[&Trajectory]| {
+        let fit = fit_ensemble(&cx.scene, origin, names, &train, evaluate)?;
+        let Some(options) = output_error else {
+            return Ok::<_, LearnError>((fit, None));
+        };
+        observer.start(Stage::Ensemble, options.max_evaluations as u64);
+        let (refined, stage2) = refine_ensemble(
+            &fit,
+            &cx.scene,
+            origin,
+            &train,
+            evaluate,
+            *options,
+            |_, loss| {
+                observer.advance(1);
+                observer.message(&format!("loss {loss:.3e}"));
+            },
+        )?;
+        observer.finish();
+        Ok((refined, Some(stage2)))
+    };
+    let (ensemble, stage2) = fit_models(members, &cx.data.split(Split::Test))?;
+    // Each model alone against the ensemble, by rollout error on validation (to select)
+    // and test (to report), averaged over the rollouts.
+    let evaluate = |spec: Option<MaterialSpec>| -> (f64, f64) {
+        let Some(spec) = spec else {
+            return (f64::INFINITY, f64::INFINITY);
+        };
+        let mut s = cx.scene.clone();
+        s.material = spec;
+        let run = |split| {
+            mean_rollout(&s, origin, &cx.data.split(split))
+                .map_or(f64::INFINITY, |e| mean_error(&e))
+        };
+        (run(Split::Validation), run(Split::Test))
+    };
+    let mut models = Vec::new();
+    for &member in members {
+        let (single, _) = fit_models(&[member], &cx.data.split(Split::Validation))?;
+        let (validation, test) = evaluate(single.spec());
+        models.push(ModelErrors {
+            member: Some(member),
+            validation,
+            test,
+        });
+    }
+    let (validation, test) = evaluate(ensemble.spec());
+    models.push(ModelErrors {
+        member: None,
+        validation,
+        test,
+    });
+    // Test rollouts of the base scene and of the ensemble.
+    let tests = cx.data.split(Split::Test);
+    let mut rollouts = vec![Series::new(
+        "base model",
+        mean_rollout(&cx.scene, origin, &tests)?,
+    )];
+    if let Some(spec) = ensemble.spec() {
+        let s = Scene {
+            material: spec,
+            ..cx.scene.clone()
+        };
+        rollouts.push(Series::new(
+            "fitted ensemble",
+            mean_rollout(&s, origin, &tests)?,
+        ));
+    }
+    Ok(SelectModelReport {
+        ensemble,
+        stage2,
+        models,
+        rollouts,
+    })
+}

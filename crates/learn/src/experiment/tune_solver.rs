@@ -1,0 +1,69 @@
+//! Solver optimisation: a solver's parameters tuned jointly for the least work with the
+//! trajectory within `accuracy` of the direct solver's ([`crate::tuning::tune_solver`]).
+
+use deform_solvers::SolverSpec;
+use serde::{Deserialize, Serialize};
+
+use super::{Context, Task};
+use crate::error::LearnError;
+use crate::tuning::{SolverParameter, TuningResult, tune_solver};
+
+/// What solver tuning found.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TuneSolverReport {
+    /// The solver as configured.
+    pub solver: SolverSpec,
+    /// The parameters tuned.
+    pub parameters: Vec<SolverParameter>,
+    /// Steps of the tuning simulation.
+    pub steps: usize,
+    /// Factorisation flops' weight in work.
+    pub factor_weight: f64,
+    /// The accuracy bound.
+    pub accuracy: f64,
+    /// The tuning (its first sample is the configured values).
+    pub result: TuningResult,
+}
+
+impl TuneSolverReport {
+    /// Tuned work over the configured values' work.
+    pub fn work_ratio(&self) -> f64 {
+        self.result.best.work / self.result.samples[0].work
+    }
+}
+
+/// Runs [`Task::TuneSolver`].
+///
+/// # Errors
+/// [`LearnError`].
+pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
+    let Task::TuneSolver {
+        solver,
+        parameters,
+        factor_weight,
+        accuracy,
+        max_iterations,
+    } = &cx.experiment.task
+    else {
+        unreachable!("dispatched on the task")
+    };
+    let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
+    let result = tune_solver(
+        &cx.scene,
+        cx.origin(),
+        solver,
+        parameters,
+        steps,
+        *accuracy,
+        *factor_weight,
+        *max_iterations,
+    )?;
+    Ok(TuneSolverReport {
+        solver: solver.clone(),
+        parameters: parameters.clone(),
+        steps,
+        factor_weight: *factor_weight,
+        accuracy: *accuracy,
+        result,
+    })
+}

@@ -1,0 +1,94 @@
+//! Free rollouts against data, and the one definition of the rollout error every report
+//! uses: the root-mean-square vertex distance between the simulated and the recorded
+//! positions at each recorded state, and its mean over the predicted states (the start,
+//! where the error is 0 by construction, is not counted).
+
+use deform_integrator::{Integrator, OnStep, RunOptions, RunSummary, State, StepReport};
+
+use crate::dataset::{Trajectory, state_at};
+use crate::error::LearnError;
+
+/// Root-mean-square distance between the vertices of two flat `3N` position vectors.
+pub fn rms_distance(x: &[f64], y: &[f64]) -> f64 {
+    let sq: f64 = x.iter().zip(y).map(|(a, b)| (a - b).powi(2)).sum();
+    (sq / (x.len() / 3).max(1) as f64).sqrt()
+}
+
+/// Mean of a rollout's errors over its predicted states (entry 0, the start, excluded).
+pub fn mean_error(errors: &[f64]) -> f64 {
+    let predicted = errors.get(1..).unwrap_or(&[]);
+    predicted.iter().sum::<f64>() / predicted.len().max(1) as f64
+}
+
+/// A free rollout: errors at the recorded states and what the steps cost.
+#[derive(Debug, Clone)]
+pub struct Rollout {
+    /// [`rms_distance`] to the data at each recorded state; entry 0 (the start) is 0.
+    pub errors: Vec<f64>,
+    /// The run (totals over every step taken).
+    pub summary: RunSummary,
+}
+
+/// Rolls `sim` out from the trajectory's first state, `refine` steps per recorded step (the
+/// data's step is `refine` times the integrator's), and measures it against the data.
+/// `on_sample(n, state)` sees the state at each recorded index `n` (0 first), e.g. to write
+/// frames.
+///
+/// # Errors
+/// [`LearnError::Step`] naming `what` and the failed step.
+pub fn rollout(
+    sim: &mut Integrator,
+    t: &Trajectory,
+    refine: usize,
+    factor_weight: f64,
+    what: &str,
+    on_sample: &mut dyn FnMut(usize, &State),
+) -> Result<Rollout, LearnError> {
+    let refine = refine.max(1);
+    let mut state = state_at(t, 0, sim.options().dt * refine as f64);
+    on_sample(0, &state);
+    let mut errors = vec![0.0];
+    let mut taken: usize = 0;
+    let summary = sim.run(
+        &mut state,
+        &RunOptions::steps(t.steps() * refine).with_factor_weight(factor_weight),
+        &mut OnStep(|_: &StepReport, s: &State| {
+            taken += 1;
+            if taken.is_multiple_of(refine) {
+                let n = taken / refine;
+                errors.push(rms_distance(&s.x, &t.x[n]));
+                on_sample(n, s);
+            }
+        }),
+    );
+    let summary = summary
+        .into_result()
+        .map_err(|e| LearnError::step(what, e))?;
+    Ok(Rollout { errors, summary })
+}
+
+/// [`rollout`] at the integrator's own step: the error at each recorded state.
+///
+/// # Errors
+/// As [`rollout`].
+pub fn rollout_error(sim: &mut Integrator, t: &Trajectory) -> Result<Vec<f64>, LearnError> {
+    Ok(rollout(sim, t, 1, 1.0, "rollout", &mut |_, _| {})?.errors)
+}
+
+/// The mean over trajectories of [`rollout_error`] at each recorded state.
+///
+/// # Errors
+/// As [`rollout`], naming the trajectory.
+pub fn mean_rollout_errors(
+    sim: &mut Integrator,
+    trajectories: &[&Trajectory],
+) -> Result<Vec<f64>, LearnError> {
+    let mut mean = vec![0.0; trajectories.first().map_or(0, |t| t.x.len())];
+    for (k, t) in trajectories.iter().enumerate() {
+        let r = rollout(sim, t, 1, 1.0, &format!("trajectory {k}"), &mut |_, _| {})?;
+        for (m, v) in mean.iter_mut().zip(r.errors) {
+            *m += v / trajectories.len() as f64;
+        }
+    }
+    Ok(mean)
+}

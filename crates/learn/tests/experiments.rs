@@ -1,0 +1,196 @@
+//! Experiments run from the library: every task on a tiny scene, its report's figures
+//! compared with the CSV files the runner wrote for the same experiments before the
+//! experiments moved from xtask into deform-learn (`tests/data/expected/`, recorded with
+//! the earlier code). Wall times are not compared.
+
+use std::path::{Path, PathBuf};
+
+use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// Rows of a CSV file by column name (fields may be quoted and hold commas).
+fn csv(path: &Path) -> Vec<std::collections::HashMap<String, String>> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let split = |line: &str| -> Vec<String> {
+        let (mut fields, mut field, mut quoted) = (Vec::new(), String::new(), false);
+        for c in line.chars() {
+            match c {
+                '"' => quoted = !quoted,
+                ',' if !quoted => fields.push(std::mem::take(&mut field)),
+                c => field.push(c),
+            }
+        }
+        fields.push(field);
+        fields
+    };
+    let mut lines = text.lines();
+    let header = split(lines.next().unwrap());
+    lines
+        .map(|l| header.iter().cloned().zip(split(l)).collect())
+        .collect()
+}
+
+fn expected(experiment: &str, file: &str) -> Vec<std::collections::HashMap<String, String>> {
+    csv(&data("expected").join(experiment).join(file))
+}
+
+fn num(row: &std::collections::HashMap<String, String>, key: &str) -> f64 {
+    row[key]
+        .parse()
+        .unwrap_or_else(|_| panic!("{key}: {}", row[key]))
+}
+
+/// Equal to the recorded figure up to the rounding of a sum taken in another order.
+fn same(what: &str, got: f64, want: f64) {
+    assert!(
+        got == want || (got - want).abs() <= 1e-12 * want.abs(),
+        "{what}: {got:e} now, {want:e} before"
+    );
+}
+
+fn report(name: &str) -> deform_learn::experiment::ExperimentReport {
+    let e = Experiment::load(&data(&format!("{name}.ron"))).unwrap();
+    run(&e, None, &mut NoProgress).unwrap()
+}
+
+#[test]
+fn fit_material_reports_the_recorded_figures() {
+    let TaskReport::FitMaterial(r) = report("fit_material").task else {
+        panic!("task")
+    };
+    let iterations = &r.output_error.as_ref().unwrap().iterations;
+    let want = expected("fit_material", "iterations.csv");
+    assert_eq!(iterations.len(), want.len());
+    for (it, row) in iterations.iter().zip(&want) {
+        same("loss", it.loss, num(row, "loss"));
+        same("mu", it.coefficients[0], num(row, "mu"));
+        same("lambda", it.coefficients[1], num(row, "lambda"));
+    }
+    let want = expected("fit_material", "rollout_error.csv");
+    for series in &r.rollouts {
+        assert_eq!(series.values.len(), want.len());
+        for (v, row) in series.values.iter().zip(&want) {
+            same(&series.name, *v, num(row, &series.name));
+        }
+    }
+}
+
+#[test]
+fn select_model_reports_the_recorded_figures() {
+    let TaskReport::SelectModel(r) = report("select_model").task else {
+        panic!("task")
+    };
+    let want = expected("select_model", "members.csv");
+    assert_eq!(r.ensemble.members.len(), want.len());
+    for (m, row) in r.ensemble.members.iter().zip(&want) {
+        assert_eq!(m.model.to_string(), row["model"]);
+        same("mu", m.mu, num(row, "mu"));
+        same("lambda", m.lambda, num(row, "lambda"));
+        same("energy share", m.energy_share, num(row, "energy_share"));
+    }
+}
+
+#[test]
+fn select_solver_reports_the_recorded_figures() {
+    let TaskReport::SelectSolver(r) = report("select_solver").task else {
+        panic!("task")
+    };
+    let want = expected("select_solver", "policies.csv");
+    let rows: Vec<_> = r
+        .cases
+        .iter()
+        .flat_map(|c| c.rows.iter().map(move |row| (c, row)))
+        .collect();
+    assert_eq!(rows.len(), want.len());
+    for ((case, row), w) in rows.iter().zip(&want) {
+        let name = row.contender.name();
+        assert_eq!(
+            (case.label.as_str(), name.as_str()),
+            (w["case"].as_str(), w["policy"].as_str())
+        );
+        let m = &row.measured;
+        same(&format!("{name} flops"), m.flops, num(w, "flops"));
+        same(&format!("{name} work"), m.work, num(w, "work"));
+        same(&format!("{name} error"), m.error, num(w, "error"));
+        assert_eq!(m.newton as f64, num(w, "newton"), "{name}");
+        assert_eq!(m.linear as f64, num(w, "linear"), "{name}");
+        assert_eq!(m.fallbacks as f64, num(w, "fallbacks"), "{name}");
+        assert_eq!(m.failed.to_string(), w["failed"], "{name}");
+    }
+    let tuning = r.tuning.unwrap();
+    let want = expected("select_solver", "tuning.csv");
+    assert_eq!(tuning.samples.len(), want.len());
+    for ((_, s), w) in tuning.samples.iter().zip(&want) {
+        same("tuning work", s.work, num(w, "work"));
+        same("tuning cost", s.cost, num(w, "cost"));
+    }
+}
+
+#[test]
+fn the_story_reports_the_recorded_figures() {
+    let TaskReport::TuneBackwardEuler(r) = report("tune_backward_euler").task else {
+        panic!("task")
+    };
+    let want = expected("tune_backward_euler", "comparison.csv");
+    assert_eq!(r.rows.len(), want.len());
+    for (row, w) in r.rows.iter().zip(&want) {
+        same("mean error", row.mean_error(), num(w, "mean_error"));
+        same("final error", row.final_error(), num(w, "final_error"));
+        same("work", row.work, num(w, "work"));
+        same("flops", row.flops, num(w, "flops"));
+        assert_eq!(row.newton as f64, num(w, "newton"));
+        assert_eq!(row.fallbacks as f64, num(w, "fallbacks"));
+    }
+    let want = expected("tune_backward_euler", "tuning.csv");
+    for (s, w) in r.tuning.samples.iter().zip(&want) {
+        same("tuning work", s.work, num(w, "work"));
+        same("tuning error", s.error, num(w, "error"));
+    }
+}
+
+#[test]
+fn tune_solver_reports_the_recorded_figures() {
+    let TaskReport::TuneSolver(r) = report("tune_solver").task else {
+        panic!("task")
+    };
+    let want = expected("tune_solver", "tuning.csv");
+    assert_eq!(r.result.samples.len(), want.len());
+    for (s, w) in r.result.samples.iter().zip(&want) {
+        same(
+            "log10 tolerance",
+            s.log10_values[0],
+            num(w, "log10_RelativeTolerance"),
+        );
+        same("work", s.work, num(w, "work"));
+        same("error", s.error, num(w, "error"));
+    }
+}
+
+#[test]
+fn bad_experiments_name_the_file_and_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.ron");
+    std::fs::write(
+        &path,
+        r#"Experiment(name: "x", scene: "s.ron", dataset: (trajectories: 5, steps: 3, seed: 1, split: (0.9, 0.2)), task: SelectModel(members: [NeoHookean]))"#,
+    )
+    .unwrap();
+    let e = Experiment::load(&path).unwrap_err();
+    assert!(
+        matches!(&e, deform_learn::LearnError::Config { field, .. } if field == "dataset.split"),
+        "{e}"
+    );
+    // An unknown ensemble member is rejected, not silently replaced.
+    std::fs::write(
+        &path,
+        r#"Experiment(name: "x", scene: "s.ron", dataset: (trajectories: 5, steps: 3, seed: 1), task: SelectModel(members: [Rubber]))"#,
+    )
+    .unwrap();
+    let e = Experiment::load(&path).unwrap_err().to_string();
+    assert!(e.contains("bad.ron") && e.contains("Rubber"), "{e}");
+}
