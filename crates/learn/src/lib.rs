@@ -1,7 +1,11 @@
 //! Learning from trajectories: the seed's Section 2.1. Data are pairs
 //! `((x^n, v^n), (x^n+1, v^n+1))` produced by a base model (any scene) or imported from
-//! elsewhere; they fit material parameters and Rayleigh damping ([`fit`]), and weighted
-//! ensembles of energy models.
+//! elsewhere; they fit material parameters and Rayleigh damping ([`fit`], [`output`]),
+//! weighted ensembles of energy models ([`ensemble`]), a learned linear-solver policy
+//! ([`solver_data`], [`policy`]) and solver parameters ([`tuning`]). Every workflow the
+//! runner offers is a library function here: [`experiment::run`] runs an experiment file
+//! and returns a typed report; [`compare`] measures policies on whole simulations;
+//! [`rollout`] holds the one definition of the rollout error.
 //!
 //! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]); every
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
