@@ -77,7 +77,7 @@ fn pipeline() -> Vec<u64> {
         bits.extend(
             r.iterations
                 .iter()
-                .flat_map(|i| i.solver.bytes().map(u64::from)),
+                .flat_map(|i| i.solver.name().into_bytes().into_iter().map(u64::from)),
         );
     }
     bits.extend(built.state.x.iter().map(|v| v.to_bits()));

@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use anyhow::Result;
-use deform_integrator::spec_name;
+use deform_learn::compare::Choice;
 use deform_learn::experiment::fit_material::FitMaterialReport;
 use deform_learn::experiment::select_model::SelectModelReport;
 use deform_learn::experiment::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
@@ -393,10 +393,10 @@ fn policy_plots(r: &SelectSolverReport, ci: usize, case: &CaseReport, out: &Path
         false,
     )?;
     if let Some(learned) = case.learned() {
-        let index = |name: &str| {
+        let index = |c: &Choice| {
             r.candidates
                 .iter()
-                .position(|c| name.starts_with(&spec_name(c)))
+                .position(|s| !c.fallback && *s == c.solver)
                 .map_or(-1.0, |i| i as f64)
         };
         let choices = &learned.measured.choices;
@@ -408,10 +408,7 @@ fn policy_plots(r: &SelectSolverReport, ci: usize, case: &CaseReport, out: &Path
             ),
             "Newton iteration (all steps)",
             "candidate index (-1: fallback)",
-            &[Series::new(
-                "learned",
-                choices.iter().map(|c| index(c)).collect(),
-            )],
+            &[Series::new("learned", choices.iter().map(index).collect())],
             false,
         )?;
         let mut ccsv = String::from("iteration,solver\n");
@@ -611,7 +608,7 @@ fn tune_solver(r: &TuneSolverReport, out: &Path, md: &mut String) -> Result<()> 
     writeln!(
         md,
         "Tuned `{}` ({}): {}, work {:.4e} over {} steps (factorisation flops x {}), trajectory error {:.1e} (bound {:e}); {} evaluations (`tuning.csv`).\n\nAs configured ({}): work {:.4e}, error {:.1e}; tuned / configured: {:.3}.",
-        spec_name(&r.solver),
+        r.solver.name(),
         names.join(", "),
         values(r, &r.result.log10_values),
         best.work,

@@ -16,7 +16,7 @@ use sprs::CsMat;
 use thiserror::Error;
 
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
-use crate::policy::{PolicyContext, SolverPolicy, spec_name};
+use crate::policy::{PolicyContext, SolverPolicy};
 use crate::report::{CandidateOutcome, IterationReport, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
 use crate::state::{Constraint, State};
@@ -671,7 +671,7 @@ impl Integrator {
             let slope: f64 = r_free.iter().zip(&du_free).map(|(a, b)| a * b).sum();
             if can_project && slope >= 0.0 {
                 discarded.push(CandidateOutcome {
-                    solver: spec_name(&decision.solver),
+                    solver: decision.solver.clone(),
                     setup: Some(setup),
                     solve: Some(solve),
                     error: Some(format!("not a descent direction (r . du = {slope:e})")),
@@ -737,9 +737,9 @@ impl Integrator {
                 residual: rn,
                 energy,
                 solver: if fallback {
-                    spec_name(&fallback_spec())
+                    fallback_spec()
                 } else {
-                    spec_name(&decision.solver)
+                    decision.solver.clone()
                 },
                 setup,
                 solve,
@@ -868,7 +868,7 @@ impl Integrator {
                             .sum::<f64>()
                             .sqrt();
                         CandidateOutcome {
-                            solver: spec_name(spec),
+                            solver: spec.clone(),
                             setup: Some(setup),
                             solve: Some(solve),
                             error: None,
@@ -1013,7 +1013,7 @@ impl FailedSolve {
     /// As a candidate outcome (its cost, why it failed).
     fn outcome(&self, spec: &SolverSpec) -> CandidateOutcome {
         CandidateOutcome {
-            solver: spec_name(spec),
+            solver: spec.clone(),
             setup: self.setup.or_else(|| self.error.spent().copied()),
             solve: self.error.stats().cloned(),
             error: Some(self.error.to_string()),

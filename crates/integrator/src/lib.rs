@@ -47,7 +47,7 @@ pub use integrator::{
 pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,
-    StaleFactor, is_stale_cholesky, spec_name,
+    StaleFactor,
 };
 pub use report::{CandidateOutcome, IterationReport, StepError, StepReport};
 pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};

@@ -71,7 +71,7 @@ pub struct Fixed(pub SolverSpec);
 
 impl SolverPolicy for Fixed {
     fn name(&self) -> String {
-        format!("fixed({})", spec_name(&self.0))
+        format!("fixed({})", self.0.name())
     }
 
     fn choose(&mut self, _: &PolicyContext<'_>) -> Decision {
@@ -90,11 +90,11 @@ pub struct Schedule {
 
 impl SolverPolicy for Schedule {
     fn name(&self) -> String {
-        let list: Vec<String> = self.iterations.iter().map(spec_name).collect();
+        let list: Vec<String> = self.iterations.iter().map(SolverSpec::name).collect();
         format!(
             "schedule([{}], then {})",
             list.join(", "),
-            spec_name(&self.otherwise)
+            self.otherwise.name()
         )
     }
 
@@ -156,7 +156,7 @@ impl EisenstatWalker {
 
 impl SolverPolicy for EisenstatWalker {
     fn name(&self) -> String {
-        format!("eisenstat-walker({})", spec_name(&self.solver))
+        format!("eisenstat-walker({})", self.solver.name())
     }
 
     fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
@@ -210,7 +210,7 @@ impl SolverPolicy for StaleFactor {
     fn name(&self) -> String {
         format!(
             "stale-factor({}, refactor above {})",
-            spec_name(&self.solver),
+            self.solver.name(),
             self.refactor_above
         )
     }
@@ -226,17 +226,6 @@ impl SolverPolicy for StaleFactor {
     fn observe(&mut self, _: &PolicyContext<'_>, outcome: &IterationReport) {
         self.refresh = outcome.fallback || outcome.solve.iterations > self.refactor_above;
     }
-}
-
-/// Whether `spec` is PCG preconditioned by a stale Cholesky factor.
-pub fn is_stale_cholesky(spec: &SolverSpec) -> bool {
-    matches!(
-        spec,
-        SolverSpec::Pcg {
-            preconditioner: deform_solvers::PreconditionerSpec::StaleCholesky { .. },
-            ..
-        }
-    )
 }
 
 /// A policy as a configuration states it. Unknown fields are rejected.
@@ -333,7 +322,7 @@ impl PolicySpec {
                 refactor_above,
             } => {
                 check(solver)?;
-                if !is_stale_cholesky(solver) {
+                if !solver.is_stale_cholesky() {
                     return Err(
                         "solver: StaleFactor needs Pcg(preconditioner: StaleCholesky(..))".into(),
                     );
@@ -341,29 +330,5 @@ impl PolicySpec {
                 Box::new(StaleFactor::new(solver.clone(), *refactor_above))
             }
         })
-    }
-}
-
-/// A short name of a solver configuration.
-pub fn spec_name(spec: &SolverSpec) -> String {
-    match spec {
-        SolverSpec::MatrixFree(inner) => format!("matrix-free {}", spec_name(inner)),
-        SolverSpec::Jacobi { omega, .. } => format!("jacobi({omega})"),
-        SolverSpec::Cg { .. } => "cg".into(),
-        SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),
-        SolverSpec::Direct {
-            ordering,
-            parallel,
-            precision,
-            ..
-        } => format!(
-            "direct({ordering:?}{}{})",
-            if *parallel { "" } else { ", one thread" },
-            if *precision == deform_solvers::Precision::Mixed {
-                ", mixed"
-            } else {
-                ""
-            }
-        ),
     }
 }

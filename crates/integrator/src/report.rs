@@ -1,7 +1,7 @@
 //! What each Newton iteration and each step did, and why a step failed.
 
 use deform_assembly::AssemblyError;
-use deform_solvers::{SetupStats, SolveStats, SolverError};
+use deform_solvers::{SetupStats, SolveStats, SolverError, SolverSpec};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -14,8 +14,8 @@ pub struct IterationReport {
     pub residual: f64,
     /// Elastic energy at the iterate.
     pub energy: f64,
-    /// The linear solver used (its configuration's short name).
-    pub solver: String,
+    /// The linear solver used (the direct fallback when `fallback`).
+    pub solver: SolverSpec,
     /// What its set-up (factorisation, preconditioner) did and cost.
     pub setup: SetupStats,
     /// The linear solve's statistics.
@@ -81,8 +81,8 @@ impl IterationReport {
 /// What a counterfactual candidate solver did on an iteration's linear system.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CandidateOutcome {
-    /// Its configuration's short name.
-    pub solver: String,
+    /// Its configuration.
+    pub solver: SolverSpec,
     /// Its set-up cost (`None` when it failed there).
     pub setup: Option<SetupStats>,
     /// Its solve statistics (`None` when it failed).

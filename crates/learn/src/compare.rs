@@ -7,6 +7,7 @@ use std::path::Path;
 use deform_integrator::{
     IntegratorOptions, OnStep, RunOptions, Scene, SolverPolicy, State, StepReport,
 };
+use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
 
 use crate::error::LearnError;
@@ -62,8 +63,27 @@ pub struct Measured {
     pub deterministic: bool,
     /// Work and Newton iterations of every step (runs one after the other).
     pub per_step: Vec<(f64, usize)>,
-    /// The solver of every Newton iteration (with the fallback marked), in order.
-    pub choices: Vec<String>,
+    /// The solver of every Newton iteration, in order.
+    pub choices: Vec<Choice>,
+}
+
+/// The solver a Newton iteration used.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Choice {
+    /// The solver (the direct one when `fallback`).
+    pub solver: SolverSpec,
+    /// The chosen solver failed and the direct one was used instead.
+    pub fallback: bool,
+}
+
+impl std::fmt::Display for Choice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.solver)?;
+        if self.fallback {
+            f.write_str(" (fallback)")?;
+        }
+        Ok(())
+    }
 }
 
 /// Runs `make`'s policy `repeats` times on every run of `case`, with the scenes' Newton
@@ -129,12 +149,9 @@ pub fn measure(
                 for r in &summary.reports {
                     row.per_step
                         .push((r.work(factor_weight), r.newton_iterations()));
-                    row.choices.extend(r.iterations.iter().map(|i| {
-                        if i.fallback {
-                            format!("{} (fallback)", i.solver)
-                        } else {
-                            i.solver.clone()
-                        }
+                    row.choices.extend(r.iterations.iter().map(|i| Choice {
+                        solver: i.solver.clone(),
+                        fallback: i.fallback,
                     }));
                 }
             }

@@ -29,10 +29,7 @@
 //! solve. The integrator's direct fallback covers mispredictions; a fallback ends the cycle.
 //! Everything is deterministic, so the policy is reproducible.
 
-use deform_integrator::{
-    Decision, EisenstatWalker, IterationReport, PolicyContext, SolverPolicy, is_stale_cholesky,
-    spec_name,
-};
+use deform_integrator::{Decision, EisenstatWalker, IterationReport, PolicyContext, SolverPolicy};
 use deform_solvers::{PreconditionerSpec, SolverSpec};
 
 use crate::solver_data::{SolverDataset, feature_vector};
@@ -165,7 +162,7 @@ fn max_age(spec: &SolverSpec) -> Option<usize> {
 
 /// Whether a candidate's set-up is a sparse Cholesky factorisation.
 fn factorises(spec: &SolverSpec) -> bool {
-    matches!(spec, SolverSpec::Direct { .. }) || is_stale_cholesky(spec)
+    matches!(spec, SolverSpec::Direct { .. }) || spec.is_stale_cholesky()
 }
 
 impl LearnedPolicy {
@@ -458,7 +455,7 @@ impl LearnedPolicy {
 
 impl SolverPolicy for LearnedPolicy {
     fn name(&self) -> String {
-        let names: Vec<String> = self.candidates.iter().map(spec_name).collect();
+        let names: Vec<String> = self.candidates.iter().map(SolverSpec::name).collect();
         format!(
             "learned(k={}, over [{}])",
             self.options.neighbours,

@@ -24,7 +24,7 @@ use deform_integrator::{
 };
 
 use crate::solver_data::Run;
-use deform_solvers::{SolverSpec, Tolerance};
+use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
 
 use crate::fit::FitError;
@@ -52,31 +52,6 @@ pub struct TuningResult {
     pub best: TuningSample,
     /// Every evaluation, in order.
     pub samples: Vec<TuningSample>,
-}
-
-/// `solver` with its relative tolerance replaced (iterative solvers only).
-pub fn with_relative_tolerance(solver: &SolverSpec, rel: f64) -> Option<SolverSpec> {
-    let set = |t: &Tolerance| Tolerance { rel, ..*t };
-    Some(match solver {
-        SolverSpec::Jacobi { omega, tolerance } => SolverSpec::Jacobi {
-            omega: *omega,
-            tolerance: set(tolerance),
-        },
-        SolverSpec::Cg { tolerance } => SolverSpec::Cg {
-            tolerance: set(tolerance),
-        },
-        SolverSpec::Pcg {
-            preconditioner,
-            tolerance,
-        } => SolverSpec::Pcg {
-            preconditioner: *preconditioner,
-            tolerance: set(tolerance),
-        },
-        SolverSpec::Direct { .. } => return None,
-        SolverSpec::MatrixFree(inner) => {
-            SolverSpec::MatrixFree(Box::new(with_relative_tolerance(inner, rel)?))
-        }
-    })
 }
 
 /// Makes the policy for a parameter vector (log10 values, clamped to their ranges), and
@@ -216,7 +191,7 @@ fn with_parameters(
     for (p, v) in parameters.iter().zip(values) {
         let value = 10f64.powf(*v);
         spec = match p {
-            SolverParameter::RelativeTolerance => with_relative_tolerance(&spec, value)?,
+            SolverParameter::RelativeTolerance => spec.with_relative_tolerance(value)?,
             SolverParameter::Omega => match spec {
                 SolverSpec::Jacobi { tolerance, .. } => SolverSpec::Jacobi {
                     omega: value,
@@ -254,10 +229,7 @@ pub fn tune_solver(
         .map(|p| {
             p.start(solver).ok_or_else(|| FitError::Data {
                 index: 0,
-                reason: format!(
-                    "{p:?} does not apply to {}",
-                    deform_integrator::spec_name(solver)
-                ),
+                reason: format!("{p:?} does not apply to {}", solver.name()),
             })
         })
         .collect::<Result<Vec<_>, _>>()?;

@@ -696,7 +696,7 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
 
 #[test]
 fn tune_policy_tunes_several_parameters_over_several_simulations() {
-    use deform_learn::tuning::{Tuning, tune_policy, with_relative_tolerance};
+    use deform_learn::tuning::{Tuning, tune_policy};
     // Two training simulations: a release, and a spinning beam with projected tangents.
     let mut release = scene("", "Beam(2)");
     release.integrator.newton.rel = 1e-8;
@@ -712,7 +712,7 @@ fn tune_policy_tunes_several_parameters_over_several_simulations() {
     // Parameters: log10 of Newton's relative tolerance and of PCG's.
     let make = |p: &[f64], o: &mut deform_integrator::IntegratorOptions| {
         o.newton.rel = 10f64.powf(p[0]);
-        let spec = with_relative_tolerance(&pcg, 10f64.powf(p[1]))?;
+        let spec = pcg.with_relative_tolerance(10f64.powf(p[1]))?;
         Some(Box::new(deform_integrator::Fixed(spec)) as Box<dyn deform_integrator::SolverPolicy>)
     };
     let tuning = Tuning {

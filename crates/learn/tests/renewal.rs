@@ -70,12 +70,12 @@ fn dataset() -> SolverDataset {
 }
 
 /// The report of a solve with these statistics.
-fn report(solver: &str, factorised: bool, iterations: usize) -> IterationReport {
+fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> IterationReport {
     IterationReport {
         iteration: 0,
         residual: 1e-3,
         energy: 0.0,
-        solver: solver.to_owned(),
+        solver: solver.clone(),
         setup: SetupStats {
             analyzed: false,
             reused: !factorised,
@@ -84,7 +84,7 @@ fn report(solver: &str, factorised: bool, iterations: usize) -> IterationReport 
             seconds: 0.0,
         },
         solve: SolveStats {
-            solver: solver.to_owned(),
+            solver: solver.name(),
             iterations,
             residuals: Vec::new(),
             rhs_norm: 1.0,
@@ -128,7 +128,7 @@ fn the_policy_keeps_a_factor_exactly_while_the_next_stale_solve_is_below_the_cyc
         };
         let decision = policy.choose(&context);
         assert!(
-            deform_integrator::is_stale_cholesky(&decision.solver),
+            decision.solver.is_stale_cholesky(),
             "solve {solve}: {:?}",
             decision.solver
         );
@@ -138,10 +138,9 @@ fn the_policy_keeps_a_factor_exactly_while_the_next_stale_solve_is_below_the_cyc
         } else {
             age += 1;
         }
-        let name = deform_integrator::spec_name(&decision.solver);
         policy.observe(
             &context,
-            &report(&name, decision.refresh, stale_iterations(age)),
+            &report(&decision.solver, decision.refresh, stale_iterations(age)),
         );
     }
     assert_eq!(refreshes, [0, 6, 12]);

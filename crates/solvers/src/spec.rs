@@ -75,6 +75,67 @@ fn default_omega() -> f64 {
 }
 
 impl SolverSpec {
+    /// A short name for reports: `direct(Auto)`, `pcg(Jacobi)`, `matrix-free pcg(...)`.
+    pub fn name(&self) -> String {
+        match self {
+            SolverSpec::MatrixFree(inner) => format!("matrix-free {}", inner.name()),
+            SolverSpec::Jacobi { omega, .. } => format!("jacobi({omega})"),
+            SolverSpec::Cg { .. } => "cg".into(),
+            SolverSpec::Pcg { preconditioner, .. } => format!("pcg({preconditioner:?})"),
+            SolverSpec::Direct {
+                ordering,
+                parallel,
+                precision,
+                ..
+            } => format!(
+                "direct({ordering:?}{}{})",
+                if *parallel { "" } else { ", one thread" },
+                if *precision == Precision::Mixed {
+                    ", mixed"
+                } else {
+                    ""
+                }
+            ),
+        }
+    }
+
+    /// PCG preconditioned by a stale Cholesky factor (a factor kept across solves).
+    pub fn is_stale_cholesky(&self) -> bool {
+        matches!(
+            self,
+            SolverSpec::Pcg {
+                preconditioner: PreconditionerSpec::StaleCholesky { .. },
+                ..
+            }
+        )
+    }
+
+    /// The same iterative solver with its relative tolerance replaced; `None` for the
+    /// direct solver.
+    pub fn with_relative_tolerance(&self, rel: f64) -> Option<SolverSpec> {
+        let set = |t: &Tolerance| Tolerance { rel, ..*t };
+        Some(match self {
+            SolverSpec::Jacobi { omega, tolerance } => SolverSpec::Jacobi {
+                omega: *omega,
+                tolerance: set(tolerance),
+            },
+            SolverSpec::Cg { tolerance } => SolverSpec::Cg {
+                tolerance: set(tolerance),
+            },
+            SolverSpec::Pcg {
+                preconditioner,
+                tolerance,
+            } => SolverSpec::Pcg {
+                preconditioner: *preconditioner,
+                tolerance: set(tolerance),
+            },
+            SolverSpec::Direct { .. } => return None,
+            SolverSpec::MatrixFree(inner) => {
+                SolverSpec::MatrixFree(Box::new(inner.with_relative_tolerance(rel)?))
+            }
+        })
+    }
+
     /// The stopping rule of an iterative configuration (`None` for the direct solver).
     pub fn tolerance(&self) -> Option<Tolerance> {
         match *self {
@@ -136,5 +197,11 @@ impl SolverSpec {
                 }
             },
         })
+    }
+}
+
+impl std::fmt::Display for SolverSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.name())
     }
 }

@@ -8,7 +8,6 @@ use std::path::PathBuf;
 
 use deform_integrator::{
     EisenstatWalker, Fixed, IntegratorOptions, Projection, Scene, SolverPolicy, StaleFactor,
-    is_stale_cholesky, spec_name,
 };
 use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
@@ -90,15 +89,15 @@ impl Contender {
     /// Its name in reports.
     pub fn name(&self) -> String {
         match self {
-            Contender::Fixed(s) => format!("fixed {}", spec_name(s)),
-            Contender::EisenstatWalker(s) => format!("Eisenstat-Walker {}", spec_name(s)),
+            Contender::Fixed(s) => format!("fixed {}", s.name()),
+            Contender::EisenstatWalker(s) => format!("Eisenstat-Walker {}", s.name()),
             Contender::HandSchedule(_, above) => {
                 format!("hand schedule: refactorise above {above} iterations")
             }
             Contender::Learned => "learned".into(),
             Contender::LearnedTuned(t) => format!("learned, tuned ({})", t.label()),
             Contender::FixedTunedNewton(s, _) => {
-                format!("fixed {}, the tuned Newton settings", spec_name(s))
+                format!("fixed {}, the tuned Newton settings", s.name())
             }
         }
     }
@@ -110,7 +109,7 @@ impl Contender {
 
     /// A fixed candidate that keeps a factor across solves (a schedule in disguise).
     pub fn reuses_factor(&self) -> bool {
-        matches!(self, Contender::Fixed(s) if is_stale_cholesky(s))
+        matches!(self, Contender::Fixed(s) if s.is_stale_cholesky())
     }
 
     /// The learned policy, tuned or not.
@@ -409,11 +408,11 @@ fn baselines(candidates: &[SolverSpec], refactor_above: usize) -> Vec<Contender>
     let mut contenders: Vec<Contender> = candidates.iter().cloned().map(Contender::Fixed).collect();
     if let Some(c) = candidates
         .iter()
-        .find(|c| !matches!(c, SolverSpec::Direct { .. }) && !is_stale_cholesky(c))
+        .find(|c| !matches!(c, SolverSpec::Direct { .. }) && !c.is_stale_cholesky())
     {
         contenders.push(Contender::EisenstatWalker(c.clone()));
     }
-    if let Some(c) = candidates.iter().find(|c| is_stale_cholesky(c)) {
+    if let Some(c) = candidates.iter().find(|c| c.is_stale_cholesky()) {
         contenders.push(Contender::HandSchedule(c.clone(), refactor_above));
     }
     contenders
