@@ -27,6 +27,13 @@ pub struct DemoArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// The base scene to simulate first (default: the bundled cantilever).
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Run every experiment file (`*.ron`) of this folder, in name order, instead of the
+    /// bundled set.
+    #[arg(long)]
+    pub experiments: Option<PathBuf>,
 }
 
 const EXPERIMENTS: [(&str, &str); 8] = [
@@ -64,6 +71,44 @@ const EXPERIMENTS: [(&str, &str); 8] = [
     ),
 ];
 
+/// The experiments to run: `(name, description, file)`.
+fn experiments(root: &Path, dir: Option<&Path>) -> Result<Vec<(String, String, PathBuf)>> {
+    let Some(dir) = dir else {
+        return Ok(EXPERIMENTS
+            .iter()
+            .map(|(name, what)| {
+                let file = root.join(format!("assets/experiments/{name}.ron"));
+                ((*name).to_owned(), (*what).to_owned(), file)
+            })
+            .collect());
+    };
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let path = entry?.path();
+        if path.extension().is_none_or(|x| x != "ron") {
+            continue;
+        }
+        // Scenes may sit beside the experiments that name them; anything else must load.
+        if let Err(e) = deform_learn::experiment::Experiment::load(&path) {
+            if deform_integrator::Scene::load(&path).is_ok() {
+                continue;
+            }
+            return Err(e.into());
+        }
+        files.push(path);
+    }
+    files.sort();
+    Ok(files
+        .into_iter()
+        .map(|f| {
+            let name = f
+                .file_stem()
+                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
+            (name.clone(), format!("experiment `{name}`"), f)
+        })
+        .collect())
+}
+
 pub fn run(args: DemoArgs) -> Result<()> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     std::fs::create_dir_all(&args.out)
@@ -75,31 +120,36 @@ pub fn run(args: DemoArgs) -> Result<()> {
     );
 
     let t = Instant::now();
-    let sim = simulate::simulate(
-        &root.join("assets/scenes/cantilever.ron"),
-        None,
-        Some(&args.out.join("cantilever")),
-        args.quiet,
-    )?;
+    let scene = args
+        .scene
+        .clone()
+        .unwrap_or_else(|| root.join("assets/scenes/cantilever.ron"));
+    let folder = scene
+        .file_stem()
+        .map_or("base".to_owned(), |s| s.to_string_lossy().into_owned());
+    let sim = simulate::simulate(&scene, None, Some(&args.out.join(&folder)), args.quiet)?;
     rows.push((
-        "simulate cantilever".to_owned(),
+        format!("simulate {folder}"),
         t.elapsed().as_secs_f64(),
         format!(
-            "{} steps, {} Newton iterations; ParaView: cantilever/series.pvd",
+            "{} steps, {} Newton iterations; ParaView: {folder}/series.pvd",
             sim.steps, sim.newton
         ),
     ));
     writeln!(
         report,
-        "## The base model: `assets/scenes/cantilever.ron`\n\n{} steps, {} Newton iterations, {:.2} s; frames in `cantilever/series.pvd` (open in ParaView), per-step data in `cantilever/steps.csv`.\n",
-        sim.steps, sim.newton, sim.seconds
+        "## The base model: `{}`\n\n{} steps, {} Newton iterations, {:.2} s; frames in `{folder}/series.pvd` (open in ParaView), per-step data in `{folder}/steps.csv`.\n",
+        scene.display(),
+        sim.steps,
+        sim.newton,
+        sim.seconds
     )?;
 
-    for (name, what) in EXPERIMENTS {
+    for (name, what, file) in experiments(&root, args.experiments.as_deref())? {
         let t = Instant::now();
-        let out = args.out.join(name);
+        let out = args.out.join(&name);
         let (result, text) = experiment::run(ExperimentArgs {
-            experiment: root.join(format!("assets/experiments/{name}.ron")),
+            experiment: file,
             out: Some(out.clone()),
             quiet: args.quiet,
         })?;
@@ -111,7 +161,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
             text.replacen("# ", "### ", 1)
         )?;
         rows.push((
-            name.to_owned(),
+            name.clone(),
             t.elapsed().as_secs_f64(),
             if summary.is_empty() {
                 format!("{name}/report.md")

@@ -1,0 +1,168 @@
+//! The runner's commands on tiny inputs, as a user types them: `mesh`, `simulate`,
+//! `experiment` and `demo` succeed and write what they promise; bad input fails with a
+//! message naming the file.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn tiny(name: &str) -> PathBuf {
+    root().join("crates/learn/tests/data").join(name)
+}
+
+fn xtask(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_xtask"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("the runner starts")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = xtask(args);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    );
+    assert!(out.status.success(), "{args:?} failed:\n{stdout}\n{stderr}");
+    stdout
+}
+
+fn lines(path: &Path) -> usize {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .count()
+}
+
+#[test]
+fn mesh_info_convert_and_generate() {
+    let dir = tempfile::tempdir().unwrap();
+    let info = ok(&["mesh", "info", "assets/meshes/bracket.msh"]);
+    assert!(info.contains("tets"), "{info}");
+    let vtu = dir.path().join("bracket.vtu");
+    ok(&[
+        "mesh",
+        "convert",
+        "assets/meshes/bracket.msh",
+        vtu.to_str().unwrap(),
+    ]);
+    assert!(std::fs::read_to_string(&vtu).unwrap().contains("<VTKFile"));
+    let msh = dir.path().join("beam.msh");
+    ok(&[
+        "mesh",
+        "generate",
+        "beam",
+        "--cells",
+        "4x1x1",
+        "--out",
+        msh.to_str().unwrap(),
+    ]);
+    let again = ok(&["mesh", "info", msh.to_str().unwrap()]);
+    assert!(again.contains("24"), "4 x 1 x 1 cubes are 24 tets: {again}");
+}
+
+#[test]
+fn simulate_writes_frames_steps_and_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sim");
+    let text = ok(&[
+        "simulate",
+        tiny("tiny_beam.ron").to_str().unwrap(),
+        "--steps",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(text.contains("3 steps"), "{text}");
+    assert_eq!(
+        lines(&out.join("steps.csv")),
+        4,
+        "a header and one row per step"
+    );
+    assert!(out.join("series.pvd").exists());
+    assert!(out.join("frame_00003.vtu").exists());
+    assert!(
+        std::fs::read_to_string(out.join("summary.txt"))
+            .unwrap()
+            .contains("steps: 3")
+    );
+}
+
+#[test]
+fn experiment_writes_its_report_tables_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("exp");
+    ok(&[
+        "experiment",
+        tiny("fit_material.ron").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("| output error |"), "{report}");
+    assert_eq!(
+        lines(&out.join("rollout_error.csv")),
+        1 + 7,
+        "header + 7 states"
+    );
+    assert!(out.join("rollout_error.svg").exists());
+    assert!(out.join("dataset").is_dir());
+}
+
+#[test]
+fn demo_composes_the_reports_of_a_folder_of_experiments() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    ok(&[
+        "demo",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+        "--scene",
+        tiny("tiny_beam.ron").to_str().unwrap(),
+        "--experiments",
+        tiny("").to_str().unwrap(),
+    ]);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for name in [
+        "fit_material",
+        "select_model",
+        "select_solver",
+        "tune_backward_euler",
+        "tune_solver",
+    ] {
+        assert!(report.contains(&format!("| {name} |")), "{name}: {report}");
+        assert!(out.join(name).join("report.md").exists(), "{name}");
+    }
+    assert!(report.contains("tuned / untuned: error"), "{report}");
+    assert!(out.join("tiny_beam/series.pvd").exists());
+    assert!(
+        out.join("tune_backward_euler/frames/tuned/series.pvd")
+            .exists()
+    );
+}
+
+#[test]
+fn bad_input_fails_naming_the_file() {
+    let out = xtask(&["simulate", "no/such/scene.ron", "--quiet"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no/such/scene.ron"), "{err}");
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.ron");
+    std::fs::write(
+        &bad,
+        r#"Experiment(name: "x", scene: "s.ron", dataset: (trajectories: 5, steps: 3, seed: 1), task: SelectModel(members: [Rubber]))"#,
+    )
+    .unwrap();
+    let out = xtask(&["experiment", bad.to_str().unwrap(), "--quiet"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.ron") && err.contains("Rubber"), "{err}");
+}
