@@ -9,13 +9,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use deform_assembly::{Assembly, MaterialField, Outputs, Tangent};
+use deform_fs::write_atomic;
 use deform_integrator::benchmark::{beam, beam_free_coordinates, beam_system};
 use deform_integrator::{
     Constraint, Integrator, IntegratorOptions, Motion, OnStep, PolicySpec, RunOptions, State,
     StepReport,
 };
 use deform_materials::{Model, StableNeoHookean};
-use deform_mesh::io::{MshFormat, MshVersion, write_atomic, write_msh};
+use deform_mesh::io::{MshFormat, MshVersion, write_msh};
 use deform_solvers::{Precision, SolverSpec};
 
 /// Which measurement.

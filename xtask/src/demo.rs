@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use deform_mesh::io::write_atomic;
+use deform_fs::write_atomic;
 
 use crate::experiment::{self, ExperimentArgs};
 use crate::render;

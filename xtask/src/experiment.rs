@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use deform_fs::write_atomic;
 use deform_learn::experiment::{self, Experiment, ExperimentObserver, ExperimentReport, Stage};
-use deform_mesh::io::write_atomic;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::render;

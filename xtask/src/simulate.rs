@@ -8,8 +8,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use deform_fs::write_atomic;
 use deform_integrator::{Observer, RunOptions, Scene, State, StepReport};
-use deform_mesh::io::{Pvd, Vtu, write_atomic};
+use deform_mesh::io::{Pvd, Vtu};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Arguments of `simulate`.

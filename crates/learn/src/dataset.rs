@@ -12,9 +12,9 @@
 
 use std::path::{Path, PathBuf};
 
+use deform_fs::write_atomic;
 use deform_integrator::scene::{Built, Initial};
 use deform_integrator::{OnStep, RunOptions, Scene, State, StepError, StepReport, Termination};
-use deform_mesh::io::write_atomic;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;

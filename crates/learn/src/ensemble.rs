@@ -146,10 +146,7 @@ pub fn fit_ensemble(
             })
             .collect(),
     );
-    let built = variant.build(origin).map_err(|e| FitError::Data {
-        index: 0,
-        reason: e.to_string(),
-    })?;
+    let built = variant.build(origin)?;
     let fit = fit_equation_error(&built.integrator, train, EquationErrorOptions::default())?;
     let mut members: Vec<FittedMember> = names
         .iter()
@@ -189,10 +186,7 @@ pub fn refine_ensemble(
         .collect();
     let mut variant = scene.clone();
     variant.material = spec;
-    let mut built = variant.build(origin).map_err(|e| FitError::Data {
-        index: 0,
-        reason: e.to_string(),
-    })?;
+    let mut built = variant.build(origin)?;
     let MaterialField::Uniform(model) = built.integrator.assembly().materials() else {
         unreachable!("an ensemble specification builds one uniform model")
     };
@@ -219,11 +213,7 @@ fn energy_shares(
         let Some(model) = model_of(member.model, member.mu, member.lambda) else {
             continue;
         };
-        let mut asm =
-            Assembly::new(mesh, MaterialField::Uniform(model)).map_err(|e| FitError::Data {
-                index: 0,
-                reason: e.to_string(),
-            })?;
+        let mut asm = Assembly::new(mesh, MaterialField::Uniform(model))?;
         for (ti, t) in evaluate.iter().enumerate() {
             for (step, x) in t.x.iter().enumerate() {
                 energy[m] += asm.energy(x).map_err(|source| FitError::Assembly {

@@ -85,6 +85,61 @@ pub enum FitError {
     /// The least-squares problem is singular (the data do not excite a parameter).
     #[error("the data do not determine the parameters (rank-deficient least squares)")]
     Singular,
+    /// The fit's input or options cannot work (a non-uniform material for the output
+    /// error, a parameter that does not apply to the solver, a simplex of the wrong size).
+    #[error("{0}")]
+    Invalid(String),
+    /// Coefficients that make no valid material.
+    #[error("coefficients {coefficients:?}: {reason}")]
+    Coefficients {
+        /// The coefficients.
+        coefficients: Vec<f64>,
+        /// Why.
+        reason: String,
+    },
+    /// The budget of loss evaluations is spent.
+    #[error("the budget of {evaluations} loss evaluations is spent")]
+    Budget {
+        /// The budget.
+        evaluations: usize,
+    },
+    /// A step of a rollout from trajectory `trajectory` failed.
+    #[error("trajectory {trajectory}, step {step}: {source}")]
+    Step {
+        /// Trajectory index.
+        trajectory: usize,
+        /// The failed step.
+        step: usize,
+        /// Why.
+        source: Box<deform_integrator::StepError>,
+    },
+    /// A step of the direct-solver reference simulation failed.
+    #[error("reference simulation, step {step}: {source}")]
+    Reference {
+        /// The failed step.
+        step: usize,
+        /// Why.
+        source: Box<deform_integrator::StepError>,
+    },
+    /// An adjoint solve failed.
+    #[error("trajectory {trajectory}, adjoint solve at step {step}: {source}")]
+    Solve {
+        /// Trajectory index.
+        trajectory: usize,
+        /// The step.
+        step: usize,
+        /// Why.
+        source: deform_solvers::SolverError,
+    },
+    /// A scene (a fit's model variant) does not build.
+    #[error(transparent)]
+    Scene(#[from] deform_integrator::SceneError),
+    /// The model cannot be assembled on the mesh.
+    #[error(transparent)]
+    Model(#[from] deform_assembly::AssemblyError),
+    /// The optimiser failed to start.
+    #[error("optimiser: {0}")]
+    Optimiser(String),
 }
 
 /// Fits the coefficients of the integrator's material (its term split) and optionally the

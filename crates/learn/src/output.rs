@@ -32,11 +32,12 @@ use argmin::core::{
 };
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
-use deform_assembly::{Grouping, MaterialField, Tangent};
+use deform_assembly::{Grouping, Mass, MaterialField, ReducedMatrix, Tangent};
 use deform_integrator::{Integrator, OnStep, RunOptions, State, StepReport};
 use deform_materials::{MaterialError, Model, Parametric};
 use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
+use sprs::CsMat;
 
 use crate::dataset::Trajectory;
 use crate::fit::FitError;
@@ -131,7 +132,7 @@ impl<'a> OutputError<'a> {
     /// [`term_coefficients`]). `progress` sees each evaluation.
     ///
     /// # Errors
-    /// [`FitError::Data`] when the material is not uniform.
+    /// [`FitError::Invalid`] when the material is not uniform.
     pub fn new(
         sim: &'a mut Integrator,
         trajectories: &[&'a Trajectory],
@@ -139,10 +140,9 @@ impl<'a> OutputError<'a> {
         progress: impl FnMut(usize, f64) + 'a,
     ) -> Result<Self, FitError> {
         if !matches!(sim.assembly().materials(), MaterialField::Uniform(_)) {
-            return Err(FitError::Data {
-                index: 0,
-                reason: "the output-error fit needs a uniform material".into(),
-            });
+            return Err(FitError::Invalid(
+                "the output-error fit needs a uniform material".into(),
+            ));
         }
         Ok(Self {
             sim: RefCell::new(sim),
@@ -166,71 +166,33 @@ impl<'a> OutputError<'a> {
             return Ok((*loss, grad.clone()));
         }
         if *self.evaluations.borrow() >= self.options.max_evaluations {
-            return Err(FitError::Data {
-                index: 0,
-                reason: format!(
-                    "the budget of {} loss evaluations is spent",
-                    self.options.max_evaluations
-                ),
+            return Err(FitError::Budget {
+                evaluations: self.options.max_evaluations,
             });
         }
         let mut sim = self.sim.borrow_mut();
         let MaterialField::Uniform(model) = sim.assembly().materials() else {
             unreachable!("checked in new")
         };
-        let model = with_term_coefficients(model, c).map_err(|e| FitError::Data {
-            index: 0,
-            reason: format!("coefficients {c:?}: {e}"),
-        })?;
-        sim.assembly_mut()
-            .set_materials(MaterialField::Uniform(model))
-            .map_err(|e| FitError::Data {
-                index: 0,
-                reason: e.to_string(),
-            })?;
-        let dt = sim.options().dt;
-        let (alpha, gamma) = (sim.options().alpha, sim.options().gamma);
-        let n = sim.assembly().num_dofs();
-        let grouping = Grouping::global(sim.assembly());
-        let mass = sim.mass().clone();
-        // The adjoint's matrices, allocated once and refilled at every step.
-        let mut kmat = sim.assembly().stiffness_matrix();
-        let mut a = sim.assembly().stiffness_matrix();
-        let mut reduced = sim.dofs().reduced_matrix(&a).map_err(|e| FitError::Data {
-            index: 0,
+        let model = with_term_coefficients(model, c).map_err(|e| FitError::Coefficients {
+            coefficients: c.to_vec(),
             reason: e.to_string(),
         })?;
+        sim.assembly_mut()
+            .set_materials(MaterialField::Uniform(model))?;
+        let mut work = Adjoint::new(&sim)?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
         let mut grad = vec![0.0; c.len()];
+        let dt = sim.options().dt;
         let wv = self.options.velocity_weight * dt * dt;
         let horizon = self.options.rollout.max(1);
+        let n = sim.assembly().num_dofs();
         for (ti, t) in self.trajectories.iter().enumerate() {
             let mut start = 0;
             while start < t.steps() {
                 let len = horizon.min(t.steps() - start);
-                // Forward: the rollout from the data state at `start`.
-                let mut states = vec![State {
-                    x: t.x[start].clone(),
-                    v: t.v[start].clone(),
-                    t: start as f64 * dt,
-                }];
-                let mut s = states[0].clone();
-                let summary = sim.run(
-                    &mut s,
-                    &RunOptions::steps(len),
-                    &mut OnStep(|_: &StepReport, state: &State| states.push(state.clone())),
-                );
-                if let Some(e) = summary.into_result().err() {
-                    return Err(FitError::Data {
-                        index: ti,
-                        reason: format!(
-                            "step {} at coefficients {c:?}: {}",
-                            start + e.step,
-                            e.source
-                        ),
-                    });
-                }
+                let states = forward(&mut sim, t, ti, start, len)?;
                 // Loss terms and their partial derivatives per predicted state.
                 let mut dl_dx = vec![vec![0.0; n]; len + 1];
                 let mut dl_dv = vec![vec![0.0; n]; len + 1];
@@ -246,84 +208,14 @@ impl<'a> OutputError<'a> {
                         dl_dv[k][i] = 2.0 * wv * ev;
                     }
                 }
-                // Backward (adjoint) through the steps, see the module docs.
-                let mut adj_x = dl_dx[len].clone();
-                let mut adj_v = dl_dv[len].clone();
-                for k in (0..len).rev() {
-                    let next = &states[k + 1];
-                    let fail = |e: deform_assembly::AssemblyError| FitError::Assembly {
-                        trajectory: ti,
-                        step: start + k + 1,
-                        source: e,
-                    };
-                    let asm = sim.assembly_mut();
-                    asm.stiffness(&next.x, Tangent::Exact, &mut kmat)
-                        .map_err(fail)?;
-                    asm.combine(1.0 + dt * alpha, &mass, dt * gamma + dt * dt, &kmat, &mut a)
-                        .map_err(fail)?;
-                    let dofs = sim.dofs();
-                    dofs.restrict_matrix(&a, &mut reduced).map_err(fail)?;
-                    // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
-                    let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
-                    let mut g_free = vec![0.0; dofs.num_free()];
-                    dofs.restrict(&g, &mut g_free).map_err(fail)?;
-                    let solve_fail = |e: deform_solvers::SolverError| FitError::Data {
-                        index: ti,
-                        reason: format!("adjoint solve at step {}: {e}", start + k),
-                    };
-                    solver.factorize(&reduced.matrix).map_err(solve_fail)?;
-                    let mut lambda_free = vec![0.0; g_free.len()];
-                    solver
-                        .solve(&reduced.matrix, &g_free, &mut lambda_free)
-                        .map_err(solve_fail)?;
-                    let mut lambda = vec![0.0; n];
-                    dofs.scatter(&lambda_free, &mut lambda).map_err(fail)?;
-                    // dL/dc += dt lambda^T (J_f - gamma J_k) at the step's end state.
-                    let jf = sim
-                        .assembly()
-                        .term_forces(&next.x, &grouping)
-                        .map_err(fail)?;
-                    let jk = if gamma != 0.0 {
-                        Some(
-                            sim.assembly()
-                                .term_stiffness_products(&next.x, &next.v, &grouping)
-                                .map_err(fail)?,
-                        )
-                    } else {
-                        None
-                    };
-                    for (j, gj) in grad.iter_mut().enumerate() {
-                        let f = jf.column(j);
-                        let kv = jk.as_ref().map(|m| m.column(j));
-                        let mut sum = 0.0;
-                        for i in 0..n {
-                            sum += lambda[i] * (f[i] - kv.as_ref().map_or(0.0, |kc| gamma * kc[i]));
-                        }
-                        *gj += dt * sum;
-                    }
-                    if k == 0 {
-                        break;
-                    }
-                    // Adjoints of the state at k: x_{k+1} = x_k + dt v_{k+1} passes adj_x on;
-                    // dr/dx_k = dt K and dr/dv_k = -M enter through lambda. Constrained DOFs
-                    // are prescribed: their adjoints vanish.
-                    let mut k_lambda = vec![0.0; n];
-                    deform_solvers::LinearOperator::apply(&kmat, &lambda, &mut k_lambda);
-                    let mut m_lambda = vec![0.0; n];
-                    sim.assembly()
-                        .mass_apply(&mass, &lambda, &mut m_lambda)
-                        .map_err(fail)?;
-                    for i in 0..n {
-                        adj_x[i] = dl_dx[k][i] + adj_x[i] - dt * k_lambda[i];
-                        adj_v[i] = dl_dv[k][i] + m_lambda[i];
-                    }
-                    for v in sim.dofs().constrained_vertices() {
-                        for d in 0..3 {
-                            adj_x[3 * v + d] = 0.0;
-                            adj_v[3 * v + d] = 0.0;
-                        }
-                    }
-                }
+                let rollout = Rollout {
+                    trajectory: ti,
+                    start,
+                    states: &states,
+                    dl_dx: &dl_dx,
+                    dl_dv: &dl_dv,
+                };
+                work.backward(&mut sim, &mut solver, &rollout, &mut grad)?;
                 start += len;
             }
         }
@@ -338,6 +230,169 @@ impl<'a> OutputError<'a> {
         (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
         *self.cache.borrow_mut() = Some((c.to_vec(), loss, grad.clone()));
         Ok((loss, grad))
+    }
+}
+
+/// Forward: the rollout of `len` steps from the data state at `start` (that state first).
+fn forward(
+    sim: &mut Integrator,
+    t: &Trajectory,
+    trajectory: usize,
+    start: usize,
+    len: usize,
+) -> Result<Vec<State>, FitError> {
+    let dt = sim.options().dt;
+    let mut states = vec![State {
+        x: t.x[start].clone(),
+        v: t.v[start].clone(),
+        t: start as f64 * dt,
+    }];
+    let mut s = states[0].clone();
+    let summary = sim.run(
+        &mut s,
+        &RunOptions::steps(len),
+        &mut OnStep(|_: &StepReport, state: &State| states.push(state.clone())),
+    );
+    summary.into_result().map_err(|e| FitError::Step {
+        trajectory,
+        step: start + e.step,
+        source: e.source,
+    })?;
+    Ok(states)
+}
+
+/// One forward rollout and its loss derivatives, for the backward pass.
+struct Rollout<'a> {
+    trajectory: usize,
+    start: usize,
+    /// The states, the start first.
+    states: &'a [State],
+    /// `dL/dx` and `dL/dv` of each state (entry 0 unused).
+    dl_dx: &'a [Vec<f64>],
+    dl_dv: &'a [Vec<f64>],
+}
+
+/// The adjoint's matrices, allocated once per evaluation and refilled at every step.
+struct Adjoint {
+    kmat: CsMat<f64>,
+    a: CsMat<f64>,
+    reduced: ReducedMatrix,
+    mass: Mass,
+    grouping: Grouping,
+}
+
+impl Adjoint {
+    fn new(sim: &Integrator) -> Result<Self, FitError> {
+        let a = sim.assembly().stiffness_matrix();
+        Ok(Self {
+            kmat: sim.assembly().stiffness_matrix(),
+            reduced: sim.dofs().reduced_matrix(&a)?,
+            a,
+            mass: sim.mass().clone(),
+            grouping: Grouping::global(sim.assembly()),
+        })
+    }
+
+    /// Backward (adjoint) through the rollout's steps, see the module docs; adds
+    /// `dL/dc` to `grad`.
+    fn backward(
+        &mut self,
+        sim: &mut Integrator,
+        solver: &mut Cholesky,
+        r: &Rollout<'_>,
+        grad: &mut [f64],
+    ) -> Result<(), FitError> {
+        let dt = sim.options().dt;
+        let (alpha, gamma) = (sim.options().alpha, sim.options().gamma);
+        let n = sim.assembly().num_dofs();
+        let len = r.states.len() - 1;
+        let (ti, start) = (r.trajectory, r.start);
+        let mut adj_x = r.dl_dx[len].clone();
+        let mut adj_v = r.dl_dv[len].clone();
+        for k in (0..len).rev() {
+            let next = &r.states[k + 1];
+            let fail = |e: deform_assembly::AssemblyError| FitError::Assembly {
+                trajectory: ti,
+                step: start + k + 1,
+                source: e,
+            };
+            let asm = sim.assembly_mut();
+            asm.stiffness(&next.x, Tangent::Exact, &mut self.kmat)
+                .map_err(fail)?;
+            asm.combine(
+                1.0 + dt * alpha,
+                &self.mass,
+                dt * gamma + dt * dt,
+                &self.kmat,
+                &mut self.a,
+            )
+            .map_err(fail)?;
+            let dofs = sim.dofs();
+            dofs.restrict_matrix(&self.a, &mut self.reduced)
+                .map_err(fail)?;
+            // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
+            let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
+            let mut g_free = vec![0.0; dofs.num_free()];
+            dofs.restrict(&g, &mut g_free).map_err(fail)?;
+            let solve_fail = |source| FitError::Solve {
+                trajectory: ti,
+                step: start + k,
+                source,
+            };
+            solver.factorize(&self.reduced.matrix).map_err(solve_fail)?;
+            let mut lambda_free = vec![0.0; g_free.len()];
+            solver
+                .solve(&self.reduced.matrix, &g_free, &mut lambda_free)
+                .map_err(solve_fail)?;
+            let mut lambda = vec![0.0; n];
+            dofs.scatter(&lambda_free, &mut lambda).map_err(fail)?;
+            // dL/dc += dt lambda^T (J_f - gamma J_k) at the step's end state.
+            let jf = sim
+                .assembly()
+                .term_forces(&next.x, &self.grouping)
+                .map_err(fail)?;
+            let jk = if gamma != 0.0 {
+                Some(
+                    sim.assembly()
+                        .term_stiffness_products(&next.x, &next.v, &self.grouping)
+                        .map_err(fail)?,
+                )
+            } else {
+                None
+            };
+            for (j, gj) in grad.iter_mut().enumerate() {
+                let f = jf.column(j);
+                let kv = jk.as_ref().map(|m| m.column(j));
+                let mut sum = 0.0;
+                for i in 0..n {
+                    sum += lambda[i] * (f[i] - kv.as_ref().map_or(0.0, |kc| gamma * kc[i]));
+                }
+                *gj += dt * sum;
+            }
+            if k == 0 {
+                break;
+            }
+            // Adjoints of the state at k: x_{k+1} = x_k + dt v_{k+1} passes adj_x on;
+            // dr/dx_k = dt K and dr/dv_k = -M enter through lambda. Constrained DOFs are
+            // prescribed: their adjoints vanish.
+            let mut k_lambda = vec![0.0; n];
+            deform_solvers::LinearOperator::apply(&self.kmat, &lambda, &mut k_lambda);
+            let mut m_lambda = vec![0.0; n];
+            sim.assembly()
+                .mass_apply(&self.mass, &lambda, &mut m_lambda)
+                .map_err(fail)?;
+            for i in 0..n {
+                adj_x[i] = r.dl_dx[k][i] + adj_x[i] - dt * k_lambda[i];
+                adj_v[i] = r.dl_dv[k][i] + m_lambda[i];
+            }
+            for v in sim.dofs().constrained_vertices() {
+                for d in 0..3 {
+                    adj_x[3 * v + d] = 0.0;
+                    adj_v[3 * v + d] = 0.0;
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -475,10 +530,7 @@ pub fn fit_output_error(
     let solver = LBFGS::new(MoreThuenteLineSearch::new(), 7)
         .with_tolerance_grad(options.tolerance)
         .and_then(|s| s.with_tolerance_cost(0.0))
-        .map_err(|e| FitError::Data {
-            index: 0,
-            reason: e.to_string(),
-        })?;
+        .map_err(|e| FitError::Optimiser(e.to_string()))?;
     let problem = LogProblem {
         objective: &objective,
         start: initial.to_vec(),

@@ -12,10 +12,10 @@
 
 use std::path::{Path, PathBuf};
 
+use deform_fs::write_atomic;
 use deform_integrator::{
     IterationReport, OnStep, RunOptions, Scene, State, StepReport, Termination,
 };
-use deform_mesh::io::write_atomic;
 use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
 

@@ -227,17 +227,13 @@ pub fn tune_solver(
     let starts = parameters
         .iter()
         .map(|p| {
-            p.start(solver).ok_or_else(|| FitError::Data {
-                index: 0,
-                reason: format!("{p:?} does not apply to {}", solver.name()),
+            p.start(solver).ok_or_else(|| {
+                FitError::Invalid(format!("{p:?} does not apply to {}", solver.name()))
             })
         })
         .collect::<Result<Vec<_>, _>>()?;
     if parameters.is_empty() {
-        return Err(FitError::Data {
-            index: 0,
-            reason: "no parameter to tune".into(),
-        });
+        return Err(FitError::Invalid("no parameter to tune".into()));
     }
     let first: Vec<f64> = starts.iter().map(|s| s.0).collect();
     let mut start = vec![first.clone()];
@@ -292,15 +288,9 @@ impl Reference {
     /// Simulates `steps` steps of `scene`'s reference.
     ///
     /// # Errors
-    /// [`FitError::Data`] naming the failure.
+    /// [`FitError::Scene`] or [`FitError::Reference`] naming the failed step.
     pub fn simulate(scene: &Scene, origin: &Path, steps: usize) -> Result<Self, FitError> {
-        let fail = |e: String| FitError::Data {
-            index: 0,
-            reason: format!("reference simulation: {e}"),
-        };
-        let mut built = reference_scene(scene)
-            .build(origin)
-            .map_err(|e| fail(e.to_string()))?;
+        let mut built = reference_scene(scene).build(origin)?;
         let mut positions = Vec::with_capacity(steps);
         built
             .integrator
@@ -310,7 +300,10 @@ impl Reference {
                 &mut OnStep(|_: &StepReport, state: &State| positions.push(state.x.clone())),
             )
             .into_result()
-            .map_err(|e| fail(e.to_string()))?;
+            .map_err(|e| FitError::Reference {
+                step: e.step,
+                source: e.source,
+            })?;
         let scale = positions
             .iter()
             .flatten()
@@ -366,10 +359,7 @@ pub fn tune_policy(
     make: &PolicyOf<'_>,
     tuning: &Tuning,
 ) -> Result<TuningResult, FitError> {
-    let fail = |e: String| FitError::Data {
-        index: 0,
-        reason: e,
-    };
+    let fail = FitError::Invalid;
     let n = tuning.range.len();
     if tuning.start.len() != n + 1 || tuning.start.iter().any(|v| v.len() != n) {
         return Err(fail(format!(

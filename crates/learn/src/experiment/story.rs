@@ -261,32 +261,19 @@ pub fn run(
     );
 
     // 4. Solver optimisation: the largest forcing term, on the first training trajectory.
-    observer.start(Stage::Tune, *max_iterations);
     let mut tune_scene = tuned_scene.clone();
     if let Some(m) = train_meta.clone().next() {
         tune_scene.initial = m.initial.clone();
     }
-    let gamma = DEFAULT_FORCING.1;
-    let advance = std::cell::RefCell::new(&mut *observer);
-    let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
-        advance.borrow_mut().advance(1);
-        Some(Box::new(
-            policy.with_forcing(Some((10f64.powf(p[0]), gamma))),
-        ))
-    };
-    let tuning = tune_policy(
-        &[(tune_scene, origin, steps)],
-        &make,
-        &Tuning {
-            start: vec![vec![-1.0], vec![-3.0]],
-            range: vec![(-8.0, -0.3)],
-            factor_weight: *factor_weight,
-            fallback: true,
-            accuracy: *accuracy,
-            max_iterations: *max_iterations,
-        },
+    let tuning = tune_forcing(
+        &policy,
+        &(tune_scene, origin, steps),
+        *factor_weight,
+        *accuracy,
+        *max_iterations,
+        observer,
     )?;
-    observer.finish();
+    let gamma = DEFAULT_FORCING.1;
     let eta_max = 10f64.powf(tuning.log10_values[0]);
     let tuned_policy = policy.with_forcing(Some((eta_max, gamma)));
 
@@ -397,6 +384,40 @@ fn side_by_side(
     }
     observer.finish();
     Ok(rows)
+}
+
+/// Tunes the learned policy's largest forcing term for the least work within `accuracy`.
+fn tune_forcing(
+    policy: &LearnedPolicy,
+    run: &Run<'_>,
+    factor_weight: f64,
+    accuracy: f64,
+    max_iterations: u64,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<TuningResult, LearnError> {
+    observer.start(Stage::Tune, max_iterations);
+    let gamma = DEFAULT_FORCING.1;
+    let advance = std::cell::RefCell::new(&mut *observer);
+    let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
+        advance.borrow_mut().advance(1);
+        Some(Box::new(
+            policy.with_forcing(Some((10f64.powf(p[0]), gamma))),
+        ))
+    };
+    let tuning = tune_policy(
+        std::slice::from_ref(run),
+        &make,
+        &Tuning {
+            start: vec![vec![-1.0], vec![-3.0]],
+            range: vec![(-8.0, -0.3)],
+            factor_weight,
+            fallback: true,
+            accuracy,
+            max_iterations,
+        },
+    )?;
+    observer.finish();
+    Ok(tuning)
 }
 
 fn model_folder(model: StoryModel) -> &'static str {

@@ -576,6 +576,67 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
         }
         writeln!(w, "$EndPhysicalNames")?;
     }
+    match format.version {
+        MshVersion::V2_2 => write_v22(w, mesh, bin, &regions),
+        MshVersion::V4_1 => write_v41(w, mesh, bin, &regions),
+    }
+}
+
+/// The `$Nodes` and `$Elements` blocks of format 2.2.
+fn write_v22(w: &mut dyn Write, mesh: &TetMesh, bin: bool, regions: &[u32]) -> std::io::Result<()> {
+    // Elementary entity of a region: its position in the sorted region list, from 1.
+    let entity = |r: u32| regions.binary_search(&r).map_or(1, |k| k as i32 + 1);
+    let nv = mesh.num_vertices();
+    let ne = mesh.num_tets();
+    writeln!(w, "$Nodes\n{nv}")?;
+    for (i, p) in mesh.rest_positions().iter().enumerate() {
+        if bin {
+            w.write_all(&(i as i32 + 1).to_le_bytes())?;
+            for c in p.iter() {
+                w.write_all(&c.to_le_bytes())?;
+            }
+        } else {
+            writeln!(w, "{} {:?} {:?} {:?}", i + 1, p.x, p.y, p.z)?;
+        }
+    }
+    if bin {
+        writeln!(w)?;
+    }
+    writeln!(w, "$EndNodes\n$Elements\n{ne}")?;
+    if bin {
+        for v in [4i32, ne as i32, 2] {
+            w.write_all(&v.to_le_bytes())?;
+        }
+    }
+    for (e, (t, r)) in mesh.tets().iter().zip(mesh.regions()).enumerate() {
+        if bin {
+            let vals = [e as i32 + 1, *r as i32, entity(*r)];
+            for v in vals.into_iter().chain(t.iter().map(|&i| i as i32 + 1)) {
+                w.write_all(&v.to_le_bytes())?;
+            }
+        } else {
+            writeln!(
+                w,
+                "{} 4 2 {} {} {} {} {} {}",
+                e + 1,
+                r,
+                entity(*r),
+                t[0] + 1,
+                t[1] + 1,
+                t[2] + 1,
+                t[3] + 1
+            )?;
+        }
+    }
+    if bin {
+        writeln!(w)?;
+    }
+    writeln!(w, "$EndElements")?;
+    Ok(())
+}
+
+/// The `$Entities`, `$Nodes` and `$Elements` blocks of format 4.1.
+fn write_v41(w: &mut dyn Write, mesh: &TetMesh, bin: bool, regions: &[u32]) -> std::io::Result<()> {
     // Elementary entity of a region: its position in the sorted region list, from 1.
     let entity = |r: u32| regions.binary_search(&r).map_or(1, |k| k as i32 + 1);
     let nv = mesh.num_vertices();
@@ -587,142 +648,90 @@ pub(crate) fn write(w: &mut dyn Write, mesh: &TetMesh, format: MshFormat) -> std
             write!(w, "{v} ")
         }
     };
-    match format.version {
-        MshVersion::V2_2 => {
-            writeln!(w, "$Nodes\n{nv}")?;
-            for (i, p) in mesh.rest_positions().iter().enumerate() {
-                if bin {
-                    w.write_all(&(i as i32 + 1).to_le_bytes())?;
-                    for c in p.iter() {
-                        w.write_all(&c.to_le_bytes())?;
-                    }
-                } else {
-                    writeln!(w, "{} {:?} {:?} {:?}", i + 1, p.x, p.y, p.z)?;
-                }
-            }
-            if bin {
-                writeln!(w)?;
-            }
-            writeln!(w, "$EndNodes\n$Elements\n{ne}")?;
-            if bin {
-                for v in [4i32, ne as i32, 2] {
-                    w.write_all(&v.to_le_bytes())?;
-                }
-            }
-            for (e, (t, r)) in mesh.tets().iter().zip(mesh.regions()).enumerate() {
-                if bin {
-                    let vals = [e as i32 + 1, *r as i32, entity(*r)];
-                    for v in vals.into_iter().chain(t.iter().map(|&i| i as i32 + 1)) {
-                        w.write_all(&v.to_le_bytes())?;
-                    }
-                } else {
-                    writeln!(
-                        w,
-                        "{} 4 2 {} {} {} {} {} {}",
-                        e + 1,
-                        r,
-                        entity(*r),
-                        t[0] + 1,
-                        t[1] + 1,
-                        t[2] + 1,
-                        t[3] + 1
-                    )?;
-                }
-            }
-            if bin {
-                writeln!(w)?;
-            }
-            writeln!(w, "$EndElements")?;
+    let int = |v: i32, w: &mut dyn Write| -> std::io::Result<()> {
+        if bin {
+            w.write_all(&v.to_le_bytes())
+        } else {
+            write!(w, "{v} ")
         }
-        MshVersion::V4_1 => {
-            let int = |v: i32, w: &mut dyn Write| -> std::io::Result<()> {
-                if bin {
-                    w.write_all(&v.to_le_bytes())
-                } else {
-                    write!(w, "{v} ")
-                }
-            };
-            let end = |w: &mut dyn Write| -> std::io::Result<()> {
-                if bin { Ok(()) } else { writeln!(w) }
-            };
-            writeln!(w, "$Entities")?;
-            for v in [0, 0, 0, regions.len()] {
-                sz(v, w)?;
-            }
-            end(w)?;
-            let (lo, hi) = mesh.bounding_box();
-            for &r in &regions {
-                int(entity(r), w)?;
-                for c in lo.iter().chain(hi.iter()) {
-                    if bin {
-                        w.write_all(&c.to_le_bytes())?
-                    } else {
-                        write!(w, "{c:?} ")?
-                    }
-                }
-                sz(usize::from(r > 0), w)?;
-                if r > 0 {
-                    int(r as i32, w)?;
-                }
-                sz(0, w)?;
-                end(w)?;
-            }
+    };
+    let end = |w: &mut dyn Write| -> std::io::Result<()> { if bin { Ok(()) } else { writeln!(w) } };
+    writeln!(w, "$Entities")?;
+    for v in [0, 0, 0, regions.len()] {
+        sz(v, w)?;
+    }
+    end(w)?;
+    let (lo, hi) = mesh.bounding_box();
+    for &r in regions {
+        int(entity(r), w)?;
+        for c in lo.iter().chain(hi.iter()) {
             if bin {
-                writeln!(w)?;
+                w.write_all(&c.to_le_bytes())?
+            } else {
+                write!(w, "{c:?} ")?
             }
-            writeln!(w, "$EndEntities\n$Nodes")?;
-            for v in [1, nv, 1, nv] {
-                sz(v, w)?;
+        }
+        sz(usize::from(r > 0), w)?;
+        if r > 0 {
+            int(r as i32, w)?;
+        }
+        sz(0, w)?;
+        end(w)?;
+    }
+    if bin {
+        writeln!(w)?;
+    }
+    writeln!(w, "$EndEntities\n$Nodes")?;
+    for v in [1, nv, 1, nv] {
+        sz(v, w)?;
+    }
+    end(w)?;
+    let first_entity = entity(regions.first().copied().unwrap_or(1));
+    for v in [3, first_entity, 0] {
+        int(v, w)?;
+    }
+    sz(nv, w)?;
+    end(w)?;
+    for i in 0..nv {
+        sz(i + 1, w)?;
+        end(w)?;
+    }
+    for p in mesh.rest_positions() {
+        for c in p.iter() {
+            if bin {
+                w.write_all(&c.to_le_bytes())?
+            } else {
+                write!(w, "{c:?} ")?
             }
-            end(w)?;
-            let first_entity = entity(regions.first().copied().unwrap_or(1));
-            for v in [3, first_entity, 0] {
-                int(v, w)?;
-            }
-            sz(nv, w)?;
-            end(w)?;
-            for i in 0..nv {
+        }
+        end(w)?;
+    }
+    if bin {
+        writeln!(w)?;
+    }
+    writeln!(w, "$EndNodes\n$Elements")?;
+    for v in [regions.len(), ne, 1, ne] {
+        sz(v, w)?;
+    }
+    end(w)?;
+    for &r in regions {
+        let members: Vec<usize> = (0..ne).filter(|&e| mesh.regions()[e] == r).collect();
+        for v in [3, entity(r), 4] {
+            int(v, w)?;
+        }
+        sz(members.len(), w)?;
+        end(w)?;
+        for e in members {
+            sz(e + 1, w)?;
+            for &i in &mesh.tets()[e] {
                 sz(i + 1, w)?;
-                end(w)?;
-            }
-            for p in mesh.rest_positions() {
-                for c in p.iter() {
-                    if bin {
-                        w.write_all(&c.to_le_bytes())?
-                    } else {
-                        write!(w, "{c:?} ")?
-                    }
-                }
-                end(w)?;
-            }
-            if bin {
-                writeln!(w)?;
-            }
-            writeln!(w, "$EndNodes\n$Elements")?;
-            for v in [regions.len(), ne, 1, ne] {
-                sz(v, w)?;
             }
             end(w)?;
-            for &r in &regions {
-                let members: Vec<usize> = (0..ne).filter(|&e| mesh.regions()[e] == r).collect();
-                for v in [3, entity(r), 4] {
-                    int(v, w)?;
-                }
-                sz(members.len(), w)?;
-                end(w)?;
-                for e in members {
-                    sz(e + 1, w)?;
-                    for &i in &mesh.tets()[e] {
-                        sz(i + 1, w)?;
-                    }
-                    end(w)?;
-                }
-            }
-            if bin {
-                writeln!(w)?;
-            }
-            writeln!(w, "$EndElements")?;
         }
     }
+    if bin {
+        writeln!(w)?;
+    }
+    writeln!(w, "$EndElements")?;
     Ok(())
 }

@@ -9,7 +9,7 @@
 //!
 //! [`read`] and [`write`] pick the format from the extension. Readers never panic on any
 //! input: every error names the file, the line (and byte offset) and what was expected.
-//! Writers go through [`write_atomic`]: a temporary file in the same directory, synced,
+//! Writers go through `deform_fs::write_atomic`: a temporary file in the same directory, synced,
 //! then renamed over the target, so a crash never leaves a half-written file.
 
 mod cursor;
@@ -20,7 +20,7 @@ mod vtu;
 
 use std::collections::BTreeMap;
 use std::fs;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector3;
@@ -252,40 +252,15 @@ pub fn read(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
     }
 }
 
-/// Writes `path` atomically: `body` writes into a buffered temporary file beside it,
-/// which is synced and renamed over `path` only if everything succeeded.
-///
-/// # Errors
-/// [`WriteError::Io`] naming `path`; the temporary file is removed.
-pub fn write_atomic(
+/// [`deform_fs::write_atomic`] with the mesh writers' error.
+fn write_atomic(
     path: &Path,
     body: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<(), WriteError> {
-    let fail = |error| WriteError::Io {
-        path: path.to_owned(),
-        error,
-    };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
-    let result = (|| {
-        let file = fs::File::create(&tmp)?;
-        let mut w = BufWriter::new(file);
-        body(&mut w)?;
-        let file = w.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
-    }
-    result.map_err(fail)
+    deform_fs::write_atomic(path, body).map_err(|e| WriteError::Io {
+        path: e.path,
+        error: e.error,
+    })
 }
 
 /// Writes a Gmsh `.msh` file.
