@@ -17,7 +17,7 @@ use thiserror::Error;
 
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{PolicyContext, SolverPolicy};
-use crate::report::{CandidateOutcome, IterationReport, StepError, StepReport};
+use crate::report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
 use crate::state::{Constraint, State};
 
@@ -204,6 +204,7 @@ pub struct Integrator {
     candidates: KeptSolvers,
     policy: Box<dyn SolverPolicy>,
     steps_taken: usize,
+    work: Work,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -294,6 +295,7 @@ impl Integrator {
             candidates: Vec::new(),
             policy,
             steps_taken: 0,
+            work: Work::default(),
         })
     }
 
@@ -470,15 +472,32 @@ impl Integrator {
         Ok(report)
     }
 
-    /// Newton on the unknown `u` (`v` when dynamic, `x` when static).
+    /// Newton on the unknown `u` (`v` when dynamic, `x` when static), in named stages:
+    /// [`residual`](Self::residual), the convergence test, the
+    /// [`Newton matrix`](Self::newton_matrix), the [`direction`](Self::direction) (solve,
+    /// fallback, projection switch), the [`line search`](Self::line_search), the record.
+    /// Its vectors live in the integrator's [`Work`], allocated once.
     fn newton(
         &mut self,
         state: &State,
         mode: Mode,
         observer: &mut dyn Observer,
     ) -> Result<(State, StepReport), StepError> {
-        let n = self.asm.num_dofs();
-        let opts = self.options.clone();
+        let mut work = std::mem::take(&mut self.work);
+        work.resize(self.asm.num_dofs(), self.dofs.num_free());
+        let result = self.newton_in(state, mode, observer, &mut work);
+        self.work = work;
+        result
+    }
+
+    fn newton_in(
+        &mut self,
+        state: &State,
+        mode: Mode,
+        observer: &mut dyn Observer,
+        w: &mut Work,
+    ) -> Result<(State, StepReport), StepError> {
+        let newton = self.options.newton;
         let (t1, dt) = match mode {
             Mode::Dynamic { dt } => (state.t + dt, dt),
             Mode::Static => (state.t, 0.0),
@@ -498,7 +517,7 @@ impl Integrator {
         match mode {
             Mode::Dynamic { dt } => {
                 self.apply_constraints(&mut x, Some((&mut u, &state.x)), t1, dt);
-                for i in 0..n {
+                for i in 0..x.len() {
                     x[i] = state.x[i] + dt * u[i];
                 }
             }
@@ -507,17 +526,7 @@ impl Integrator {
                 u.copy_from_slice(&x);
             }
         }
-        let fail_assembly = |source: AssemblyError, report: &StepReport| StepError::Assembly {
-            source,
-            report: Box::new(report.clone()),
-        };
-        let mut f = vec![0.0; n];
-        let mut fd = vec![0.0; n];
-        let mut r = vec![0.0; n];
-        let mut r_free = vec![0.0; self.dofs.num_free()];
-        let mut du_free = vec![0.0; self.dofs.num_free()];
-        let mut du = vec![0.0; n];
-        let mut tangent = match opts.newton.project {
+        let mut tangent = match newton.project {
             Projection::Always => Tangent::Projected,
             Projection::Never | Projection::WhenNeeded => Tangent::Exact,
         };
@@ -525,233 +534,105 @@ impl Integrator {
         // exact-tangent attempt before projection), charged to the next iteration's report.
         let mut discarded: Vec<CandidateOutcome> = Vec::new();
         let mut iteration = 0;
-        while iteration <= opts.newton.max_iterations {
-            // `WhenNeeded` switches to the projected tangent once per step at most.
-            let can_project =
-                opts.newton.project == Projection::WhenNeeded && tangent == Tangent::Exact;
+        while iteration <= newton.max_iterations {
             let started = Instant::now();
-            let mut energy = 0.0;
-            self.asm
-                .evaluate(
-                    &x,
-                    Outputs {
-                        energy: Some(&mut energy),
-                        forces: Some(&mut f),
-                        stiffness: Some(&mut self.k),
-                        tangent,
-                    },
-                )
-                .map_err(|e| fail_assembly(e, &report))?;
-            // Residual (the gradient of the merit function in u).
-            match mode {
-                Mode::Dynamic { dt } => {
-                    self.asm
-                        .damping_forces(opts.alpha, opts.gamma, &self.mass, &self.k, &u, &mut fd)
-                        .map_err(|e| fail_assembly(e, &report))?;
-                    let dv: Vec<f64> = u.iter().zip(&state.v).map(|(a, b)| a - b).collect();
-                    self.asm
-                        .mass_apply(&self.mass, &dv, &mut r)
-                        .map_err(|e| fail_assembly(e, &report))?;
-                    for i in 0..n {
-                        r[i] -= dt * (f[i] + fd[i] + self.gravity_forces[i]);
-                    }
-                }
-                Mode::Static => {
-                    for i in 0..n {
-                        r[i] = -(f[i] + self.gravity_forces[i]);
-                    }
-                }
-            }
-            self.dofs.restrict(&r, &mut r_free).expect("sizes match");
-            let rn = norm(&r_free);
-            if !rn.is_finite() {
-                return Err(StepError::NonFinite {
-                    what: "residual",
-                    report: Box::new(report),
-                });
-            }
+            let mut stages = StageSeconds::default();
+            let (energy, rn) = self
+                .residual(mode, state, &x, &u, tangent, w)
+                .map_err(|e| e.into_step_error(&report))?;
+            stages.residual = started.elapsed().as_secs_f64();
             if iteration == 0 {
                 report.initial_residual = rn;
             }
             report.final_residual = rn;
             report.energy = energy;
-            let last_update = report
-                .iterations
-                .last()
-                .map_or(f64::INFINITY, |it| it.update);
-            if rn
-                <= opts
-                    .newton
-                    .abs
-                    .max(opts.newton.rel * report.initial_residual)
-                && (iteration > 0 || rn <= opts.newton.abs)
-                || (iteration > 0 && last_update <= opts.newton.update)
-            {
+            if self.converged(iteration, rn, &report) {
                 report.converged = true;
                 let v = match mode {
                     Mode::Dynamic { .. } => u,
-                    Mode::Static => vec![0.0; n],
+                    Mode::Static => vec![0.0; x.len()],
                 };
                 return Ok((State { x, v, t: t1 }, report));
             }
-            if iteration == opts.newton.max_iterations {
+            if iteration == newton.max_iterations {
                 break;
             }
-            // Newton matrix on the free DOFs.
-            let (c_m, c_k) = match mode {
-                Mode::Dynamic { dt } => (1.0 + dt * opts.alpha, dt * opts.gamma + dt * dt),
-                Mode::Static => (0.0, 1.0),
-            };
-            self.asm
-                .combine(c_m, &self.mass, c_k, &self.k, &mut self.a)
+            let clock = Instant::now();
+            let (c_m, c_k) = self
+                .newton_matrix(mode)
                 .map_err(|e| fail_assembly(e, &report))?;
-            self.dofs
-                .restrict_matrix(&self.a, &mut self.a_free)
-                .map_err(|e| fail_assembly(e, &report))?;
-            let rhs: Vec<f64> = r_free.iter().map(|v| -v).collect();
+            stages.matrix = clock.elapsed().as_secs_f64();
+            let clock = Instant::now();
             let point = NewtonPoint {
                 x: &x,
                 tangent,
                 c_m,
                 c_k,
             };
-            // What the policy sees, before the solve and (with its outcome) after it.
-            let (step, num_free, initial) = (
-                self.steps_taken,
-                self.dofs.num_free(),
-                report.initial_residual,
-            );
-            let context = |history| PolicyContext {
-                step,
+            let context = IterationContext {
+                step: self.steps_taken,
                 iteration,
                 dt,
-                num_free,
                 residual: rn,
-                initial_residual: initial,
-                history,
+                initial_residual: report.initial_residual,
             };
-            let decision = self.policy.choose(&context(&report.iterations));
-            du_free.iter_mut().for_each(|v| *v = 0.0);
-            let attempt = self.linear_solve(
-                point,
-                &decision.solver,
-                decision.rel_tolerance,
-                decision.refresh,
-                &rhs,
-                &mut du_free,
-            );
-            let attempt = match attempt {
-                Err(failed)
-                    if opts.fallback_to_direct
-                        && decision.solver != fallback_spec()
-                        && !(can_project && failed.error.is_indefinite()) =>
-                {
-                    discarded.push(failed.outcome(&decision.solver));
-                    du_free.iter_mut().for_each(|v| *v = 0.0);
-                    self.linear_solve(point, &fallback_spec(), None, false, &rhs, &mut du_free)
-                        .map(|(setup, solve)| (setup, solve, true))
-                }
-                other => other.map(|(setup, solve)| (setup, solve, false)),
-            };
-            let (setup, solve, fallback) = match attempt {
-                Ok(done) => done,
-                Err(failed) if can_project && failed.error.is_indefinite() => {
-                    discarded.push(failed.outcome(&decision.solver));
-                    tangent = Tangent::Projected;
-                    continue;
-                }
-                Err(failed) => {
-                    return Err(StepError::Solver {
-                        source: failed.error,
-                        report: Box::new(report),
-                    });
-                }
-            };
-            // An indefinite exact tangent can also give an ascent direction without failing.
-            let slope: f64 = r_free.iter().zip(&du_free).map(|(a, b)| a * b).sum();
-            if can_project && slope >= 0.0 {
-                discarded.push(CandidateOutcome {
-                    solver: decision.solver.clone(),
-                    setup: Some(setup),
-                    solve: Some(solve),
-                    error: Some(format!("not a descent direction (r . du = {slope:e})")),
-                    distance: f64::INFINITY,
-                });
+            let found = self.direction(point, &context, &report, &mut discarded, w)?;
+            stages.direction = clock.elapsed().as_secs_f64();
+            let Some(found) = found else {
+                // The exact tangent failed; this iteration again with the projected one.
                 tangent = Tangent::Projected;
                 continue;
-            }
-            let candidates = if self.candidates.is_empty() {
-                Vec::new()
-            } else {
-                self.run_candidates(point, &rhs, &du_free)
             };
-            du.iter_mut().for_each(|v| *v = 0.0);
-            self.dofs.scatter(&du_free, &mut du).expect("sizes match");
-            // Backtracking line search on the merit function, K frozen at this iterate.
-            let mut step_length = 1.0;
-            if opts.newton.line_search && slope < 0.0 {
-                let phi0 = self.merit(mode, state, &u, energy);
-                // Near the solution the predicted decrease falls below the rounding noise of
-                // the merit function; Armijo's test is then meaningless, so take the step.
-                let noise = 1e-12 * phi0.abs();
-                loop {
-                    if -slope * step_length <= noise {
-                        break;
-                    }
-                    let trial: Vec<f64> = u
-                        .iter()
-                        .zip(&du)
-                        .map(|(a, b)| a + step_length * b)
-                        .collect();
-                    let xt = self.positions(mode, state, &trial);
-                    let phi = match self.asm.energy(&xt) {
-                        Ok(e) => self.merit(mode, state, &trial, e),
-                        Err(AssemblyError::Inadmissible { .. }) => f64::INFINITY,
-                        Err(e) => return Err(fail_assembly(e, &report)),
-                    };
-                    if phi <= phi0 + 1e-4 * step_length * slope + noise || step_length < 1e-4 {
-                        break;
-                    }
-                    step_length *= 0.5;
-                }
+            let clock = Instant::now();
+            w.du.iter_mut().for_each(|v| *v = 0.0);
+            self.dofs
+                .scatter(&w.du_free, &mut w.du)
+                .expect("sizes match");
+            let step_length = if newton.line_search && found.slope < 0.0 {
+                self.line_search(mode, state, &u, energy, found.slope, w)
+                    .map_err(|e| fail_assembly(e, &report))?
+            } else {
+                1.0
+            };
+            stages.line_search = clock.elapsed().as_secs_f64();
+            for (ui, di) in u.iter_mut().zip(&w.du) {
+                *ui += step_length * di;
             }
-            for i in 0..n {
-                u[i] += step_length * du[i];
-            }
-            x = self.positions(mode, state, &u);
+            self.positions_into(mode, state, &u, &mut x);
             let scale = match mode {
                 Mode::Dynamic { dt } => dt,
                 Mode::Static => 1.0,
             };
-            let update = du
-                .iter()
-                .fold(0.0f64, |m, v| m.max((scale * step_length * v).abs()));
+            let update =
+                w.du.iter()
+                    .fold(0.0f64, |m, v| m.max((scale * step_length * v).abs()));
             if !update.is_finite() {
                 return Err(StepError::NonFinite {
                     what: "update",
                     report: Box::new(report),
                 });
             }
+            // Record: the iteration's report goes to the observer, the policy and the step.
             let it = IterationReport {
                 iteration,
                 residual: rn,
                 energy,
-                solver: if fallback {
-                    fallback_spec()
-                } else {
-                    decision.solver.clone()
-                },
-                setup,
-                solve,
-                fallback,
+                solver: found.solver,
+                setup: found.setup,
+                solve: found.solve,
+                fallback: found.fallback,
                 step_length,
                 update,
                 seconds: started.elapsed().as_secs_f64(),
-                candidates,
+                stages,
+                candidates: found.candidates,
                 discarded: std::mem::take(&mut discarded),
             };
             observer.iteration(&it);
-            self.policy.observe(&context(&report.iterations), &it);
+            self.policy.observe(
+                &context.policy(self.dofs.num_free(), &report.iterations),
+                &it,
+            );
             report.iterations.push(it);
             iteration += 1;
         }
@@ -760,26 +641,237 @@ impl Integrator {
         })
     }
 
-    /// Positions of the iterate `u`.
-    fn positions(&self, mode: Mode, state: &State, u: &[f64]) -> Vec<f64> {
+    /// Stage 1: assembles energy, forces and K at `x` and forms the residual (the gradient
+    /// of the merit function in `u`) on the free DOFs, into `w.r_free`; returns the energy
+    /// and the residual's 2-norm.
+    fn residual(
+        &mut self,
+        mode: Mode,
+        state: &State,
+        x: &[f64],
+        u: &[f64],
+        tangent: Tangent,
+        w: &mut Work,
+    ) -> Result<(f64, f64), StageError> {
+        let mut energy = 0.0;
+        self.asm.evaluate(
+            x,
+            Outputs {
+                energy: Some(&mut energy),
+                forces: Some(&mut w.f),
+                stiffness: Some(&mut self.k),
+                tangent,
+            },
+        )?;
         match mode {
-            Mode::Dynamic { dt } => state.x.iter().zip(u).map(|(x, v)| x + dt * v).collect(),
-            Mode::Static => u.to_vec(),
+            Mode::Dynamic { dt } => {
+                let o = &self.options;
+                self.asm
+                    .damping_forces(o.alpha, o.gamma, &self.mass, &self.k, u, &mut w.fd)?;
+                for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
+                    *d = a - b;
+                }
+                self.asm.mass_apply(&self.mass, &w.dv, &mut w.r)?;
+                for i in 0..w.r.len() {
+                    w.r[i] -= dt * (w.f[i] + w.fd[i] + self.gravity_forces[i]);
+                }
+            }
+            Mode::Static => {
+                for i in 0..w.r.len() {
+                    w.r[i] = -(w.f[i] + self.gravity_forces[i]);
+                }
+            }
+        }
+        self.dofs
+            .restrict(&w.r, &mut w.r_free)
+            .expect("sizes match");
+        let rn = norm(&w.r_free);
+        if !rn.is_finite() {
+            return Err(StageError::NonFinite("residual"));
+        }
+        Ok((energy, rn))
+    }
+
+    /// Stage 2: `||r|| <= max(abs, rel ||r_0||)` (at iteration 0 only `abs`), or the last
+    /// position update below `update`.
+    fn converged(&self, iteration: usize, rn: f64, report: &StepReport) -> bool {
+        let n = &self.options.newton;
+        let last_update = report
+            .iterations
+            .last()
+            .map_or(f64::INFINITY, |it| it.update);
+        rn <= n.abs.max(n.rel * report.initial_residual) && (iteration > 0 || rn <= n.abs)
+            || (iteration > 0 && last_update <= n.update)
+    }
+
+    /// Stage 3: the Newton matrix `c_m M + c_k K` on the free DOFs, refilled in place;
+    /// returns `(c_m, c_k)`.
+    fn newton_matrix(&mut self, mode: Mode) -> Result<(f64, f64), AssemblyError> {
+        let o = &self.options;
+        let (c_m, c_k) = match mode {
+            Mode::Dynamic { dt } => (1.0 + dt * o.alpha, dt * o.gamma + dt * dt),
+            Mode::Static => (0.0, 1.0),
+        };
+        self.asm
+            .combine(c_m, &self.mass, c_k, &self.k, &mut self.a)?;
+        self.dofs.restrict_matrix(&self.a, &mut self.a_free)?;
+        Ok((c_m, c_k))
+    }
+
+    /// Stage 4: the policy's solver on `-r` into `w.du_free`, the direct fallback when it
+    /// fails, the candidates' counterfactual solves. `None` when the exact tangent failed
+    /// (indefinite, or not a descent direction) and `Projection::WhenNeeded` switches to the
+    /// projected one; the failed work goes to `discarded`.
+    fn direction(
+        &mut self,
+        point: NewtonPoint<'_>,
+        context: &IterationContext,
+        report: &StepReport,
+        discarded: &mut Vec<CandidateOutcome>,
+        w: &mut Work,
+    ) -> Result<Option<Direction>, StepError> {
+        // `WhenNeeded` switches to the projected tangent once per step at most.
+        let can_project = self.options.newton.project == Projection::WhenNeeded
+            && point.tangent == Tangent::Exact;
+        for (b, r) in w.rhs.iter_mut().zip(&w.r_free) {
+            *b = -r;
+        }
+        let decision = self
+            .policy
+            .choose(&context.policy(self.dofs.num_free(), &report.iterations));
+        w.du_free.iter_mut().for_each(|v| *v = 0.0);
+        let attempt = self.linear_solve(
+            point,
+            &decision.solver,
+            decision.rel_tolerance,
+            decision.refresh,
+            &w.rhs,
+            &mut w.du_free,
+        );
+        let attempt = match attempt {
+            Err(failed)
+                if self.options.fallback_to_direct
+                    && decision.solver != fallback_spec()
+                    && !(can_project && failed.error.is_indefinite()) =>
+            {
+                discarded.push(failed.outcome(&decision.solver));
+                w.du_free.iter_mut().for_each(|v| *v = 0.0);
+                self.linear_solve(point, &fallback_spec(), None, false, &w.rhs, &mut w.du_free)
+                    .map(|(setup, solve)| (setup, solve, true))
+            }
+            other => other.map(|(setup, solve)| (setup, solve, false)),
+        };
+        let (setup, solve, fallback) = match attempt {
+            Ok(done) => done,
+            Err(failed) if can_project && failed.error.is_indefinite() => {
+                discarded.push(failed.outcome(&decision.solver));
+                return Ok(None);
+            }
+            Err(failed) => {
+                return Err(StepError::Solver {
+                    source: failed.error,
+                    report: Box::new(report.clone()),
+                });
+            }
+        };
+        // An indefinite exact tangent can also give an ascent direction without failing.
+        let slope: f64 = w.r_free.iter().zip(&w.du_free).map(|(a, b)| a * b).sum();
+        if can_project && slope >= 0.0 {
+            discarded.push(CandidateOutcome {
+                solver: decision.solver.clone(),
+                setup: Some(setup),
+                solve: Some(solve),
+                error: Some(format!("not a descent direction (r . du = {slope:e})")),
+                distance: f64::INFINITY,
+            });
+            return Ok(None);
+        }
+        let candidates = if self.candidates.is_empty() {
+            Vec::new()
+        } else {
+            self.run_candidates(point, &w.rhs, &w.du_free)
+        };
+        Ok(Some(Direction {
+            solver: if fallback {
+                fallback_spec()
+            } else {
+                decision.solver
+            },
+            setup,
+            solve,
+            fallback,
+            slope,
+            candidates,
+        }))
+    }
+
+    /// Stage 5: backtracking (Armijo) on the merit function along `w.du` from `u`, K frozen
+    /// at this iterate; returns the step length.
+    fn line_search(
+        &mut self,
+        mode: Mode,
+        state: &State,
+        u: &[f64],
+        energy: f64,
+        slope: f64,
+        w: &mut Work,
+    ) -> Result<f64, AssemblyError> {
+        let phi0 = self.merit(mode, state, u, energy, w);
+        // Near the solution the predicted decrease falls below the rounding noise of the
+        // merit function; Armijo's test is then meaningless, so take the step.
+        let noise = 1e-12 * phi0.abs();
+        let mut step_length = 1.0;
+        loop {
+            if -slope * step_length <= noise {
+                return Ok(step_length);
+            }
+            let mut trial = std::mem::take(&mut w.trial);
+            let mut xt = std::mem::take(&mut w.xt);
+            for ((t, a), b) in trial.iter_mut().zip(u).zip(&w.du) {
+                *t = a + step_length * b;
+            }
+            self.positions_into(mode, state, &trial, &mut xt);
+            let phi = match self.asm.energy(&xt) {
+                Ok(e) => self.merit(mode, state, &trial, e, w),
+                Err(AssemblyError::Inadmissible { .. }) => f64::INFINITY,
+                Err(e) => return Err(e),
+            };
+            (w.trial, w.xt) = (trial, xt);
+            if phi <= phi0 + 1e-4 * step_length * slope + noise || step_length < 1e-4 {
+                return Ok(step_length);
+            }
+            step_length *= 0.5;
+        }
+    }
+
+    /// Positions of the iterate `u`, into `x`.
+    fn positions_into(&self, mode: Mode, state: &State, u: &[f64], x: &mut [f64]) {
+        match mode {
+            Mode::Dynamic { dt } => {
+                for ((xi, x0), v) in x.iter_mut().zip(&state.x).zip(u) {
+                    *xi = x0 + dt * v;
+                }
+            }
+            Mode::Static => x.copy_from_slice(u),
         }
     }
 
     /// The merit function whose gradient in `u` is the residual (K frozen at the last
-    /// assembly for the damping term).
-    fn merit(&self, mode: Mode, state: &State, u: &[f64], energy: f64) -> f64 {
-        let n = u.len();
+    /// assembly for the damping term); uses `w.dv`, `w.mdv` and `w.fd` as scratch.
+    fn merit(&self, mode: Mode, state: &State, u: &[f64], energy: f64, w: &mut Work) -> f64 {
+        let gravity: f64 = u
+            .iter()
+            .zip(&self.gravity_forces)
+            .map(|(a, b)| a * b)
+            .sum::<f64>();
         match mode {
             Mode::Dynamic { dt } => {
-                let dv: Vec<f64> = u.iter().zip(&state.v).map(|(a, b)| a - b).collect();
-                let mut mdv = vec![0.0; n];
+                for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
+                    *d = a - b;
+                }
                 self.asm
-                    .mass_apply(&self.mass, &dv, &mut mdv)
+                    .mass_apply(&self.mass, &w.dv, &mut w.mdv)
                     .expect("sizes match");
-                let mut damp = vec![0.0; n];
                 self.asm
                     .damping_forces(
                         self.options.alpha,
@@ -787,25 +879,14 @@ impl Integrator {
                         &self.mass,
                         &self.k,
                         u,
-                        &mut damp,
+                        &mut w.fd,
                     )
                     .expect("sizes match");
-                let kinetic: f64 = 0.5 * dv.iter().zip(&mdv).map(|(a, b)| a * b).sum::<f64>();
-                let damping: f64 = -0.5 * dt * u.iter().zip(&damp).map(|(a, b)| a * b).sum::<f64>();
-                let gravity: f64 = dt
-                    * u.iter()
-                        .zip(&self.gravity_forces)
-                        .map(|(a, b)| a * b)
-                        .sum::<f64>();
-                kinetic + energy + damping - gravity
+                let kinetic: f64 = 0.5 * w.dv.iter().zip(&w.mdv).map(|(a, b)| a * b).sum::<f64>();
+                let damping: f64 = -0.5 * dt * u.iter().zip(&w.fd).map(|(a, b)| a * b).sum::<f64>();
+                kinetic + energy + damping - dt * gravity
             }
-            Mode::Static => {
-                energy
-                    - u.iter()
-                        .zip(&self.gravity_forces)
-                        .map(|(a, b)| a * b)
-                        .sum::<f64>()
-            }
+            Mode::Static => energy - gravity,
         }
     }
 
@@ -879,6 +960,110 @@ impl Integrator {
                 }
             })
             .collect()
+    }
+}
+
+/// The integrator's vectors for Newton, allocated once and resized when the mesh changes.
+#[derive(Debug, Default)]
+struct Work {
+    /// Elastic forces, damping forces, residual, `v - v^n`, `M (v - v^n)` (full `3N`).
+    f: Vec<f64>,
+    fd: Vec<f64>,
+    r: Vec<f64>,
+    dv: Vec<f64>,
+    mdv: Vec<f64>,
+    /// The direction, the line search's trial iterate and its positions (full `3N`).
+    du: Vec<f64>,
+    trial: Vec<f64>,
+    xt: Vec<f64>,
+    /// Residual, right-hand side and direction on the free DOFs.
+    r_free: Vec<f64>,
+    rhs: Vec<f64>,
+    du_free: Vec<f64>,
+}
+
+impl Work {
+    fn resize(&mut self, n: usize, free: usize) {
+        for v in [
+            &mut self.f,
+            &mut self.fd,
+            &mut self.r,
+            &mut self.dv,
+            &mut self.mdv,
+            &mut self.du,
+            &mut self.trial,
+            &mut self.xt,
+        ] {
+            v.resize(n, 0.0);
+        }
+        for v in [&mut self.r_free, &mut self.rhs, &mut self.du_free] {
+            v.resize(free, 0.0);
+        }
+    }
+}
+
+/// What the policy sees of an iteration.
+struct IterationContext {
+    step: usize,
+    iteration: usize,
+    dt: f64,
+    residual: f64,
+    initial_residual: f64,
+}
+
+impl IterationContext {
+    fn policy<'a>(&self, num_free: usize, history: &'a [IterationReport]) -> PolicyContext<'a> {
+        PolicyContext {
+            step: self.step,
+            iteration: self.iteration,
+            dt: self.dt,
+            num_free,
+            residual: self.residual,
+            initial_residual: self.initial_residual,
+            history,
+        }
+    }
+}
+
+/// A Newton direction found (in `Work::du_free`) and what finding it cost.
+struct Direction {
+    solver: SolverSpec,
+    setup: SetupStats,
+    solve: SolveStats,
+    fallback: bool,
+    /// `r . du`: negative for a descent direction.
+    slope: f64,
+    candidates: Vec<CandidateOutcome>,
+}
+
+/// Why the residual stage failed.
+enum StageError {
+    Assembly(AssemblyError),
+    NonFinite(&'static str),
+}
+
+impl From<AssemblyError> for StageError {
+    fn from(e: AssemblyError) -> Self {
+        Self::Assembly(e)
+    }
+}
+
+impl StageError {
+    fn into_step_error(self, report: &StepReport) -> StepError {
+        match self {
+            StageError::Assembly(e) => fail_assembly(e, report),
+            StageError::NonFinite(what) => StepError::NonFinite {
+                what,
+                report: Box::new(report.clone()),
+            },
+        }
+    }
+}
+
+fn fail_assembly(source: AssemblyError, report: &StepReport) -> StepError {
+    StepError::Assembly {
+        source,
+        report: Box::new(report.clone()),
     }
 }
 

@@ -49,7 +49,7 @@ pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,
     StaleFactor,
 };
-pub use report::{CandidateOutcome, IterationReport, StepError, StepReport};
+pub use report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};
 pub use scene::{Scene, SceneError};
 pub use state::{Constraint, Motion, State};

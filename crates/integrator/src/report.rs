@@ -28,6 +28,9 @@ pub struct IterationReport {
     pub update: f64,
     /// Wall time of the iteration (assembly, solve, line search), seconds.
     pub seconds: f64,
+    /// The same, per stage of the Newton iteration.
+    #[serde(default)]
+    pub stages: StageSeconds,
     /// Outcomes of the counterfactual candidates on the same system (empty unless
     /// `Integrator::set_candidates` was called).
     #[serde(default)]
@@ -38,6 +41,20 @@ pub struct IterationReport {
     /// [`StepReport::work`] and [`StepReport::solver_seconds`].
     #[serde(default)]
     pub discarded: Vec<CandidateOutcome>,
+}
+
+/// Wall time of each stage of a Newton iteration, seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct StageSeconds {
+    /// Assembly of energy, forces and K, and the residual.
+    pub residual: f64,
+    /// The Newton matrix `c_m M + c_k K` on the free DOFs.
+    pub matrix: f64,
+    /// The direction: linear solves (the fallback and discarded ones included) and the
+    /// counterfactual candidates.
+    pub direction: f64,
+    /// The line search.
+    pub line_search: f64,
 }
 
 impl CandidateOutcome {

@@ -480,6 +480,16 @@ fn observers_see_every_iteration_and_newton_converges_fast() {
         summary.reports.iter().map(|r| r.flops()).sum::<u64>()
     );
     assert_eq!(recorder.iterations.len(), total);
+    // Every iteration times its stages; they lie within the iteration's own time.
+    for it in &recorder.iterations {
+        let s = it.stages;
+        assert!(
+            s.residual > 0.0 && s.matrix > 0.0 && s.direction > 0.0,
+            "{s:?}"
+        );
+        let sum = s.residual + s.matrix + s.direction + s.line_search;
+        assert!(sum <= it.seconds, "{s:?} over {}", it.seconds);
+    }
     assert_eq!(recorder.steps.len(), 3);
     assert_eq!(recorder.steps[2].step, 2);
     for (k, t) in recorder.times.iter().enumerate() {

@@ -97,6 +97,7 @@ fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> Iteration
         step_length: 1.0,
         update: 0.0,
         seconds: 0.0,
+        stages: Default::default(),
         candidates: Vec::new(),
         discarded: Vec::new(),
     }

@@ -1,0 +1,255 @@
+//! Tidiness of the sources, checked as an ordinary test (as rust-analyzer keeps one): every
+//! `.rs` file opens with a `//!` doc comment, the crates depend on each other exactly as
+//! `docs/architecture.md` lists, no function outside tests is longer than
+//! [`MAX_FUNCTION_LINES`], and the docs name no repository file that does not exist.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+/// "About 150 lines": a function body may run a few lines over.
+const MAX_FUNCTION_LINES: usize = 160;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// Every file under `dir` (relative to the root) whose name ends with `ext`.
+fn files(dir: &str, ext: &str) -> Vec<PathBuf> {
+    fn walk(dir: &Path, ext: &str, out: &mut Vec<PathBuf>) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let p = e.path();
+            let name = e.file_name().to_string_lossy().into_owned();
+            if p.is_dir() {
+                if name != "target" && !name.starts_with('.') {
+                    walk(&p, ext, out);
+                }
+            } else if name.ends_with(ext) {
+                out.push(p);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(&root().join(dir), ext, &mut out);
+    out.sort();
+    out
+}
+
+fn sources() -> Vec<PathBuf> {
+    ["crates", "xtask", "tests"]
+        .iter()
+        .flat_map(|d| files(d, ".rs"))
+        .collect()
+}
+
+fn relative(p: &Path) -> String {
+    p.strip_prefix(root())
+        .unwrap_or(p)
+        .to_string_lossy()
+        .into_owned()
+}
+
+#[test]
+fn every_source_file_opens_with_a_module_doc() {
+    let missing: Vec<String> = sources()
+        .iter()
+        .filter(|p| {
+            !std::fs::read_to_string(p)
+                .unwrap()
+                .trim_start()
+                .starts_with("//!")
+        })
+        .map(|p| relative(p))
+        .collect();
+    assert!(missing.is_empty(), "no `//!` at the top of {missing:?}");
+}
+
+/// The deform crates a manifest depends on (normal dependencies only).
+fn deform_dependencies(manifest: &Path) -> BTreeSet<String> {
+    let text = std::fs::read_to_string(manifest).unwrap();
+    let mut section = String::new();
+    let mut deps = BTreeSet::new();
+    for line in text.lines() {
+        let line = line.trim();
+        if line.starts_with('[') {
+            section = line.to_owned();
+        } else if section == "[dependencies]"
+            && let Some(name) = line.split(['=', '.', ' ']).next()
+            && name.starts_with("deform-")
+        {
+            deps.insert(name.to_owned());
+        }
+    }
+    deps
+}
+
+#[test]
+fn crate_dependencies_match_the_architecture_doc() {
+    // The doc's edge list: lines `- crate -> dep, dep` under "Dependency edges".
+    let doc = std::fs::read_to_string(root().join("docs/architecture.md")).unwrap();
+    let edges = doc
+        .split("Dependency edges")
+        .nth(1)
+        .expect("docs/architecture.md lists its dependency edges");
+    let mut listed = BTreeSet::new();
+    for line in edges.lines().skip(1) {
+        let line = line.trim();
+        if line.is_empty() && !listed.is_empty() {
+            break;
+        }
+        let Some(rest) = line.strip_prefix("- `") else {
+            continue;
+        };
+        let (from, to) = rest.split_once("` -> ").expect("`crate` -> deps");
+        for dep in to.split(',').map(|d| d.trim().trim_matches('`')) {
+            if dep != "none" {
+                listed.insert((from.to_owned(), dep.to_owned()));
+            }
+        }
+    }
+    let mut actual = BTreeSet::new();
+    for dir in [
+        "crates/mesh",
+        "crates/materials",
+        "crates/solvers",
+        "crates/assembly",
+    ]
+    .into_iter()
+    .chain(["crates/integrator", "crates/learn", "xtask", "tests"])
+    {
+        let manifest = root().join(dir).join("Cargo.toml");
+        let text = std::fs::read_to_string(&manifest).unwrap();
+        let name = text
+            .lines()
+            .find_map(|l| l.strip_prefix("name = \""))
+            .and_then(|l| l.strip_suffix('"'))
+            .unwrap()
+            .to_owned();
+        for dep in deform_dependencies(&manifest) {
+            actual.insert((name.clone(), dep));
+        }
+    }
+    let missing: Vec<_> = actual.difference(&listed).collect();
+    let stale: Vec<_> = listed.difference(&actual).collect();
+    assert!(
+        missing.is_empty() && stale.is_empty(),
+        "edges in Cargo.toml but not in the doc: {missing:?}; in the doc but not in Cargo.toml: {stale:?}"
+    );
+}
+
+/// `(name, first line, length)` of every function in `text` outside `#[cfg(test)]` modules.
+fn functions(text: &str) -> Vec<(String, usize, usize)> {
+    let lines: Vec<&str> = text.lines().collect();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < lines.len() {
+        let line = lines[i].trim_start();
+        if line.starts_with("#[cfg(test)]") {
+            break; // test modules sit at the end of a file by convention
+        }
+        let is_fn = line
+            .split_whitespace()
+            .find(|w| !["pub", "pub(crate)", "const", "unsafe", "async"].contains(w))
+            == Some("fn");
+        if !is_fn || line.starts_with("//") {
+            i += 1;
+            continue;
+        }
+        let name = line
+            .split("fn ")
+            .nth(1)
+            .and_then(|s| s.split(['(', '<']).next())
+            .unwrap_or("?")
+            .to_owned();
+        // From the line with the body's opening brace to the line that closes it.
+        let (mut depth, mut opened, mut j) = (0i64, false, i);
+        while j < lines.len() {
+            for c in lines[j].chars() {
+                match c {
+                    '{' => {
+                        depth += 1;
+                        opened = true;
+                    }
+                    '}' => depth -= 1,
+                    ';' if !opened && depth == 0 => break,
+                    _ => {}
+                }
+            }
+            if (opened && depth <= 0) || (!opened && lines[j].trim_end().ends_with(';')) {
+                break;
+            }
+            j += 1;
+        }
+        out.push((name, i + 1, j + 1 - i));
+        i = j + 1;
+    }
+    out
+}
+
+#[test]
+fn no_function_outside_tests_is_longer_than_the_limit() {
+    let mut long = Vec::new();
+    for p in sources() {
+        let rel = relative(&p);
+        if rel.contains("/tests/") || rel.starts_with("tests/") || rel.contains("/benches/") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&p).unwrap();
+        for (name, line, len) in functions(&text) {
+            if len > MAX_FUNCTION_LINES {
+                long.push(format!("{rel}:{line} {name} ({len} lines)"));
+            }
+        }
+    }
+    assert!(
+        long.is_empty(),
+        "functions over {MAX_FUNCTION_LINES} lines: {long:#?}"
+    );
+}
+
+#[test]
+fn the_line_counter_counts_a_function() {
+    let text =
+        "/// doc\npub fn f(\n    a: usize,\n) -> usize {\n    let b = { a };\n    b\n}\nfn g();\n";
+    let f = functions(text);
+    assert_eq!(f[0], ("f".to_owned(), 2, 6));
+    assert_eq!(f[1], ("g".to_owned(), 8, 1));
+}
+
+/// Repository paths in backticks in a markdown text.
+fn named_paths(text: &str) -> Vec<String> {
+    const ROOTS: [&str; 8] = [
+        "crates/", "xtask/", "tests/", "assets/", "docs/", "bench/", "scripts/", "fuzz/",
+    ];
+    text.split('`')
+        .skip(1)
+        .step_by(2)
+        .filter(|s| ROOTS.iter().any(|r| s.starts_with(r)))
+        .filter(|s| !s.contains(['*', '{', '<', ' ']))
+        .map(|s| {
+            s.split(':')
+                .next()
+                .unwrap_or(s)
+                .trim_end_matches('/')
+                .to_owned()
+        })
+        .collect()
+}
+
+#[test]
+fn docs_name_no_missing_file() {
+    let mut docs = files("docs", ".md");
+    docs.push(root().join("README.md"));
+    let mut missing = Vec::new();
+    for doc in docs {
+        let text = std::fs::read_to_string(&doc).unwrap();
+        for path in named_paths(&text) {
+            if !root().join(&path).exists() {
+                missing.push(format!("{}: {path}", relative(&doc)));
+            }
+        }
+    }
+    assert!(missing.is_empty(), "docs name missing files: {missing:#?}");
+}
