@@ -16,7 +16,7 @@ use sprs::CsMat;
 use thiserror::Error;
 
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
-use crate::policy::{PolicyContext, SolverPolicy};
+use crate::policy::{Decision, PolicyContext, SolverPolicy};
 use crate::report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
 use crate::state::{Constraint, State};
@@ -54,7 +54,8 @@ pub enum Projection {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NewtonOptions {
-    /// Converged when `||r|| <= abs`.
+    /// Converged when `||r|| <= abs`: the residual's 2-norm over the free DOFs, in N for
+    /// the static solve and N s (momentum, `M (v - v^n) - dt f`) for a dynamic step.
     pub abs: f64,
     /// ... or when `||r|| <= rel ||r_0||` (first iterate of the step).
     pub rel: f64,
@@ -740,14 +741,7 @@ impl Integrator {
             .policy
             .choose(&context.policy(self.dofs.num_free(), &report.iterations));
         w.du_free.iter_mut().for_each(|v| *v = 0.0);
-        let attempt = self.linear_solve(
-            point,
-            &decision.solver,
-            decision.rel_tolerance,
-            decision.refresh,
-            &w.rhs,
-            &mut w.du_free,
-        );
+        let attempt = self.linear_solve(point, &decision, &w.rhs, &mut w.du_free);
         let attempt = match attempt {
             Err(failed)
                 if self.options.fallback_to_direct
@@ -756,8 +750,13 @@ impl Integrator {
             {
                 discarded.push(failed.outcome(&decision.solver));
                 w.du_free.iter_mut().for_each(|v| *v = 0.0);
-                self.linear_solve(point, &fallback_spec(), None, false, &w.rhs, &mut w.du_free)
-                    .map(|(setup, solve)| (setup, solve, true))
+                self.linear_solve(
+                    point,
+                    &Decision::solver(fallback_spec()),
+                    &w.rhs,
+                    &mut w.du_free,
+                )
+                .map(|(setup, solve)| (setup, solve, true))
             }
             other => other.map(|(setup, solve)| (setup, solve, false)),
         };
@@ -894,14 +893,12 @@ impl Integrator {
     fn linear_solve(
         &mut self,
         point: NewtonPoint<'_>,
-        spec: &SolverSpec,
-        rel_tolerance: Option<f64>,
-        refresh: bool,
+        decision: &Decision,
         rhs: &[f64],
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), FailedSolve> {
         let (system, solvers, _) = self.system(point);
-        system.solve(solvers, spec, rel_tolerance, refresh, rhs, x)
+        system.solve(solvers, decision, rhs, x)
     }
 
     /// The Newton system at `point`, and the kept solver instances (the policy's and the
@@ -939,7 +936,8 @@ impl Integrator {
             .iter()
             .map(|spec| {
                 let mut x = vec![0.0; rhs.len()];
-                let outcome = system.solve(candidates, spec, None, false, rhs, &mut x);
+                let outcome =
+                    system.solve(candidates, &Decision::solver(spec.clone()), rhs, &mut x);
                 match outcome {
                     Ok((setup, solve)) => {
                         let diff = x
@@ -1090,27 +1088,17 @@ struct System<'a> {
 }
 
 impl System<'_> {
-    /// Solves with the instance of `spec` kept in `list` on the operator `spec` asks for.
+    /// Solves with the instance of the decision's solver kept in `list`, on the operator
+    /// it asks for.
     fn solve(
         &self,
         list: &mut KeptSolvers,
-        spec: &SolverSpec,
-        rel_tolerance: Option<f64>,
-        refresh: bool,
+        decision: &Decision,
         rhs: &[f64],
         x: &mut [f64],
     ) -> Result<(SetupStats, SolveStats), FailedSolve> {
-        if !spec.is_matrix_free() {
-            return solve_with(
-                list,
-                self,
-                self.a_free,
-                spec,
-                rel_tolerance,
-                refresh,
-                rhs,
-                x,
-            );
+        if !decision.solver.is_matrix_free() {
+            return solve_with(list, self, self.a_free, decision, rhs, x);
         }
         // The operator adds a diagonal mass: lumped only.
         if self.options.mass != MassKind::Lumped {
@@ -1126,23 +1114,21 @@ impl System<'_> {
         })?;
         let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k);
         let reduced = Restricted::new(&op, self.dofs);
-        solve_with(list, self, &reduced, spec, rel_tolerance, refresh, rhs, x)
+        solve_with(list, self, &reduced, decision, rhs, x)
     }
 }
 
-/// Factorises (or sets up) and solves with the instance of `spec` kept in `list` (built on
-/// first use).
-#[allow(clippy::too_many_arguments)]
+/// Factorises (or sets up) and solves with the instance of the decision's solver kept in
+/// `list` (built on first use), refreshed and with its tolerance set as the decision says.
 fn solve_with(
     list: &mut KeptSolvers,
     system: &System<'_>,
     a: &dyn LinearOperator,
-    spec: &SolverSpec,
-    rel_tolerance: Option<f64>,
-    refresh: bool,
+    decision: &Decision,
     rhs: &[f64],
     x: &mut [f64],
 ) -> Result<(SetupStats, SolveStats), FailedSolve> {
+    let spec = &decision.solver;
     let index = match list.iter().position(|(s, _)| s == spec) {
         Some(i) => i,
         None => {
@@ -1164,10 +1150,10 @@ fn solve_with(
         }
     };
     let solver = &mut list[index].1;
-    if refresh {
+    if decision.refresh {
         solver.refresh();
     }
-    if let Some(rel) = rel_tolerance {
+    if let Some(rel) = decision.rel_tolerance {
         solver.set_relative_tolerance(rel)?;
     }
     let setup = solver.factorize(a)?;

@@ -41,6 +41,10 @@ mod run;
 pub mod scene;
 mod state;
 
+/// What building an [`Integrator`] takes, re-exported from the crates below.
+pub use deform_assembly::MaterialField;
+pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};
+pub use deform_mesh::TetMesh;
 pub use integrator::{
     Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions, Projection,
 };

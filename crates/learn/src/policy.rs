@@ -464,18 +464,7 @@ impl SolverPolicy for LearnedPolicy {
     }
 
     fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
-        let previous = c.history.last();
-        let features = feature_vector(
-            c.step,
-            c.iteration,
-            c.residual,
-            c.initial_residual,
-            previous.map(|p| p.residual),
-            previous.map_or(0, |p| p.solve.iterations),
-            c.dt,
-            c.num_free,
-            self.options.young,
-        );
+        let features = feature_vector(c, self.options.young);
         // This solve's forcing term, and how much fewer iterations it needs than the
         // configured tolerance the data were logged at.
         let eta = self

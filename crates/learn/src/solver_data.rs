@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 use deform_fs::write_atomic;
 use deform_integrator::{
-    IterationReport, OnStep, RunOptions, Scene, State, StepReport, Termination,
+    IterationReport, OnStep, PolicyContext, RunOptions, Scene, State, StepReport, Termination,
 };
 use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
@@ -82,32 +82,23 @@ pub struct SolverDataset {
     pub outcomes: Vec<Vec<Outcome>>,
 }
 
-/// The feature vector (in [`FEATURES`] order) of a Newton iteration.
-#[allow(clippy::too_many_arguments)]
-pub fn feature_vector(
-    step: usize,
-    iteration: usize,
-    residual: f64,
-    initial_residual: f64,
-    previous_residual: Option<f64>,
-    previous_linear_iterations: usize,
-    dt: f64,
-    free_dofs: usize,
-    young: f64,
-) -> Vec<f64> {
+/// The feature vector (in [`FEATURES`] order) of the Newton iteration a policy sees, for a
+/// material of Young's modulus `young`.
+pub fn feature_vector(c: &PolicyContext<'_>, young: f64) -> Vec<f64> {
     let tiny = f64::MIN_POSITIVE;
-    let r = residual.max(tiny);
-    let decrease = previous_residual.map_or(1.0, |p| r / p.max(tiny));
+    let previous = c.history.last();
+    let r = c.residual.max(tiny);
+    let decrease = previous.map_or(1.0, |p| r / p.residual.max(tiny));
     vec![
-        step as f64,
-        iteration as f64,
+        c.step as f64,
+        c.iteration as f64,
         r.log10(),
-        (r / initial_residual.max(tiny)).log10(),
+        (r / c.initial_residual.max(tiny)).log10(),
         decrease.log10(),
-        dt,
-        (free_dofs.max(1) as f64).log10(),
+        c.dt,
+        (c.num_free.max(1) as f64).log10(),
         young.max(tiny).log10(),
-        previous_linear_iterations as f64,
+        previous.map_or(0, |p| p.solve.iterations) as f64,
     ]
 }
 
@@ -117,20 +108,19 @@ fn features(
     history: &[IterationReport],
     k: usize,
     dt: f64,
-    free: usize,
+    num_free: usize,
     young: f64,
 ) -> Vec<f64> {
-    feature_vector(
+    let context = PolicyContext {
         step,
-        k,
-        history[k].residual,
-        history[0].residual,
-        k.checked_sub(1).map(|j| history[j].residual),
-        k.checked_sub(1).map_or(0, |j| history[j].solve.iterations),
+        iteration: k,
         dt,
-        free,
-        young,
-    )
+        num_free,
+        residual: history[k].residual,
+        initial_residual: history[0].residual,
+        history: &history[..k],
+    };
+    feature_vector(&context, young)
 }
 
 /// Simulates `steps` steps of `scene` with every candidate logged at every Newton iteration.

@@ -205,6 +205,23 @@ fn with_parameters(
     Some(spec)
 }
 
+/// What [`tune_solver`] tunes, and how.
+#[derive(Debug, Clone, Copy)]
+pub struct SolverTuning<'a> {
+    /// The iterative configuration, its values the starting point.
+    pub solver: &'a SolverSpec,
+    /// The parameters tuned jointly.
+    pub parameters: &'a [SolverParameter],
+    /// Steps of the training simulation.
+    pub steps: usize,
+    /// Relative max-norm position accuracy to keep against the direct reference.
+    pub accuracy: f64,
+    /// Weight of a factorisation flop in the work.
+    pub factor_weight: f64,
+    /// Nelder-Mead iterations.
+    pub max_iterations: u64,
+}
+
 /// Tunes `parameters` of the iterative `solver` jointly (Nelder-Mead in log10 from the
 /// configured values) for the least work (factorisations weighted by `factor_weight`) on
 /// `steps` steps of `scene`, within `accuracy` of the direct solver's trajectory. With
@@ -213,17 +230,19 @@ fn with_parameters(
 ///
 /// # Errors
 /// [`FitError`] when a parameter does not apply to the solver, or the reference fails.
-#[allow(clippy::too_many_arguments)]
 pub fn tune_solver(
     scene: &Scene,
     origin: &Path,
-    solver: &SolverSpec,
-    parameters: &[SolverParameter],
-    steps: usize,
-    accuracy: f64,
-    factor_weight: f64,
-    max_iterations: u64,
+    tuning: &SolverTuning<'_>,
 ) -> Result<TuningResult, FitError> {
+    let SolverTuning {
+        solver,
+        parameters,
+        steps,
+        accuracy,
+        factor_weight,
+        max_iterations,
+    } = *tuning;
     let starts = parameters
         .iter()
         .map(|p| {

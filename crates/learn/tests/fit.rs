@@ -605,12 +605,14 @@ fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
     let tuned = deform_learn::tuning::tune_solver(
         &s,
         Path::new("t"),
-        &solver,
-        &[deform_learn::tuning::SolverParameter::RelativeTolerance],
-        5,
-        accuracy,
-        1.0,
-        20,
+        &deform_learn::tuning::SolverTuning {
+            solver: &solver,
+            parameters: &[deform_learn::tuning::SolverParameter::RelativeTolerance],
+            steps: 5,
+            accuracy,
+            factor_weight: 1.0,
+            max_iterations: 20,
+        },
     )
     .unwrap();
     // The first sample is the configuration as given.
@@ -641,7 +643,19 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
     // Jacobi's relaxation, alone: the configured 0.5 is not the best.
     let jacobi: deform_solvers::SolverSpec =
         ron::from_str("Jacobi(omega: 0.5, tolerance: (rel: 1e-8, max_iterations: 5000))").unwrap();
-    let tuned = tune_solver(&s, t, &jacobi, &[SolverParameter::Omega], 5, 1e-6, 1.0, 15).unwrap();
+    let tuned = tune_solver(
+        &s,
+        t,
+        &deform_learn::tuning::SolverTuning {
+            solver: &jacobi,
+            parameters: &[SolverParameter::Omega],
+            steps: 5,
+            accuracy: 1e-6,
+            factor_weight: 1.0,
+            max_iterations: 15,
+        },
+    )
+    .unwrap();
     let omega = 10f64.powf(tuned.log10_values[0]);
     eprintln!(
         "omega {omega:.3}: {:.3e} vs {:.3e}",
@@ -661,12 +675,14 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
     let tuned = tune_solver(
         &swing,
         t,
-        &stale,
-        &[SolverParameter::RefactorAbove],
-        5,
-        1e-6,
-        0.1,
-        15,
+        &deform_learn::tuning::SolverTuning {
+            solver: &stale,
+            parameters: &[SolverParameter::RefactorAbove],
+            steps: 5,
+            accuracy: 1e-6,
+            factor_weight: 0.1,
+            max_iterations: 15,
+        },
     )
     .unwrap();
     eprintln!(
@@ -682,12 +698,14 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
     let err = tune_solver(
         &s,
         t,
-        &jacobi,
-        &[SolverParameter::RefactorAbove],
-        5,
-        1e-6,
-        1.0,
-        5,
+        &deform_learn::tuning::SolverTuning {
+            solver: &jacobi,
+            parameters: &[SolverParameter::RefactorAbove],
+            steps: 5,
+            accuracy: 1e-6,
+            factor_weight: 1.0,
+            max_iterations: 5,
+        },
     )
     .unwrap_err()
     .to_string();

@@ -47,4 +47,7 @@ pub use model::{Ensemble, Model, Parametric};
 pub use models::{
     CorotatedLinear, FixedCorotated, LinearElastic, NeoHookean, StVenantKirchhoff, StableNeoHookean,
 };
+/// The linear-algebra crate of the API (`Matrix3` arguments), re-exported so that users
+/// need no version of their own.
+pub use nalgebra;
 pub use spec::{EnsembleMember, MaterialSpec};

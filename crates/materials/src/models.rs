@@ -555,6 +555,19 @@ pub struct StableNeoHookean {
 }
 
 impl StableNeoHookean {
+    /// The model from the paper's own parameters `(mu_s, lambda_s)` (Smith et al. 2018,
+    /// their Eq. 14 with `alpha = 1 + 3 mu_s / (4 lambda_s)`): the Lame pair of its
+    /// small-strain limit is `mu = 3/4 mu_s`, `lambda = lambda_s - 5/6 mu`.
+    ///
+    /// # Errors
+    /// [`crate::MaterialError`] when that pair is not a valid material.
+    pub fn from_paper_parameters(mu_s: f64, lambda_s: f64) -> Result<Self, crate::MaterialError> {
+        let mu = 0.75 * mu_s;
+        Ok(Self {
+            lame: Lame::try_new(mu, lambda_s - 5.0 / 6.0 * mu)?,
+        })
+    }
+
     /// `(mu_s, lambda_s)` of the paper from the Lame pair.
     pub fn paper_parameters(&self) -> (f64, f64) {
         let Lame { mu, lambda } = self.lame;

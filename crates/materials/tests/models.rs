@@ -434,3 +434,13 @@ fn lagged_rotation_tangent_is_the_exact_one_without_rotation() {
     assert!((exact.first_piola(&f) - lagged.first_piola(&f)).norm() < 1e-12);
     assert!(min_eigenvalue(&lagged.dp_df(&f)) > -1e-12);
 }
+
+#[test]
+fn stable_neo_hookean_from_the_papers_parameters_round_trips() {
+    let m = StableNeoHookean::from_paper_parameters(4.0e5, 9.0e5).unwrap();
+    let (mu_s, lambda_s) = m.paper_parameters();
+    assert!((mu_s - 4.0e5).abs() <= 1e-9 * 4.0e5 && (lambda_s - 9.0e5).abs() <= 1e-9 * 9.0e5);
+    assert!((m.lame.mu - 3.0e5).abs() < 1e-6);
+    // A pair whose small-strain limit is not a material is refused.
+    assert!(StableNeoHookean::from_paper_parameters(-1.0, 1.0).is_err());
+}

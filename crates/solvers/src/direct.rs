@@ -58,13 +58,39 @@ const REFINE_MAX_STEPS: usize = 12;
 /// Above this many rows `Ordering::Auto` uses nested dissection without trying AMD.
 const AUTO_ND_ONLY_ROWS: usize = 30_000;
 
-/// Which factor is held.
+/// Which factor a split analysis holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Kind {
     Llt,
-    Ldlt,
-    /// `L L^T` in single precision (`values32`).
+    /// `L L^T` in single precision.
     Llt32,
+}
+
+/// The numeric factor of a whole analysis.
+#[derive(Debug)]
+enum Numeric {
+    Llt(Vec<f64>),
+    Ldlt(Vec<f64>),
+    /// `L L^T` in single precision.
+    Llt32(Vec<f32>),
+}
+
+/// What the solver holds: nothing, the whole matrix's analysis (and its factor once
+/// factorised), or the analysis split at nested dissection's first cut (and the kind of its
+/// factor once factorised).
+#[derive(Debug, Default)]
+#[allow(clippy::large_enum_variant)] // one per solver; boxing the analysis gains nothing
+enum Factor {
+    #[default]
+    Empty,
+    Whole {
+        symbolic: SymbolicCholesky<usize>,
+        numeric: Option<Numeric>,
+    },
+    Split {
+        split: Box<Split>,
+        kind: Option<Kind>,
+    },
 }
 
 /// Sparse Cholesky `A = L L^T` (or `L D L^T`) of a symmetric CSR matrix in full storage.
@@ -72,28 +98,26 @@ enum Kind {
 /// The CSR arrays are handed to faer as the CSC arrays of `A^T = A`, without copying.
 /// [`LinearSolver::analyze`] orders and factorises symbolically; `factorize` reuses that
 /// analysis while the pattern is unchanged (and redoes it, reported in [`SetupStats`], when
-/// the pattern changed). Factorisation runs on one thread: its results do not depend on the
-/// thread count.
+/// the pattern changed). Matrices of at least 20,000 rows are factorised as two fixed
+/// parallel tasks (the halves of nested dissection's first cut, [`Cholesky::set_parallel`]);
+/// smaller ones on one thread. Either way the factor's bits do not depend on the thread
+/// count. What is held (nothing, the whole analysis and its factor, or the split one) is one
+/// state.
 #[derive(Debug)]
 pub struct Cholesky {
     ordering: Ordering,
     indefinite: Indefinite,
     /// The pattern the symbolic analysis belongs to.
     pattern: Option<(Vec<usize>, Vec<usize>)>,
-    symbolic: Option<SymbolicCholesky<usize>>,
     analyze_seconds: f64,
-    values: Vec<f64>,
-    kind: Option<Kind>,
     parallel: bool,
     precision: Precision,
-    /// The single-precision factor, and the matrix's values rounded to `f32`.
-    values32: Vec<f32>,
+    /// The analysis and the factor held.
+    factor: Factor,
+    /// Scratch: the matrix's values rounded to `f32`.
     matrix32: Vec<f32>,
     /// Coordinates of the nodes (one per 3 rows) for geometric nested dissection.
     coordinates: Option<Vec<[f64; 3]>>,
-    /// The factor split at nested dissection's first cut (instead of `symbolic`), for large
-    /// parallel factorisations.
-    pub(crate) split: Option<Box<Split>>,
     /// Rows from which a parallel nested-dissection factorisation is split.
     pub(crate) split_min_rows: usize,
 }
@@ -105,16 +129,12 @@ impl Cholesky {
             ordering,
             indefinite,
             pattern: None,
-            symbolic: None,
             analyze_seconds: 0.0,
-            values: Vec::new(),
-            kind: None,
             parallel: true,
             precision: Precision::Double,
-            values32: Vec::new(),
+            factor: Factor::Empty,
             matrix32: Vec::new(),
             coordinates: None,
-            split: None,
             split_min_rows: PARALLEL_MIN_ROWS,
         }
     }
@@ -131,6 +151,11 @@ impl Cholesky {
     /// Factorise in double (default) or single precision with refinement ([`Precision`]).
     pub fn set_precision(&mut self, precision: Precision) {
         self.precision = precision;
+    }
+
+    /// The configured precision.
+    pub fn precision(&self) -> Precision {
+        self.precision
     }
 
     /// Whether a large factorisation (at least `PARALLEL_MIN_ROWS` rows) runs as
@@ -168,29 +193,71 @@ impl Cholesky {
     }
 
     fn counts(&self) -> (usize, u64) {
-        match (&self.split, &self.symbolic) {
-            (Some(split), _) => split.counts(),
-            (None, Some(s)) => factor_counts(s),
-            (None, None) => (0, 0),
+        match &self.factor {
+            Factor::Split { split, .. } => split.counts(),
+            Factor::Whole { symbolic, .. } => factor_counts(symbolic),
+            Factor::Empty => (0, 0),
         }
     }
 
     /// The order of the held analysis (`None` before `analyze`).
     pub fn nrows(&self) -> Option<usize> {
-        match (&self.split, &self.symbolic) {
-            (Some(split), _) => Some(split.nrows()),
-            (None, s) => s.as_ref().map(SymbolicCholesky::nrows),
+        match &self.factor {
+            Factor::Split { split, .. } => Some(split.nrows()),
+            Factor::Whole { symbolic, .. } => Some(symbolic.nrows()),
+            Factor::Empty => None,
         }
     }
 
     /// Whether a factor for the current values exists.
     pub fn is_factorized(&self) -> bool {
-        self.kind.is_some()
+        matches!(
+            self.factor,
+            Factor::Whole {
+                numeric: Some(_),
+                ..
+            } | Factor::Split { kind: Some(_), .. }
+        )
     }
 
     /// Whether the held factor is `L D L^T` (the matrix was not positive definite).
     pub fn is_ldlt(&self) -> bool {
-        self.kind == Some(Kind::Ldlt)
+        matches!(
+            self.factor,
+            Factor::Whole {
+                numeric: Some(Numeric::Ldlt(_)),
+                ..
+            }
+        )
+    }
+
+    /// Whether the held analysis is split at nested dissection's first cut.
+    #[cfg(test)]
+    pub(crate) fn is_split(&self) -> bool {
+        matches!(self.factor, Factor::Split { .. })
+    }
+
+    /// Whether the held factor is in single precision.
+    fn is_single(&self) -> bool {
+        matches!(
+            self.factor,
+            Factor::Whole {
+                numeric: Some(Numeric::Llt32(_)),
+                ..
+            } | Factor::Split {
+                kind: Some(Kind::Llt32),
+                ..
+            }
+        )
+    }
+
+    /// Forgets the numeric factor (the analysis stays).
+    fn forget_numeric(&mut self) {
+        match &mut self.factor {
+            Factor::Whole { numeric, .. } => *numeric = None,
+            Factor::Split { kind, .. } => *kind = None,
+            Factor::Empty => {}
+        }
     }
 
     /// Wall time of the last symbolic analysis.
@@ -212,22 +279,10 @@ impl Cholesky {
 
     /// Solves with the held factor, in place (`x` holds `b` on entry).
     pub(crate) fn solve_in_place(&self, x: &mut [f64]) -> Result<(), SolverError> {
-        if let (Some(split), Some(_)) = (&self.split, self.kind) {
-            if x.len() != split.nrows() {
-                return Err(SolverError::DimensionMismatch {
-                    what: "x",
-                    expected: split.nrows(),
-                    found: x.len(),
-                });
-            }
-            split.solve_in_place(x);
-            return Ok(());
+        let n = self.nrows().ok_or(SolverError::NotFactorized)?;
+        if !self.is_factorized() {
+            return Err(SolverError::NotFactorized);
         }
-        let (symbolic, kind) = match (&self.symbolic, self.kind) {
-            (Some(s), Some(k)) => (s, k),
-            _ => return Err(SolverError::NotFactorized),
-        };
-        let n = symbolic.nrows();
         if x.len() != n {
             return Err(SolverError::DimensionMismatch {
                 what: "x",
@@ -235,13 +290,24 @@ impl Cholesky {
                 found: x.len(),
             });
         }
+        let (symbolic, numeric) = match &self.factor {
+            Factor::Split { split, .. } => {
+                split.solve_in_place(x);
+                return Ok(());
+            }
+            Factor::Whole {
+                symbolic,
+                numeric: Some(numeric),
+            } => (symbolic, numeric),
+            _ => return Err(SolverError::NotFactorized),
+        };
         let par = self.par(n);
-        if kind == Kind::Llt32 {
+        if let Numeric::Llt32(values) = numeric {
             let mut x32: Vec<f32> = x.iter().map(|&v| v as f32).collect();
             let req = symbolic.solve_in_place_scratch::<f32>(1, par);
             let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
             let rhs = MatMut::from_column_major_slice_mut(&mut x32, n, 1);
-            LltRef::new(symbolic, &self.values32).solve_in_place_with_conj(
+            LltRef::new(symbolic, values).solve_in_place_with_conj(
                 Conj::No,
                 rhs,
                 par,
@@ -256,20 +322,14 @@ impl Cholesky {
         let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         let stack = MemStack::new(&mut mem);
         let rhs = MatMut::from_column_major_slice_mut(x, n, 1);
-        match kind {
-            Kind::Llt => LltRef::new(symbolic, &self.values).solve_in_place_with_conj(
-                Conj::No,
-                rhs,
-                par,
-                stack,
-            ),
-            Kind::Ldlt => LdltRef::new(symbolic, &self.values).solve_in_place_with_conj(
-                Conj::No,
-                rhs,
-                par,
-                stack,
-            ),
-            Kind::Llt32 => unreachable!("handled above"),
+        match numeric {
+            Numeric::Llt(values) => {
+                LltRef::new(symbolic, values).solve_in_place_with_conj(Conj::No, rhs, par, stack)
+            }
+            Numeric::Ldlt(values) => {
+                LdltRef::new(symbolic, values).solve_in_place_with_conj(Conj::No, rhs, par, stack)
+            }
+            Numeric::Llt32(_) => unreachable!("handled above"),
         }
         Ok(())
     }
@@ -303,6 +363,95 @@ pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
             Default::default(),
         )
         .map(|_| ()))
+}
+
+/// Factorises a split analysis: `Ok(Ok(kind))` when done (its cost added to `setup`),
+/// `Ok(Err(order))` when the matrix is indefinite and `policy` asks for `L D L^T` of the
+/// whole matrix in `order`.
+fn factorize_split(
+    split: &mut Split,
+    data: &[f64],
+    precision: Precision,
+    policy: Indefinite,
+    setup: &mut SetupStats,
+    start: Instant,
+) -> Result<Result<Kind, Elimination>, SolverError> {
+    let done = |kind, setup: &mut SetupStats, split: &Split| {
+        let (nnz, flops) = split.counts();
+        setup.flops += flops;
+        setup.factor_nnz = nnz;
+        setup.seconds += start.elapsed().as_secs_f64();
+        Ok(Ok(kind))
+    };
+    if precision == Precision::Mixed {
+        match split.factorize(data, true) {
+            Ok(()) => return done(Kind::Llt32, setup, split),
+            // Charged, and the double factorisation is tried.
+            Err(Failure::Pivot(_) | Failure::NonFinite) => setup.flops += split.counts().1,
+            Err(Failure::Error(e)) => return Err(e),
+        }
+    }
+    match split.factorize(data, false) {
+        Ok(()) => done(Kind::Llt, setup, split),
+        Err(Failure::Error(e)) => Err(e),
+        Err(Failure::NonFinite) => Err(SolverError::NonFinite {
+            what: "factor",
+            index: 0,
+        }),
+        Err(Failure::Pivot(row)) if policy == Indefinite::Error => {
+            let (nnz, flops) = split.counts();
+            setup.flops += flops;
+            setup.factor_nnz = nnz;
+            setup.seconds += start.elapsed().as_secs_f64();
+            Err(SolverError::NotPositiveDefinite {
+                pivot: row,
+                value: f64::NAN,
+                spent: Some(Box::new(*setup)),
+            })
+        }
+        Err(Failure::Pivot(_)) => {
+            setup.flops += split.counts().1;
+            Ok(Err(Elimination {
+                order: std::mem::take(&mut split.order),
+                top: None,
+            }))
+        }
+    }
+}
+
+/// `L D L^T` of `matrix` into `values` (no pivoting: a zero pivot is an error, charged).
+fn numeric_ldlt(
+    symbolic: &SymbolicCholesky<usize>,
+    values: &mut Vec<f64>,
+    matrix: SparseColMatRef<'_, usize, f64>,
+    par: Par,
+    setup: SetupStats,
+    start: Instant,
+) -> Result<(), SolverError> {
+    values.clear();
+    values.resize(symbolic.len_val(), 0.0);
+    let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
+    let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
+    symbolic
+        .factorize_numeric_ldlt(
+            values,
+            matrix,
+            Side::Lower,
+            LdltRegularization::default(),
+            par,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map(|_| ())
+        .map_err(|e| match e {
+            faer::linalg::cholesky::ldlt::factor::LdltError::ZeroPivot { index } => {
+                SolverError::NotPositiveDefinite {
+                    pivot: permuted_row(symbolic, index),
+                    value: 0.0,
+                    spent: Some(Box::new(spent(symbolic, setup, start))),
+                }
+            }
+        })
 }
 
 /// The set-up stats of a factorisation that failed: charged as a whole one.
@@ -365,9 +514,7 @@ impl LinearSolver for Cholesky {
         let indptr_view = csr.indptr();
         let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
         let coords = self.coordinates.as_deref();
-        self.kind = None;
-        self.split = None;
-        self.symbolic = None;
+        self.factor = Factor::Empty;
         let n = indptr.len() - 1;
         let order = |ordering| order_rows(ordering, indptr, indices, coords);
         // The order, and its symbolic factorisation when it had to be computed to choose.
@@ -397,162 +544,26 @@ impl LinearSolver for Cholesky {
         } else {
             None
         };
-        match split {
-            Some(split) => self.split = Some(Box::new(split)),
-            None => {
-                self.symbolic = Some(match whole {
+        self.factor = match split {
+            Some(split) => Factor::Split {
+                split: Box::new(split),
+                kind: None,
+            },
+            None => Factor::Whole {
+                symbolic: match whole {
                     Some(s) => s,
                     None => symbolic_of(&elim, indptr, indices)?,
-                });
-            }
-        }
+                },
+                numeric: None,
+            },
+        };
         self.pattern = Some((indptr.to_vec(), indices.to_vec()));
         self.analyze_seconds = start.elapsed().as_secs_f64();
         Ok(())
     }
 
     fn factorize(&mut self, a: &dyn LinearOperator) -> Result<SetupStats, SolverError> {
-        let csr = Self::csr(a)?;
-        if csr.rows() != csr.cols() {
-            return Err(SolverError::DimensionMismatch {
-                what: "columns",
-                expected: csr.rows(),
-                found: csr.cols(),
-            });
-        }
-        check_vector("matrix values", csr.data(), csr.nnz())?;
-        let indptr_view = csr.indptr();
-        let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
-        let mut setup = SetupStats::default();
-        if !self.same_pattern(indptr, indices) {
-            self.analyze(a)?;
-            setup.analyzed = true;
-            setup.seconds += self.analyze_seconds;
-        }
-        let start = Instant::now();
-        let n = csr.rows();
-        self.kind = None;
-        // Set when the split `L L^T` found the matrix indefinite: straight to `L D L^T`.
-        let mut indefinite = false;
-        if let Some(split) = self.split.as_mut() {
-            match self.precision {
-                Precision::Mixed => match split.factorize(csr.data(), true) {
-                    Ok(()) => return Ok(self.split_done(Kind::Llt32, setup, start)),
-                    // Charged, and the double factorisation is tried.
-                    Err(Failure::Pivot(_) | Failure::NonFinite) => setup.flops += split.counts().1,
-                    Err(Failure::Error(e)) => return Err(e),
-                },
-                Precision::Double => {}
-            }
-            match split.factorize(csr.data(), false) {
-                Ok(()) => return Ok(self.split_done(Kind::Llt, setup, start)),
-                Err(Failure::Error(e)) => return Err(e),
-                Err(Failure::NonFinite) => {
-                    return Err(SolverError::NonFinite {
-                        what: "factor",
-                        index: 0,
-                    });
-                }
-                Err(Failure::Pivot(row)) if self.indefinite == Indefinite::Error => {
-                    let (nnz, flops) = split.counts();
-                    setup.flops += flops;
-                    setup.factor_nnz = nnz;
-                    setup.seconds += start.elapsed().as_secs_f64();
-                    return Err(SolverError::NotPositiveDefinite {
-                        pivot: row,
-                        value: f64::NAN,
-                        spent: Some(Box::new(setup)),
-                    });
-                }
-                Err(Failure::Pivot(_)) => {
-                    // `L D L^T` of the whole matrix in the same order, kept for this pattern.
-                    setup.flops += split.counts().1;
-                    let order = Elimination {
-                        order: std::mem::take(&mut split.order),
-                        top: None,
-                    };
-                    self.split = None;
-                    self.symbolic = Some(symbolic_of(&order, indptr, indices)?);
-                    indefinite = true;
-                }
-            }
-        }
-        let symbolic = self.symbolic.as_ref().expect("analyzed above");
-        let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
-        let par = self.par(n);
-        if self.precision == Precision::Mixed && !indefinite {
-            self.matrix32.clear();
-            self.matrix32.extend(csr.data().iter().map(|&v| v as f32));
-            let matrix = SparseColMatRef::new(pattern, &self.matrix32);
-            let single = numeric_llt(symbolic, &mut self.values32, matrix, par)?;
-            let (nnz, flops) = factor_counts(symbolic);
-            setup.flops += flops;
-            setup.factor_nnz = nnz;
-            if single.is_ok() && self.values32.iter().all(|v| v.is_finite()) {
-                self.kind = Some(Kind::Llt32);
-                // The double factor of an earlier fallback is not needed any more.
-                self.values = Vec::new();
-                setup.seconds += start.elapsed().as_secs_f64();
-                return Ok(setup);
-            }
-            // Not positive definite in single precision: try double (both charged).
-        }
-        // A double factor replaces any single one.
-        self.values32 = Vec::new();
-        let matrix = SparseColMatRef::new(pattern, csr.data());
-        let llt = (!indefinite)
-            .then(|| numeric_llt(symbolic, &mut self.values, matrix, par))
-            .transpose()?;
-        let kind = match llt {
-            Some(Ok(())) => Kind::Llt,
-            Some(Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot {
-                index,
-            })) if self.indefinite == Indefinite::Error => {
-                return Err(SolverError::NotPositiveDefinite {
-                    pivot: permuted_row(symbolic, index),
-                    value: f64::NAN,
-                    spent: Some(Box::new(spent(symbolic, setup, start))),
-                });
-            }
-            _ => {
-                self.values.clear();
-                self.values.resize(symbolic.len_val(), 0.0);
-                let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
-                let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-                symbolic
-                    .factorize_numeric_ldlt(
-                        &mut self.values,
-                        matrix,
-                        Side::Lower,
-                        LdltRegularization::default(),
-                        par,
-                        MemStack::new(&mut mem),
-                        Default::default(),
-                    )
-                    .map_err(|e| match e {
-                        faer::linalg::cholesky::ldlt::factor::LdltError::ZeroPivot { index } => {
-                            SolverError::NotPositiveDefinite {
-                                pivot: permuted_row(symbolic, index),
-                                value: 0.0,
-                                spent: Some(Box::new(spent(symbolic, setup, start))),
-                            }
-                        }
-                    })?;
-                Kind::Ldlt
-            }
-        };
-        if let Some(i) = self.values.iter().position(|v| !v.is_finite()) {
-            return Err(SolverError::NonFinite {
-                what: "factor",
-                index: i,
-            });
-        }
-        self.kind = Some(kind);
-        let (nnz, flops) = factor_counts(symbolic);
-        setup.flops += flops;
-        setup.factor_nnz = nnz;
-        setup.seconds += start.elapsed().as_secs_f64();
-        Ok(setup)
+        self.factorize_in(a, self.precision)
     }
 
     fn solve(
@@ -564,12 +575,12 @@ impl LinearSolver for Cholesky {
         let n = a.nrows();
         check_vector("b", b, n)?;
         check_vector("x", x, n)?;
-        if self.nrows() != Some(n) || self.kind.is_none() {
+        if self.nrows() != Some(n) || !self.is_factorized() {
             return Err(SolverError::NotFactorized);
         }
         let start = Instant::now();
         let mut stats = SolveStats::new(self.name(), norm(b));
-        if self.kind == Some(Kind::Llt32) {
+        if self.is_single() {
             self.refine(a, b, x, &mut stats)?;
         } else {
             self.double_solve(a, b, x, &mut stats)?;
@@ -590,14 +601,115 @@ impl LinearSolver for Cholesky {
 }
 
 impl Cholesky {
-    /// Records a split factorisation that succeeded.
-    fn split_done(&mut self, kind: Kind, mut setup: SetupStats, start: Instant) -> SetupStats {
-        let (nnz, flops) = self.counts();
-        self.kind = Some(kind);
+    /// Factorises `a` in `precision` (the configured one, or double when refinement with
+    /// a single factor failed), reusing the analysis while the pattern is unchanged.
+    fn factorize_in(
+        &mut self,
+        a: &dyn LinearOperator,
+        precision: Precision,
+    ) -> Result<SetupStats, SolverError> {
+        let csr = Self::csr(a)?;
+        if csr.rows() != csr.cols() {
+            return Err(SolverError::DimensionMismatch {
+                what: "columns",
+                expected: csr.rows(),
+                found: csr.cols(),
+            });
+        }
+        check_vector("matrix values", csr.data(), csr.nnz())?;
+        let indptr_view = csr.indptr();
+        let (indptr, indices) = (indptr_view.raw_storage(), csr.indices());
+        let mut setup = SetupStats::default();
+        if !self.same_pattern(indptr, indices) {
+            self.analyze(a)?;
+            setup.analyzed = true;
+            setup.seconds += self.analyze_seconds;
+        }
+        let start = Instant::now();
+        let n = csr.rows();
+        self.forget_numeric();
+        // Set when the split `L L^T` found the matrix indefinite: straight to `L D L^T`.
+        let mut indefinite = false;
+        if let Factor::Split { split, kind } = &mut self.factor {
+            let policy = self.indefinite;
+            match factorize_split(split, csr.data(), precision, policy, &mut setup, start)? {
+                Ok(done) => {
+                    *kind = Some(done);
+                    return Ok(setup);
+                }
+                Err(order) => {
+                    // `L D L^T` of the whole matrix in the same order, kept for this pattern.
+                    self.factor = Factor::Whole {
+                        symbolic: symbolic_of(&order, indptr, indices)?,
+                        numeric: None,
+                    };
+                    indefinite = true;
+                }
+            }
+        }
+        let par = self.par(n);
+        let Factor::Whole { symbolic, numeric } = &mut self.factor else {
+            unreachable!("analysed above")
+        };
+        let pattern = SymbolicSparseColMatRef::new_unsorted_checked(n, n, indptr, None, indices);
+        // The held factor's buffer is reused; only one precision is held at a time.
+        let (mut values, mut values32) = match numeric.take() {
+            Some(Numeric::Llt(v) | Numeric::Ldlt(v)) => (v, Vec::new()),
+            Some(Numeric::Llt32(v)) => (Vec::new(), v),
+            None => (Vec::new(), Vec::new()),
+        };
+        if precision == Precision::Mixed && !indefinite {
+            self.matrix32.clear();
+            self.matrix32.extend(csr.data().iter().map(|&v| v as f32));
+            let matrix = SparseColMatRef::new(pattern, &self.matrix32);
+            let single = numeric_llt(symbolic, &mut values32, matrix, par)?;
+            let (nnz, flops) = factor_counts(symbolic);
+            setup.flops += flops;
+            setup.factor_nnz = nnz;
+            if single.is_ok() && values32.iter().all(|v| v.is_finite()) {
+                *numeric = Some(Numeric::Llt32(values32));
+                setup.seconds += start.elapsed().as_secs_f64();
+                return Ok(setup);
+            }
+            // Not positive definite in single precision: try double (both charged).
+        }
+        drop(values32);
+        let matrix = SparseColMatRef::new(pattern, csr.data());
+        let llt = (!indefinite)
+            .then(|| numeric_llt(symbolic, &mut values, matrix, par))
+            .transpose()?;
+        let ldlt = match llt {
+            Some(Ok(())) => false,
+            Some(Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot {
+                index,
+            })) if self.indefinite == Indefinite::Error => {
+                return Err(SolverError::NotPositiveDefinite {
+                    pivot: permuted_row(symbolic, index),
+                    value: f64::NAN,
+                    spent: Some(Box::new(spent(symbolic, setup, start))),
+                });
+            }
+            _ => {
+                numeric_ldlt(symbolic, &mut values, matrix, par, setup, start)?;
+                true
+            }
+        };
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(SolverError::NonFinite {
+                what: "factor",
+                index: i,
+            });
+        }
+        let (nnz, flops) = factor_counts(symbolic);
+        *numeric = Some(if ldlt {
+            Numeric::Ldlt(values)
+        } else {
+            Numeric::Llt(values)
+        });
         setup.flops += flops;
         setup.factor_nnz = nnz;
         setup.seconds += start.elapsed().as_secs_f64();
-        setup
+        Ok(setup)
     }
 
     /// Mixed precision: `x = 0`, then `x += solve_32(b - A x)` until the residual is below
@@ -645,9 +757,7 @@ impl Cholesky {
             }
             return Ok(());
         }
-        self.precision = Precision::Double;
-        let setup = self.factorize(a)?;
-        self.precision = Precision::Mixed;
+        let setup = self.factorize_in(a, Precision::Double)?;
         stats.flops += setup.flops;
         self.double_solve(a, b, x, stats)
     }

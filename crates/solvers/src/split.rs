@@ -589,17 +589,17 @@ mod tests {
         let (a, coords) = grid_matrix(14, 6, 5, 0.05);
         let mut whole = solver(false, Precision::Double, &coords);
         let reference = solve(&mut whole, &a);
-        assert!(whole.split.is_none());
+        assert!(!whole.is_split());
         // AMD has no cut to split at.
         let mut amd = Cholesky::new(Ordering::Amd, Indefinite::Error);
         amd.split_min_rows = 0;
         let x = solve(&mut amd, &a);
-        assert!(amd.split.is_none());
+        assert!(!amd.is_split());
         assert!(x.iter().zip(&reference).all(|(p, q)| (p - q).abs() < 1e-9));
         for precision in [Precision::Double, Precision::Mixed] {
             let mut split = solver(true, precision, &coords);
             let x = solve(&mut split, &a);
-            assert!(split.split.is_some(), "{precision:?}");
+            assert!(split.is_split(), "{precision:?}");
             let err = x
                 .iter()
                 .zip(&reference)
@@ -637,7 +637,7 @@ mod tests {
         let (a, coords) = grid_matrix(12, 5, 5, -0.3);
         let mut c = solver(true, Precision::Mixed, &coords);
         c.analyze(&a).unwrap();
-        assert!(c.split.is_some());
+        assert!(c.is_split());
         match c.factorize(&a) {
             Err(SolverError::NotPositiveDefinite { pivot, spent, .. }) => {
                 assert!(pivot < a.rows());
@@ -653,7 +653,7 @@ mod tests {
             ldlt.analyze(&a).unwrap();
             let split_flops = ldlt.factor_flops();
             let setup = ldlt.factorize(&a).unwrap();
-            assert!(ldlt.is_ldlt() && ldlt.split.is_none());
+            assert!(ldlt.is_ldlt() && !ldlt.is_split());
             // The failed split attempts (one per precision tried) and the L D L^T are charged.
             let tries = if precision == Precision::Mixed { 2 } else { 1 };
             assert_eq!(setup.flops, tries * split_flops + ldlt.factor_flops());

@@ -244,3 +244,36 @@ fn bad_arguments_and_caps_give_typed_errors() {
         "unknown fields are rejected"
     );
 }
+
+/// A 2x2 matrix that is indefinite in double precision but positive definite once rounded
+/// to single (`a12 = 1 + 5e-8` rounds to 1, `a22 = 1 + 8e-8` to `1 + 2^-23`).
+fn indefinite_in_double_only() -> CsMat<f64> {
+    let mut t = TriMat::new((2, 2));
+    t.add_triplet(0, 0, 1.0);
+    t.add_triplet(0, 1, 1.0 + 5e-8);
+    t.add_triplet(1, 0, 1.0 + 5e-8);
+    t.add_triplet(1, 1, 1.0 + 8e-8);
+    t.to_csr()
+}
+
+#[test]
+fn mixed_precision_stays_mixed_after_a_failed_double_refactorisation() {
+    use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering, Precision};
+    let mut c = Cholesky::new(Ordering::Amd, Indefinite::Error);
+    c.set_precision(Precision::Mixed);
+    // The single factor exists, but refinement cannot converge; the double refactorisation
+    // then finds the matrix indefinite and the solve fails.
+    let bad = indefinite_in_double_only();
+    c.factorize(&bad).unwrap();
+    let mut x = vec![0.0; 2];
+    assert!(c.solve(&bad, &[1.0, 0.0], &mut x).is_err());
+    assert_eq!(c.precision(), Precision::Mixed);
+    // The next matrix is factorised in single precision again: its solve refines.
+    let (good, _) = spd(2, &[(0, 0, 1.0), (1, 1, 2.0)], 1.0);
+    c.factorize(&good).unwrap();
+    let stats = c.solve(&good, &[1.0, 1.0], &mut x).unwrap();
+    assert!(
+        stats.iterations >= 1,
+        "solved by a double factor: {stats:?}"
+    );
+}

@@ -287,16 +287,12 @@ pub fn run(
             candidates.len()
         ),
     };
-    let rows = side_by_side(
-        &cx,
-        &tuned,
-        truth,
-        &tests,
-        *factor_weight,
+    let on = Comparison {
+        tests: &tests,
+        factor_weight: *factor_weight,
         frames,
-        files,
-        observer,
-    )?;
+    };
+    let rows = side_by_side(&cx, &tuned, truth, &on, files, observer)?;
     Ok(StoryReport {
         subsample: cx.experiment.dataset.subsample,
         damping_before: (cx.scene.integrator.alpha, cx.scene.integrator.gamma),
@@ -323,18 +319,24 @@ struct Tuned<'a> {
     solver: String,
 }
 
+/// Where and how the models are compared.
+struct Comparison<'a> {
+    tests: &'a [&'a Trajectory],
+    factor_weight: f64,
+    /// Folder of the frames, when files are written.
+    frames: Option<PathBuf>,
+}
+
 /// Base, untuned and tuned on the test trajectories; frames of the first.
-#[allow(clippy::too_many_arguments)]
 fn side_by_side(
     cx: &Context<'_>,
     tuned: &Tuned<'_>,
     truth: Lame,
-    tests: &[&Trajectory],
-    factor_weight: f64,
-    frames: Option<PathBuf>,
+    on: &Comparison<'_>,
     files: &mut Vec<PathBuf>,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<Vec<StoryRow>, LearnError> {
+    let (tests, factor_weight, frames) = (on.tests, on.factor_weight, &on.frames);
     let origin = cx.experiment.scene.as_path();
     observer.start(Stage::Compare, 3);
     let base_policy = cx

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Context, Task};
 use crate::error::LearnError;
-use crate::tuning::{SolverParameter, TuningResult, tune_solver};
+use crate::tuning::{SolverParameter, SolverTuning, TuningResult, tune_solver};
 
 /// What solver tuning found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -51,12 +51,14 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
     let result = tune_solver(
         &cx.scene,
         cx.origin(),
-        solver,
-        parameters,
-        steps,
-        *accuracy,
-        *factor_weight,
-        *max_iterations,
+        &SolverTuning {
+            solver,
+            parameters,
+            steps,
+            accuracy: *accuracy,
+            factor_weight: *factor_weight,
+            max_iterations: *max_iterations,
+        },
     )?;
     Ok(TuneSolverReport {
         solver: solver.clone(),
