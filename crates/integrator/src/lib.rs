@@ -50,8 +50,8 @@ pub use integrator::{
 };
 pub use matrix_free::MatrixFreeNewton;
 pub use policy::{
-    Decision, EisenstatWalker, Fixed, PolicyContext, PolicySpec, Schedule, SolverPolicy,
-    StaleFactor,
+    Decision, EisenstatWalker, Fixed, PolicyContext, PolicyError, PolicySpec, Schedule,
+    SolverPolicy, StaleFactor,
 };
 pub use report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};

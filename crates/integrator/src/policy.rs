@@ -278,13 +278,36 @@ impl Default for PolicySpec {
     }
 }
 
+/// Why a policy configuration does not build.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum PolicyError {
+    /// A solver configuration of the policy does not build.
+    #[error("solver: {0}")]
+    Solver(#[from] deform_solvers::SolverError),
+    /// A value is out of range or a solver does not suit the policy.
+    #[error("{field}: {reason}")]
+    Invalid {
+        /// The field.
+        field: &'static str,
+        /// Why.
+        reason: String,
+    },
+}
+
 impl PolicySpec {
     /// Builds the policy.
     ///
     /// # Errors
-    /// A message naming the bad field.
-    pub fn build(&self) -> Result<Box<dyn SolverPolicy>, String> {
-        let check = |s: &SolverSpec| s.build().map(|_| ()).map_err(|e| e.to_string());
+    /// [`PolicyError`] naming the bad field.
+    pub fn build(&self) -> Result<Box<dyn SolverPolicy>, PolicyError> {
+        let check = |s: &SolverSpec| s.build().map(|_| ());
+        let invalid = |field, reason: &str| {
+            Err(PolicyError::Invalid {
+                field,
+                reason: reason.to_owned(),
+            })
+        };
         Ok(match self {
             PolicySpec::Fixed(s) => {
                 check(s)?;
@@ -306,10 +329,10 @@ impl PolicySpec {
             PolicySpec::EisenstatWalker { solver, eta_max } => {
                 check(solver)?;
                 if !(*eta_max > 0.0 && *eta_max < 1.0) {
-                    return Err(format!("eta_max = {eta_max} must be in (0, 1)"));
+                    return invalid("eta_max", &format!("{eta_max} must be in (0, 1)"));
                 }
                 if matches!(solver, SolverSpec::Direct { .. }) {
-                    return Err("solver: Eisenstat-Walker needs an iterative solver".into());
+                    return invalid("solver", "Eisenstat-Walker needs an iterative solver");
                 }
                 Box::new(EisenstatWalker::with_constants(
                     solver.clone(),
@@ -323,8 +346,9 @@ impl PolicySpec {
             } => {
                 check(solver)?;
                 if !solver.is_stale_cholesky() {
-                    return Err(
-                        "solver: StaleFactor needs Pcg(preconditioner: StaleCholesky(..))".into(),
+                    return invalid(
+                        "solver",
+                        "StaleFactor needs Pcg(preconditioner: StaleCholesky(..))",
                     );
                 }
                 Box::new(StaleFactor::new(solver.clone(), *refactor_above))

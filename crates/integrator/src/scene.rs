@@ -220,7 +220,10 @@ impl Scene {
                 motion: c.motion.clone(),
             });
         }
-        let policy = self.policy.build().map_err(|e| invalid("policy", e))?;
+        let policy = self
+            .policy
+            .build()
+            .map_err(|e| invalid("policy", e.to_string()))?;
         if self.steps == 0 {
             return Err(invalid("steps", "must be at least 1".into()));
         }

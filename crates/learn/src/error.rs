@@ -57,6 +57,9 @@ pub enum LearnError {
     /// A solver configuration.
     #[error(transparent)]
     Solver(#[from] deform_solvers::SolverError),
+    /// A solver-policy configuration.
+    #[error("policy: {0}")]
+    Policy(#[from] deform_integrator::PolicyError),
     /// A step of a simulation failed: which simulation (`test trajectory 2`, a scene's
     /// name), which step, and why.
     #[error("{what}, step {step}: {source}")]

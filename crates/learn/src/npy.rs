@@ -84,14 +84,29 @@ pub fn read(path: &Path) -> Result<Array, NpyError> {
         path: path.to_owned(),
         error,
     })?;
-    parse(&bytes).map_err(|reason| NpyError::Format {
+    parse(&bytes).map_err(|e| NpyError::Format {
         path: path.to_owned(),
-        reason,
+        reason: e.reason,
     })
 }
 
+/// Bytes that are not an `.npy` array deform reads: what is wrong with them.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+#[error("{reason}")]
+pub struct FormatError {
+    /// What is wrong (the header field, the size, the dtype).
+    pub reason: String,
+}
+
 /// Parses the bytes of an `.npy` file.
-pub fn parse(bytes: &[u8]) -> Result<Array, String> {
+///
+/// # Errors
+/// [`FormatError`] saying what is wrong.
+pub fn parse(bytes: &[u8]) -> Result<Array, FormatError> {
+    parse_bytes(bytes).map_err(|reason| FormatError { reason })
+}
+
+fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err("not an .npy file (bad magic)".into());
     }
@@ -186,11 +201,11 @@ mod tests {
         // Truncated data, wrong dtype, garbage.
         let mut cut = bytes.clone();
         cut.truncate(bytes.len() - 8);
-        assert!(parse(&cut).unwrap_err().contains("bytes of data"));
+        assert!(parse(&cut).unwrap_err().reason.contains("bytes of data"));
         let mut ints = bytes.clone();
         let at = ints.windows(3).position(|w| w == b"<f8").unwrap();
         ints[at + 1] = b'i';
-        assert!(parse(&ints).unwrap_err().contains("float64"));
+        assert!(parse(&ints).unwrap_err().reason.contains("float64"));
         assert!(parse(b"hello").is_err());
         let e = read(&dir.path().join("missing.npy"))
             .unwrap_err()

@@ -339,12 +339,7 @@ fn side_by_side(
     let (tests, factor_weight, frames) = (on.tests, on.factor_weight, &on.frames);
     let origin = cx.experiment.scene.as_path();
     observer.start(Stage::Compare, 3);
-    let base_policy = cx
-        .base
-        .policy
-        .build()
-        .map_err(LearnError::Unsupported)?
-        .name();
+    let base_policy = cx.base.policy.build()?.name();
     let mut rows = Vec::new();
     for (model, scene, policy, refine) in [
         (
