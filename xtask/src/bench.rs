@@ -297,17 +297,15 @@ fn step(args: StepArgs) -> Result<()> {
         let policy = ron::from_str::<PolicySpec>(policy)?
             .build()
             .map_err(anyhow::Error::msg)?;
-        let mut sim = Integrator::new(
-            &mesh,
-            material.clone(),
-            1000.0,
-            vec![Constraint {
+        let mut sim = Integrator::builder(&mesh, material.clone())
+            .density(1000.0)
+            .constraints(vec![Constraint {
                 vertices: clamp.clone(),
                 motion: Motion::Fixed,
-            }],
-            IntegratorOptions::default(),
-            policy,
-        )?;
+            }])
+            .options(IntegratorOptions::default())
+            .policy(policy)
+            .build()?;
         let mut state = sim.rest_state();
         let mut last = Instant::now();
         let run = sim.run(

@@ -26,14 +26,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         vertices: clamp,
         motion: Motion::Fixed,
     }];
-    let mut sim = Integrator::new(
-        &mesh,
-        MaterialField::Uniform(model),
-        1000.0,
-        constraints,
-        options,
-        policy,
-    )?;
+    let mut sim = Integrator::builder(&mesh, MaterialField::Uniform(model))
+        .density(1000.0)
+        .constraints(constraints)
+        .options(options)
+        .policy(policy)
+        .build()?;
     let mut state = sim.rest_state();
     for step in 1..=50 {
         let report = sim.step(&mut state)?;

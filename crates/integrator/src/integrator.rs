@@ -220,6 +220,69 @@ impl std::fmt::Debug for Integrator {
     }
 }
 
+/// Configures an [`Integrator`] ([`Integrator::builder`]); every setting has a default.
+///
+/// ```
+/// use deform_integrator::{Constraint, Integrator, IntegratorOptions, MaterialField, Motion};
+/// use deform_integrator::{MaterialSpec, TetMesh};
+/// use deform_mesh::generate::BoxGrid;
+///
+/// let mesh: TetMesh = BoxGrid::beam(1).build().unwrap();
+/// let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))").unwrap();
+/// let clamp: Vec<usize> = (0..mesh.num_vertices())
+///     .filter(|&v| mesh.rest_positions()[v].x == 0.0)
+///     .collect();
+/// let sim = Integrator::builder(&mesh, MaterialField::Uniform(model.build().unwrap()))
+///     .density(1200.0)
+///     .constraints(vec![Constraint { vertices: clamp, motion: Motion::Fixed }])
+///     .options(IntegratorOptions { dt: 0.005, ..Default::default() })
+///     .build()
+///     .unwrap();
+/// assert_eq!(sim.options().dt, 0.005);
+/// ```
+pub struct IntegratorBuilder<'a> {
+    mesh: &'a TetMesh,
+    materials: MaterialField,
+    density: f64,
+    constraints: Vec<Constraint>,
+    options: IntegratorOptions,
+    policy: Option<Box<dyn SolverPolicy>>,
+}
+
+impl IntegratorBuilder<'_> {
+    /// Mass density (kg/m^3).
+    pub fn density(mut self, density: f64) -> Self {
+        self.density = density;
+        self
+    }
+
+    /// Constrained vertex sets and their motions.
+    pub fn constraints(mut self, constraints: Vec<Constraint>) -> Self {
+        self.constraints = constraints;
+        self
+    }
+
+    /// Time-stepping options.
+    pub fn options(mut self, options: IntegratorOptions) -> Self {
+        self.options = options;
+        self
+    }
+
+    /// The linear-solver policy.
+    pub fn policy(mut self, policy: Box<dyn SolverPolicy>) -> Self {
+        self.policy = Some(policy);
+        self
+    }
+
+    /// Validates everything and builds the integrator.
+    ///
+    /// # Errors
+    /// [`IntegratorError`] naming the bad field, vertex or element.
+    pub fn build(self) -> Result<Integrator, IntegratorError> {
+        Integrator::from_builder(self)
+    }
+}
+
 /// Solver instances kept across solves (factorisations, stale preconditioners), one per
 /// configuration.
 type KeptSolvers = Vec<(SolverSpec, Box<dyn LinearSolver>)>;
@@ -235,19 +298,39 @@ fn fallback_spec() -> SolverSpec {
 }
 
 impl Integrator {
-    /// An integrator for `mesh` with `materials`, mass density `density` (kg/m^3), constrained
-    /// vertex sets, options and a solver policy.
-    ///
-    /// # Errors
-    /// [`IntegratorError`] naming the bad field, vertex or element.
-    pub fn new(
-        mesh: &TetMesh,
-        materials: MaterialField,
-        density: f64,
-        constraints: Vec<Constraint>,
-        options: IntegratorOptions,
-        policy: Box<dyn SolverPolicy>,
-    ) -> Result<Self, IntegratorError> {
+    /// An integrator for `mesh` with `materials`, to be configured: density 1000 kg/m^3,
+    /// no constrained vertices, default options, the direct solver at every iteration
+    /// unless the [`IntegratorBuilder`] says otherwise.
+    pub fn builder(mesh: &TetMesh, materials: MaterialField) -> IntegratorBuilder<'_> {
+        IntegratorBuilder {
+            mesh,
+            materials,
+            density: 1000.0,
+            constraints: Vec::new(),
+            options: IntegratorOptions::default(),
+            policy: None,
+        }
+    }
+
+    fn from_builder(b: IntegratorBuilder<'_>) -> Result<Self, IntegratorError> {
+        let IntegratorBuilder {
+            mesh,
+            materials,
+            density,
+            constraints,
+            options,
+            policy,
+        } = b;
+        let policy: Box<dyn SolverPolicy> = match policy {
+            Some(p) => p,
+            // The direct solver as `PolicySpec::default()` states it.
+            None => Box::new(crate::policy::Fixed(SolverSpec::Direct {
+                ordering: Ordering::Auto,
+                indefinite: Indefinite::Error,
+                parallel: true,
+                precision: Default::default(),
+            })),
+        };
         options.validate()?;
         if !(density.is_finite() && density > 0.0) {
             return Err(IntegratorError::Invalid {

@@ -6,30 +6,33 @@
 //! `((1 + dt alpha) M + (dt gamma + dt^2) K) dv = -r`. Constrained vertices (fixed or moving
 //! along a prescribed [`Motion`]) are eliminated through the assembly's DOF map. A
 //! [`SolverPolicy`] picks the linear solver at each Newton iteration; every iteration is
-//! reported ([`StepReport`]) and observable ([`Observer`]); failures are typed
-//! ([`StepError`]) and carry the report; an option retries with halved steps.
+//! reported ([`StepReport`], with per-stage times); failures are typed ([`StepError`]) and
+//! carry the report; an option retries with halved steps. [`Integrator::run`] is the one
+//! loop over steps: until a step count or a time, with an [`Observer`] passed per call,
+//! returning a [`RunSummary`]. What building an integrator takes ([`MaterialField`],
+//! [`MaterialSpec`], [`TetMesh`], ...) is re-exported here.
 //!
 //! ```
-//! use deform_assembly::MaterialField;
-//! use deform_integrator::{Constraint, Integrator, IntegratorOptions, Motion, PolicySpec};
-//! use deform_materials::MaterialSpec;
+//! use deform_integrator::{
+//!     Constraint, Integrator, IntegratorOptions, MaterialField, MaterialSpec, Motion,
+//!     NoObserver, PolicySpec, RunOptions,
+//! };
 //! use deform_mesh::generate::BoxGrid;
 //!
 //! let mesh = BoxGrid::beam(1).build().unwrap();
 //! let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))").unwrap().build().unwrap();
 //! let clamp: Vec<usize> = (0..mesh.num_vertices()).filter(|&v| mesh.rest_positions()[v].x == 0.0).collect();
-//! let mut sim = Integrator::new(
-//!     &mesh,
-//!     MaterialField::Uniform(model),
-//!     1000.0,
-//!     vec![Constraint { vertices: clamp, motion: Motion::Fixed }],
-//!     IntegratorOptions::default(),
-//!     PolicySpec::default().build().unwrap(),
-//! )
-//! .unwrap();
+//! let mut sim = Integrator::builder(&mesh, MaterialField::Uniform(model))
+//!     .constraints(vec![Constraint { vertices: clamp, motion: Motion::Fixed }])
+//!     .options(IntegratorOptions::default())
+//!     .policy(PolicySpec::default().build().unwrap())
+//!     .build()
+//!     .unwrap();
 //! let mut state = sim.rest_state();
 //! let report = sim.step(&mut state).unwrap();
 //! assert!(report.converged && state.x.iter().all(|v| v.is_finite()));
+//! let run = sim.run(&mut state, &RunOptions::steps(3), &mut NoObserver);
+//! assert_eq!(run.into_result().unwrap().steps, 3);
 //! ```
 
 pub mod benchmark;
@@ -46,7 +49,8 @@ pub use deform_assembly::MaterialField;
 pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};
 pub use deform_mesh::TetMesh;
 pub use integrator::{
-    Integrator, IntegratorError, IntegratorOptions, MassKind, NewtonOptions, Projection,
+    Integrator, IntegratorBuilder, IntegratorError, IntegratorOptions, MassKind, NewtonOptions,
+    Projection,
 };
 pub use matrix_free::MatrixFreeNewton;
 pub use policy::{

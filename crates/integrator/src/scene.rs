@@ -232,15 +232,13 @@ impl Scene {
         {
             return Err(invalid("output.track", "must be finite".into()));
         }
-        let mut integrator = Integrator::new(
-            &mesh,
-            MaterialField::Uniform(model),
-            self.density,
-            constraints,
-            self.integrator.clone(),
-            policy,
-        )
-        .map_err(|e| invalid("integrator", e.to_string()))?;
+        let mut integrator = Integrator::builder(&mesh, MaterialField::Uniform(model))
+            .density(self.density)
+            .constraints(constraints)
+            .options(self.integrator.clone())
+            .policy(policy)
+            .build()
+            .map_err(|e| invalid("integrator", e.to_string()))?;
         let state = self
             .initial_state(&mesh, &mut integrator)
             .map_err(|e| invalid("initial", e))?;

@@ -50,7 +50,13 @@ fn sim(
     options: IntegratorOptions,
     p: &str,
 ) -> Integrator {
-    Integrator::new(mesh, material(NH), 1000.0, constraints, options, policy(p)).unwrap()
+    Integrator::builder(mesh, material(NH))
+        .density(1000.0)
+        .constraints(constraints)
+        .options(options)
+        .policy(policy(p))
+        .build()
+        .unwrap()
 }
 
 fn momentum(sim: &Integrator, v: &[f64]) -> [f64; 3] {
@@ -144,15 +150,13 @@ fn static_equilibrium_balances_gravity_and_damped_dynamics_reach_it() {
         dt: 0.02,
         ..IntegratorOptions::default()
     };
-    let mut s = Integrator::new(
-        &mesh,
-        material("NeoHookean(Young(e: 1e6, nu: 0.4))"),
-        1000.0,
-        clamp(&mesh),
-        options,
-        policy("Fixed(Direct())"),
-    )
-    .unwrap();
+    let mut s = Integrator::builder(&mesh, material("NeoHookean(Young(e: 1e6, nu: 0.4))"))
+        .density(1000.0)
+        .constraints(clamp(&mesh))
+        .options(options)
+        .policy(policy("Fixed(Direct())"))
+        .build()
+        .unwrap();
     let mut equilibrium = s.rest_state();
     let report = s.solve_static(&mut equilibrium).unwrap();
     assert!(report.converged);
@@ -365,14 +369,13 @@ fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
         dt: -1.0,
         ..IntegratorOptions::default()
     };
-    match Integrator::new(
-        &mesh,
-        material(NH),
-        1000.0,
-        vec![],
-        bad,
-        policy("Fixed(Direct())"),
-    ) {
+    match Integrator::builder(&mesh, material(NH))
+        .density(1000.0)
+        .constraints(vec![])
+        .options(bad)
+        .policy(policy("Fixed(Direct())"))
+        .build()
+    {
         Err(IntegratorError::Invalid { field: "dt", .. }) => {}
         other => panic!("expected invalid dt, got {other:?}"),
     }
@@ -686,14 +689,15 @@ fn cantilever_tip_deflection_approaches_beam_theory_under_refinement() {
             gravity: [0.0, 0.0, -g],
             ..IntegratorOptions::default()
         };
-        let mut s = Integrator::new(
+        let mut s = Integrator::builder(
             &mesh,
             material(&format!("LinearElastic(Young(e: {e}, nu: 0.0))")),
-            rho,
-            clamp(&mesh),
-            options,
-            policy("Fixed(Direct())"),
         )
+        .density(rho)
+        .constraints(clamp(&mesh))
+        .options(options)
+        .policy(policy("Fixed(Direct())"))
+        .build()
         .unwrap();
         let mut state = s.rest_state();
         s.solve_static(&mut state).unwrap();

@@ -236,18 +236,16 @@ fn per_region_moduli_on_a_gmsh_mesh() {
         },
         ..Default::default()
     };
-    let mut sim = deform_integrator::Integrator::new(
-        &mesh,
-        field,
-        1000.0,
-        vec![deform_integrator::Constraint {
+    let mut sim = deform_integrator::Integrator::builder(&mesh, field)
+        .density(1000.0)
+        .constraints(vec![deform_integrator::Constraint {
             vertices: clamp,
             motion: deform_integrator::Motion::Fixed,
-        }],
-        options,
-        deform_integrator::PolicySpec::default().build().unwrap(),
-    )
-    .unwrap();
+        }])
+        .options(options)
+        .policy(deform_integrator::PolicySpec::default().build().unwrap())
+        .build()
+        .unwrap();
     let mut state = sim.rest_state();
     for (v, p) in mesh.rest_positions().iter().enumerate() {
         if !sim.dofs().is_constrained(v) {
