@@ -14,7 +14,6 @@ use deform_learn::experiment::tune_solver::TuneSolverReport;
 use deform_learn::experiment::{ExperimentReport, Series, TaskReport};
 use deform_learn::rollout::mean_error;
 
-use crate::experiment::write_text;
 use crate::plots::plot;
 
 /// Writes the CSV files and plots of `report` into `out`; returns the markdown.
@@ -40,7 +39,7 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
         TaskReport::SelectModel(r) => select_model(r, out, &mut md)?,
         TaskReport::SelectSolver(r) => select_solver(r, out, &mut md)?,
         TaskReport::TuneBackwardEuler(r) => story(r, out, &mut md)?,
-        TaskReport::TuneSolver(r) => tune_solver(r, out, &mut md)?,
+        TaskReport::TuneSolver(r) => tune_solver(r, &mut md)?,
     }
     writeln!(md, "\nTotal time {:.1} s.", report.seconds)?;
     Ok(md)
@@ -112,23 +111,6 @@ fn plot_rollouts(out: &Path, series: &[Series]) -> Result<()> {
     )
 }
 
-/// A CSV of series side by side, one row per index.
-fn series_csv(first: &str, series: &[Series]) -> String {
-    let mut csv = first.to_owned();
-    for s in series {
-        csv += &format!(",{}", s.name);
-    }
-    csv.push('\n');
-    for n in 0..series.first().map_or(0, |s| s.values.len()) {
-        csv += &n.to_string();
-        for s in series {
-            csv += &format!(",{:e}", s.values[n]);
-        }
-        csv.push('\n');
-    }
-    csv
-}
-
 fn fit_material(r: &FitMaterialReport, out: &Path, md: &mut String) -> Result<()> {
     if let Some((prior, stage1)) = r.started_from_prior {
         writeln!(
@@ -136,20 +118,9 @@ fn fit_material(r: &FitMaterialReport, out: &Path, md: &mut String) -> Result<()
             "Stage 2 starts from the prior (loss {prior:.3e}) rather than the stage-1 estimate (loss {stage1:.3e}).\n"
         )?;
     }
-    let mut csv = String::from("iteration,loss,mu,lambda\n");
     let mut losses = Vec::new();
     if let Some(fit) = &r.output_error {
-        for it in &fit.iterations {
-            writeln!(
-                csv,
-                "{},{:e},{:e},{:e}",
-                it.iteration,
-                it.loss,
-                it.coefficients.first().copied().unwrap_or(f64::NAN),
-                it.coefficients.get(1).copied().unwrap_or(f64::NAN)
-            )?;
-            losses.push(it.loss);
-        }
+        losses.extend(fit.iterations.iter().map(|it| it.loss));
         writeln!(
             md,
             "Output error: {} iterations, {} loss evaluations, loss {:.4e} -> {:.4e}, termination {:?}.\n",
@@ -160,7 +131,6 @@ fn fit_material(r: &FitMaterialReport, out: &Path, md: &mut String) -> Result<()
             fit.termination
         )?;
     }
-    write_text(&out.join("iterations.csv"), &csv)?;
     plot(
         &out.join("loss"),
         "output-error loss per iteration",
@@ -185,10 +155,6 @@ fn fit_material(r: &FitMaterialReport, out: &Path, md: &mut String) -> Result<()
             row.seconds.map_or("-".to_owned(), |s| format!("{s:.2} s"))
         )?;
     }
-    write_text(
-        &out.join("rollout_error.csv"),
-        &series_csv("step", &r.rollouts),
-    )?;
     plot_rollouts(out, &r.rollouts)?;
     writeln!(
         md,
@@ -207,7 +173,6 @@ fn select_model(r: &SelectModelReport, out: &Path, md: &mut String) -> Result<()
     md.push_str(
         "| member | effective mu | effective lambda | energy share (test) |\n|---|---|---|---|\n",
     );
-    let mut csv = String::from("model,mu,lambda,energy_share\n");
     for m in &r.ensemble.members {
         writeln!(
             md,
@@ -216,11 +181,6 @@ fn select_model(r: &SelectModelReport, out: &Path, md: &mut String) -> Result<()
             m.mu,
             m.lambda,
             100.0 * m.energy_share
-        )?;
-        writeln!(
-            csv,
-            "{},{:e},{:e},{:e}",
-            m.model, m.mu, m.lambda, m.energy_share
         )?;
     }
     writeln!(
@@ -262,7 +222,6 @@ fn select_model(r: &SelectModelReport, out: &Path, md: &mut String) -> Result<()
             best.test
         )?;
     }
-    write_text(&out.join("members.csv"), &csv)?;
     plot_rollouts(out, &r.rollouts)
 }
 
@@ -281,28 +240,10 @@ fn select_solver(r: &SelectSolverReport, out: &Path, md: &mut String) -> Result<
             t.best.error,
             t.accuracy
         )?;
-        let mut csv = String::from("projection,log10_newton_rel,log10_eta_max,work,error,cost\n");
-        for (projection, x) in &t.samples {
-            writeln!(
-                csv,
-                "{},{},{},{:e},{:e},{:e}",
-                projection.map_or("scene's".to_owned(), |p| format!("{p:?}")),
-                x.log10_values[0],
-                x.log10_values.get(1).map_or(String::new(), f64::to_string),
-                x.work,
-                x.error,
-                x.cost
-            )?;
-        }
-        write_text(&out.join("tuning.csv"), &csv)?;
     }
-    let mut csv = String::from(
-        "case,policy,flops,work,solver_seconds,step_seconds,newton,linear,error,fallbacks,failed\n",
-    );
     for (ci, case) in r.cases.iter().enumerate() {
-        policy_case(r, ci, case, out, md, &mut csv)?;
+        policy_case(r, ci, case, out, md)?;
     }
-    write_text(&out.join("policies.csv"), &csv)?;
     writeln!(
         md,
         "\n{} logged Newton iterations from {} training trajectories and {} more training scenes; data in `solver_data/`.",
@@ -318,7 +259,6 @@ fn policy_case(
     case: &CaseReport,
     out: &Path,
     md: &mut String,
-    csv: &mut String,
 ) -> Result<()> {
     writeln!(
         md,
@@ -336,20 +276,6 @@ fn policy_case(
             md,
             "| {name} | {:.4e} | {:.4e} | {:.3} | {:.3} | {} | {} | {error} | {} |",
             m.flops, m.work, m.seconds, m.step_seconds, m.newton, m.linear, m.fallbacks
-        )?;
-        writeln!(
-            csv,
-            "\"{}\",\"{name}\",{:e},{:e},{},{},{},{},{:e},{},{}",
-            case.label,
-            m.flops,
-            m.work,
-            m.seconds,
-            m.step_seconds,
-            m.newton,
-            m.linear,
-            m.error,
-            m.fallbacks,
-            m.failed
         )?;
         if !m.deterministic {
             writeln!(md, "(flops of `{name}` differed between repeats)")?;
@@ -411,11 +337,6 @@ fn policy_plots(r: &SelectSolverReport, ci: usize, case: &CaseReport, out: &Path
             &[Series::new("learned", choices.iter().map(index).collect())],
             false,
         )?;
-        let mut ccsv = String::from("iteration,solver\n");
-        for (i, c) in choices.iter().enumerate() {
-            writeln!(ccsv, "{i},\"{c}\"")?;
-        }
-        write_text(&stem("choices.csv"), &ccsv)?;
     }
     Ok(())
 }
@@ -528,26 +449,18 @@ fn story(r: &StoryReport, out: &Path, md: &mut String) -> Result<()> {
         r.tests, r.steps, r.factor_weight
     )?;
     md.push_str("| model | dt | E (Pa) | nu | solver | mean RMS error vs base (m) | final RMS error (m) | work | flops | step time (s) | Newton its | fallbacks |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    let mut csv =
-        String::from("model,mean_error,final_error,work,flops,seconds,newton,fallbacks\n");
     let kept = r.selection.as_ref().is_some_and(|s| s.ensemble_kept);
     for t in &r.rows {
-        let (key, name) = match t.model {
-            StoryModel::Base => ("base", "base (the data)"),
-            StoryModel::Untuned => ("untuned", "untuned"),
-            StoryModel::Tuned if kept => ("tuned", "tuned (ensemble; E, nu of the single fit)"),
-            StoryModel::Tuned => ("tuned", "tuned"),
+        let name = match t.model {
+            StoryModel::Base => "base (the data)",
+            StoryModel::Tuned if kept => "tuned (ensemble; E, nu of the single fit)",
+            model => model.name(),
         };
         let (mean, last) = (t.mean_error(), t.final_error());
         writeln!(
             md,
             "| {name} | {} | {:.4e} | {:.4} | {} | {mean:.3e} | {last:.3e} | {:.3e} | {:.3e} | {:.3} | {} | {} |",
             t.dt, t.young, t.poisson, t.solver, t.work, t.flops, t.seconds, t.newton, t.fallbacks
-        )?;
-        writeln!(
-            csv,
-            "{key},{mean:e},{last:e},{:e},{:e},{},{},{}",
-            t.work, t.flops, t.seconds, t.newton, t.fallbacks
         )?;
     }
     let (e, w, t) = r.ratios();
@@ -556,16 +469,6 @@ fn story(r: &StoryReport, out: &Path, md: &mut String) -> Result<()> {
         "\n**tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x**; against the base model the tuned one takes {:.2}x the time.\n\nParaView: `frames/base/series.pvd`, `frames/untuned/series.pvd`, `frames/tuned/series.pvd` (the first test trajectory; open together). Files: `comparison.csv`, `rollout_error.svg`/`.png`, `solver_data/`, `tuning.csv`.",
         r.time_against_base()
     )?;
-    write_text(&out.join("comparison.csv"), &csv)?;
-    let mut tcsv = String::from("log10_eta_max,work,error,cost\n");
-    for x in &r.tuning.samples {
-        writeln!(
-            tcsv,
-            "{},{:e},{:e},{:e}",
-            x.log10_values[0], x.work, x.error, x.cost
-        )?;
-    }
-    write_text(&out.join("tuning.csv"), &tcsv)?;
     plot_rollouts(
         out,
         &[
@@ -585,25 +488,8 @@ fn values(r: &TuneSolverReport, log10: &[f64]) -> String {
         .join(", ")
 }
 
-fn tune_solver(r: &TuneSolverReport, out: &Path, md: &mut String) -> Result<()> {
+fn tune_solver(r: &TuneSolverReport, md: &mut String) -> Result<()> {
     let names: Vec<String> = r.parameters.iter().map(|p| format!("{p:?}")).collect();
-    let mut csv = names
-        .iter()
-        .map(|n| format!("log10_{n}"))
-        .collect::<Vec<_>>()
-        .join(",");
-    csv += ",work,error,cost\n";
-    for sample in &r.result.samples {
-        for v in &sample.log10_values {
-            write!(csv, "{v},")?;
-        }
-        writeln!(
-            csv,
-            "{:e},{:e},{:e}",
-            sample.work, sample.error, sample.cost
-        )?;
-    }
-    write_text(&out.join("tuning.csv"), &csv)?;
     let (best, configured) = (&r.result.best, &r.result.samples[0]);
     writeln!(
         md,

@@ -26,6 +26,7 @@ mod report;
 pub mod select_model;
 pub mod select_solver;
 pub mod story;
+mod tables;
 pub mod tune_solver;
 
 use std::path::{Path, PathBuf};
@@ -191,7 +192,7 @@ pub fn run(
         }
         Task::TuneSolver { .. } => TaskReport::TuneSolver(tune_solver::run(cx)?),
     };
-    Ok(ExperimentReport {
+    let mut report = ExperimentReport {
         name: experiment.name.clone(),
         scene: experiment.scene.clone(),
         vertices,
@@ -201,8 +202,19 @@ pub fn run(
         learned_dt,
         task,
         files,
-        seconds: started.elapsed().as_secs_f64(),
-    })
+        seconds: 0.0,
+    };
+    if let Some(out) = out {
+        for (name, text) in report.csv_files() {
+            deform_fs::write_text(&out.join(&name), &text).map_err(|e| LearnError::Io {
+                path: e.path,
+                source: e.error,
+            })?;
+            report.files.push(name.into());
+        }
+    }
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok(report)
 }
 
 /// The scene with its single material's moduli replaced by a Lame pair.

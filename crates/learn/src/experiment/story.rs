@@ -359,10 +359,10 @@ fn side_by_side(
             }
             Ok((sim, built.mesh))
         };
-        let dir = frames.as_ref().map(|f| f.join(model_folder(model)));
+        let dir = frames.as_ref().map(|f| f.join(model.name()));
         let mut row = run_model_timed(&make, tests, refine, factor_weight, dir.as_deref())?;
         if dir.is_some() {
-            files.push(PathBuf::from("frames").join(model_folder(model)));
+            files.push(PathBuf::from("frames").join(model.name()));
         }
         row.model = model;
         row.dt = scene.integrator.dt;
@@ -417,11 +417,14 @@ fn tune_forcing(
     Ok(tuning)
 }
 
-fn model_folder(model: StoryModel) -> &'static str {
-    match model {
-        StoryModel::Base => "base",
-        StoryModel::Untuned => "untuned",
-        StoryModel::Tuned => "tuned",
+impl StoryModel {
+    /// Its key in tables and its frames' folder.
+    pub fn name(self) -> &'static str {
+        match self {
+            StoryModel::Base => "base",
+            StoryModel::Untuned => "untuned",
+            StoryModel::Tuned => "tuned",
+        }
     }
 }
 
