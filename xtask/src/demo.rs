@@ -133,16 +133,16 @@ pub fn run(args: DemoArgs) -> Result<()> {
         t.elapsed().as_secs_f64(),
         format!(
             "{} steps, {} Newton iterations; ParaView: {folder}/series.pvd",
-            sim.steps, sim.newton
+            sim.run.steps, sim.run.newton_iterations
         ),
     ));
     writeln!(
         report,
         "## The base model: `{}`\n\n{} steps, {} Newton iterations, {:.2} s; frames in `{folder}/series.pvd` (open in ParaView), per-step data in `{folder}/steps.csv`.\n",
         scene.display(),
-        sim.steps,
-        sim.newton,
-        sim.seconds
+        sim.run.steps,
+        sim.run.newton_iterations,
+        sim.run.step_seconds
     )?;
 
     for (name, what, file) in experiments(&root, args.experiments.as_deref())? {

@@ -42,6 +42,7 @@ mod policy;
 mod report;
 mod run;
 pub mod scene;
+mod simulate;
 mod state;
 
 /// What building an [`Integrator`] takes, re-exported from the crates below.
@@ -60,4 +61,5 @@ pub use policy::{
 pub use report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};
 pub use scene::{Scene, SceneError};
+pub use simulate::{SimulateError, Simulation, simulate};
 pub use state::{Constraint, Motion, State};

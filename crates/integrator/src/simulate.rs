@@ -1,0 +1,228 @@
+//! Running a scene file end to end, as `cargo xtask simulate` does: the run executor with
+//! ParaView frames (`frame_*.vtu` and `series.pvd`), a per-step CSV (`steps.csv`: Newton
+//! and linear iterations, residuals, energies, flops, wall time, a tracked vertex) and a
+//! `summary.txt`, every file written atomically.
+
+use std::fmt::Write as _;
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+
+use deform_mesh::TetMesh;
+use deform_mesh::io::{Pvd, Vtu};
+use thiserror::Error;
+
+use crate::report::{IterationReport, StepError, StepReport};
+use crate::run::{Observer, RunOptions, RunSummary};
+use crate::scene::{Scene, SceneError};
+use crate::state::State;
+
+/// Why a simulation stopped.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum SimulateError {
+    /// The scene does not load or build.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// A file could not be written.
+    #[error("{}: {reason}", path.display())]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        reason: String,
+    },
+    /// A step failed (the files hold the steps before it).
+    #[error("{}: step {step} (t = {t:.4} s): {source}", scene.display())]
+    Step {
+        /// The scene file.
+        scene: PathBuf,
+        /// The failed step (1-based, as in `steps.csv`).
+        step: usize,
+        /// Time before the step.
+        t: f64,
+        /// Why.
+        source: Box<StepError>,
+    },
+}
+
+/// What a simulation did.
+#[derive(Debug, Clone)]
+pub struct Simulation {
+    /// The results folder.
+    pub out: PathBuf,
+    /// The run's totals.
+    pub run: RunSummary,
+    /// The final state.
+    pub state: State,
+    /// The tracked vertex and its final position.
+    pub tracked: (usize, [f64; 3]),
+}
+
+/// Runs the scene file `scene_path` for `steps` steps (the scene's own count by default)
+/// into `out` (default `target/deform/simulate/<scene name>`), every iteration and step also
+/// going to `observer`.
+///
+/// # Errors
+/// [`SimulateError`] naming the scene, the file or the failed step.
+pub fn simulate(
+    scene_path: &Path,
+    steps: Option<usize>,
+    out: Option<&Path>,
+    observer: &mut dyn Observer,
+) -> Result<Simulation, SimulateError> {
+    let scene = Scene::load(scene_path)?;
+    let built = scene.build(scene_path)?;
+    let (mesh, mut sim, mut state) = (built.mesh, built.integrator, built.state);
+    let steps = steps.unwrap_or(scene.steps);
+    let out = out.map_or_else(
+        || Path::new("target/deform/simulate").join(&scene.name),
+        Path::to_path_buf,
+    );
+    std::fs::create_dir_all(&out).map_err(|e| write_error(&out, e))?;
+    let tracked = scene.tracked_vertex(&mesh);
+    let mut log = StepLog {
+        csv: String::from(
+            "step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n",
+        ),
+        masses: sim.assembly().vertex_masses(sim.mass()),
+        tracked,
+        frames: Frames {
+            out: &out,
+            mesh: &mesh,
+            every: scene.output.every,
+            pvd: Pvd::new(out.join("series.pvd")),
+        },
+        error: None,
+        user: observer,
+    };
+    log.frames.write(0, &state)?;
+    let run = sim.run(&mut state, &RunOptions::steps(steps), &mut log);
+    if let Some(e) = log.error {
+        return Err(e);
+    }
+    let csv = std::mem::take(&mut log.csv);
+    deform_fs::write_text(&out.join("steps.csv"), &csv).map_err(fs_error)?;
+    let t_before = state.t;
+    let run = run.into_result().map_err(|e| SimulateError::Step {
+        scene: scene_path.to_path_buf(),
+        step: e.step + 1,
+        t: t_before,
+        source: e.source,
+    })?;
+    let position = [
+        state.x[3 * tracked],
+        state.x[3 * tracked + 1],
+        state.x[3 * tracked + 2],
+    ];
+    let text = format!(
+        "scene: {}\nmesh: {} vertices, {} tets, {} free DOFs\npolicy: {}\nsteps: {steps} (dt = {} s, t = {:.4} s)\nNewton iterations: {} ({:.2} per step)\nlinear iterations: {}\nwall time: {:.3} s of steps, {:.3} s total\ntracked vertex {tracked}: ({:.6}, {:.6}, {:.6})\n",
+        scene.name,
+        mesh.num_vertices(),
+        mesh.num_tets(),
+        sim.dofs().num_free(),
+        sim.policy().name(),
+        scene.integrator.dt,
+        state.t,
+        run.newton_iterations,
+        run.newton_iterations as f64 / steps.max(1) as f64,
+        run.linear_iterations,
+        run.step_seconds,
+        run.seconds,
+        position[0],
+        position[1],
+        position[2],
+    );
+    deform_fs::write_text(&out.join("summary.txt"), &text).map_err(fs_error)?;
+    Ok(Simulation {
+        out,
+        run,
+        state,
+        tracked: (tracked, position),
+    })
+}
+
+fn write_error(path: &Path, e: impl std::fmt::Display) -> SimulateError {
+    SimulateError::Write {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+fn fs_error(e: deform_fs::WriteError) -> SimulateError {
+    write_error(&e.path, e.error)
+}
+
+/// ParaView frames every `every` steps (none when 0).
+struct Frames<'a> {
+    out: &'a Path,
+    mesh: &'a TetMesh,
+    every: usize,
+    pvd: Pvd,
+}
+
+impl Frames<'_> {
+    fn write(&mut self, step: usize, state: &State) -> Result<(), SimulateError> {
+        if self.every == 0 || !step.is_multiple_of(self.every) {
+            return Ok(());
+        }
+        let file = self.out.join(format!("frame_{step:05}.vtu"));
+        Vtu::deformed(self.mesh, &state.x)
+            .point_vectors("velocity", &state.v)
+            .write(&file)
+            .map_err(|e| write_error(&file, e))?;
+        self.pvd
+            .push(state.t, &file)
+            .map_err(|e| write_error(&file, e))
+    }
+}
+
+/// Writes `steps.csv` rows and frames step by step, then hands the step to the caller's
+/// observer; stops the run when a file cannot be written.
+struct StepLog<'a> {
+    csv: String,
+    masses: Vec<f64>,
+    tracked: usize,
+    frames: Frames<'a>,
+    error: Option<SimulateError>,
+    user: &'a mut dyn Observer,
+}
+
+impl Observer for StepLog<'_> {
+    fn iteration(&mut self, report: &IterationReport) {
+        self.user.iteration(report);
+    }
+
+    fn step(&mut self, report: &StepReport, state: &State) -> ControlFlow<()> {
+        let step = report.step + 1;
+        let kinetic: f64 = state
+            .v
+            .iter()
+            .enumerate()
+            .map(|(i, v)| 0.5 * self.masses[i / 3] * v * v)
+            .sum();
+        let tracked = &state.x[3 * self.tracked..3 * self.tracked + 3];
+        let _ = writeln!(
+            self.csv,
+            "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9}",
+            report.t,
+            report.dt,
+            report.newton_iterations(),
+            report.linear_iterations(),
+            report.initial_residual,
+            report.final_residual,
+            report.energy,
+            kinetic,
+            report.flops(),
+            report.seconds,
+            report.retries,
+            tracked[0],
+            tracked[1],
+            tracked[2]
+        );
+        if let Err(e) = self.frames.write(step, state) {
+            self.error = Some(e);
+            return ControlFlow::Break(());
+        }
+        self.user.step(report, state)
+    }
+}

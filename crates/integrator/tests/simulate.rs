@@ -1,0 +1,74 @@
+//! `simulate` runs a scene file into a folder: frames, the per-step CSV and the summary;
+//! a failed step is a typed error naming the scene and step, with the steps before it kept.
+
+use std::path::Path;
+
+use deform_integrator::{NoObserver, SimulateError, simulate};
+
+fn scene(dir: &Path, newton: &str) -> std::path::PathBuf {
+    let path = dir.join("scene.ron");
+    std::fs::write(
+        &path,
+        format!(
+            r#"Scene(
+                name: "tiny",
+                mesh: Beam(1),
+                material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+                density: 1000.0,
+                constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+                integrator: (dt: 0.01, max_retries: 0, newton: {newton}),
+                steps: 4,
+                output: (every: 2),
+            )"#
+        ),
+    )
+    .unwrap();
+    path
+}
+
+#[test]
+fn a_scene_runs_into_its_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let sim = simulate(
+        &scene(dir.path(), "(rel: 1e-8)"),
+        None,
+        Some(&out),
+        &mut NoObserver,
+    )
+    .unwrap();
+    assert_eq!(sim.run.steps, 4);
+    assert!((sim.state.t - 0.04).abs() < 1e-12);
+    let csv = std::fs::read_to_string(out.join("steps.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 5);
+    for frame in [
+        "frame_00000.vtu",
+        "frame_00002.vtu",
+        "frame_00004.vtu",
+        "series.pvd",
+    ] {
+        assert!(out.join(frame).exists(), "{frame}");
+    }
+    assert!(!out.join("frame_00001.vtu").exists());
+    let summary = std::fs::read_to_string(out.join("summary.txt")).unwrap();
+    assert!(summary.contains("steps: 4"), "{summary}");
+}
+
+#[test]
+fn a_failed_step_names_the_scene_and_keeps_the_steps_before_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let path = scene(dir.path(), "(rel: 1e-14, abs: 0.0, max_iterations: 1)");
+    let err = simulate(&path, None, Some(&out), &mut NoObserver).unwrap_err();
+    assert!(matches!(err, SimulateError::Step { step: 1, .. }), "{err}");
+    assert!(err.to_string().contains("scene.ron"), "{err}");
+    let csv = std::fs::read_to_string(out.join("steps.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1, "the header, no step");
+    let missing = simulate(
+        &dir.path().join("none.ron"),
+        None,
+        Some(&out),
+        &mut NoObserver,
+    );
+    assert!(matches!(missing, Err(SimulateError::Scene(_))));
+}
