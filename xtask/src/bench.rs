@@ -8,16 +8,14 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use deform_assembly::{Assembly, MaterialField, Outputs, Tangent};
 use deform_fs::write_atomic;
-use deform_integrator::benchmark::{beam, beam_free_coordinates, beam_system};
-use deform_integrator::{
-    Constraint, Integrator, IntegratorOptions, Motion, OnStep, PolicySpec, RunOptions, State,
-    StepReport,
+use deform_integrator::benchmark::{
+    STEP_POLICIES, beam, beam_free_coordinates, beam_integrator, beam_system, time_assembly,
+    time_direct, time_iterative,
 };
-use deform_materials::{Model, StableNeoHookean};
+use deform_integrator::{MaterialField, Model, OnStep, RunOptions, State, StepReport};
+use deform_materials::StableNeoHookean;
 use deform_mesh::io::{MshFormat, MshVersion, write_msh};
-use deform_solvers::{Precision, SolverSpec};
 
 /// Which measurement.
 #[derive(Debug, Subcommand)]
@@ -84,19 +82,8 @@ pub fn run(task: BenchTask) -> Result<()> {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn time<T>(f: impl FnOnce() -> T) -> (T, f64) {
-    let t = Instant::now();
-    let out = f();
-    (out, t.elapsed().as_secs_f64())
-}
-
 fn assembly(args: AssemblyArgs) -> Result<()> {
-    let (mesh, nh, x) = beam(args.n);
+    let (mesh, nh, _) = beam(args.n);
     let material = match args.model.as_str() {
         "NeoHookean" => nh,
         "StableNeoHookean" => {
@@ -109,37 +96,13 @@ fn assembly(args: AssemblyArgs) -> Result<()> {
         other => bail!("--model {other}: expected NeoHookean or StableNeoHookean"),
     };
     if let Some(path) = &args.export_mesh {
-        write_msh(
-            path,
-            &mesh,
-            MshFormat {
-                version: MshVersion::V4_1,
-                binary: true,
-            },
-        )
-        .with_context(|| format!("writing {}", path.display()))?;
+        let format = MshFormat {
+            version: MshVersion::V4_1,
+            binary: true,
+        };
+        write_msh(path, &mesh, format).with_context(|| format!("writing {}", path.display()))?;
     }
-    let mut asm = Assembly::new(&mesh, material)?;
-    let mut k = asm.stiffness_matrix();
-    let mut f = vec![0.0; x.len()];
-    let mut samples = Vec::new();
-    for _ in 0..args.repeats.max(1) {
-        let (r, s) = time(|| {
-            let mut e = 0.0;
-            asm.evaluate(
-                &x,
-                Outputs {
-                    energy: Some(&mut e),
-                    forces: Some(&mut f),
-                    stiffness: Some(&mut k),
-                    tangent: Tangent::Exact,
-                },
-            )
-        });
-        r?;
-        samples.push(s);
-    }
-    let s = median(samples);
+    let s = time_assembly(args.n, material, args.repeats)?;
     println!(
         r#"{{"what": "assembly", "impl": "deform", "model": "{}", "tets": {}, "threads": {}, "seconds": {s:.6}, "tets_per_second": {:.0}}}"#,
         args.model,
@@ -167,84 +130,27 @@ fn solvers(args: SolversArgs) -> Result<()> {
             r#"{{"what": "solvers", "impl": "deform", "solver": "{name}", "dofs": {dofs}, {fields}}}"#
         );
     };
-    // The free vertices' rest positions: geometric nested dissection, as in the integrator;
-    // `_graph` variants order from the matrix alone (what PARDISO gets).
-    let coordinates = beam_free_coordinates(args.n);
-    for (name, parallel, precision, geometry) in [
-        ("direct_graph", true, Precision::Double, false),
-        ("direct_one_thread", false, Precision::Double, true),
-        ("direct", true, Precision::Double, true),
-        ("direct_mixed_graph", true, Precision::Mixed, false),
-        ("direct_mixed", true, Precision::Mixed, true),
-        ("direct_mixed_one_thread", false, Precision::Mixed, true),
-    ] {
-        if args.no_direct {
-            break;
+    if !args.no_direct {
+        // Geometric nested dissection as in the integrator; `_graph` rows order from the
+        // matrix alone (what PARDISO gets).
+        let coordinates = beam_free_coordinates(args.n);
+        for t in time_direct(&a, &b, &coordinates, args.repeats)? {
+            report(
+                t.name,
+                format!(
+                    r#""analyze": {:.4}, "factorize": {:.4}, "solve": {:.4}, "total": {:.4}, "factor_nnz": {}, "relative_residual": {:.3e}, "refinement_steps": {}"#,
+                    t.analyze,
+                    t.factorize,
+                    t.solve,
+                    t.analyze + t.factorize + t.solve,
+                    t.factor_nnz,
+                    t.relative_residual,
+                    t.refinement_steps
+                ),
+            );
         }
-        let (mut analyze, mut factor, mut solve) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut nnz, mut residual, mut steps) = (0, f64::NAN, 0);
-        for _ in 0..args.repeats.max(1) {
-            let spec = SolverSpec::Direct {
-                ordering: Default::default(),
-                indefinite: Default::default(),
-                parallel,
-                precision,
-            };
-            let mut s = spec.build()?;
-            if geometry {
-                s.set_coordinates(Some(&coordinates));
-            }
-            analyze.push(time(|| s.analyze(&a)).1);
-            let (setup, t) = time(|| s.factorize(&a));
-            nnz = setup?.factor_nnz;
-            factor.push(t);
-            let mut x = vec![0.0; dofs];
-            let (r, t) = time(|| s.solve(&a, &b, &mut x));
-            let stats = r?;
-            residual = stats.relative_residual();
-            steps = stats.iterations;
-            solve.push(t);
-        }
-        let (an, fa, so) = (median(analyze), median(factor), median(solve));
-        report(
-            name,
-            format!(
-                r#""analyze": {an:.4}, "factorize": {fa:.4}, "solve": {so:.4}, "total": {:.4}, "factor_nnz": {nnz}, "relative_residual": {residual:.3e}, "refinement_steps": {steps}"#,
-                an + fa + so
-            ),
-        );
     }
-    for (name, spec) in [
-        (
-            "cg_1e-6",
-            "Cg(tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_jacobi_1e-6",
-            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_jacobi_1e-8",
-            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8, max_iterations: 100000))",
-        ),
-        (
-            "pcg_ic0_1e-6",
-            "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-    ] {
-        let mut times = Vec::new();
-        let mut iterations = 0;
-        for _ in 0..args.repeats.max(1) {
-            let mut s = ron::from_str::<SolverSpec>(spec)?.build()?;
-            let mut x = vec![0.0; dofs];
-            let (r, t) = time(|| -> Result<usize> {
-                s.factorize(&a)?;
-                Ok(s.solve(&a, &b, &mut x)?.iterations)
-            });
-            iterations = r?;
-            times.push(t);
-        }
-        let t = median(times);
+    for (name, iterations, t) in time_iterative(&a, &b, args.repeats)? {
         report(
             name,
             format!(
@@ -257,70 +163,21 @@ fn solvers(args: SolversArgs) -> Result<()> {
 }
 
 fn step(args: StepArgs) -> Result<()> {
-    let (mesh, material, _) = beam(args.n);
-    let clamp: Vec<usize> = (0..mesh.num_vertices())
-        .filter(|&v| mesh.rest_positions()[v].x == 0.0)
-        .collect();
-    for (name, policy) in [
-        ("direct", "Fixed(Direct())"),
-        ("direct_one_thread", "Fixed(Direct(parallel: false))"),
-        ("direct_mixed", "Fixed(Direct(precision: Mixed))"),
-        (
-            // Factorise once (PCG with a fresh factor converges in one iteration), then reuse
-            // the stale factor in later Newton iterations and steps.
-            "stale_cholesky_pcg",
-            "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20), tolerance: (rel: 1e-8)))",
-        ),
-        (
-            // The same with the factor in single precision.
-            "stale_cholesky_pcg_mixed",
-            "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20, precision: Mixed), tolerance: (rel: 1e-8)))",
-        ),
-        (
-            // The hand schedule: refactorise after a solve needing more than 20 iterations.
-            "stale_factor_20",
-            "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-8)), refactor_above: 20)",
-        ),
-        (
-            "pcg_ic0",
-            "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8)))",
-        ),
-        (
-            "eisenstat_walker_ic0",
-            "EisenstatWalker(solver: Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8)))",
-        ),
-        (
-            "pcg_jacobi",
-            "Fixed(Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
-        ),
-    ] {
-        let policy = ron::from_str::<PolicySpec>(policy)?
-            .build()
-            .map_err(anyhow::Error::msg)?;
-        let mut sim = Integrator::builder(&mesh, material.clone())
-            .density(1000.0)
-            .constraints(vec![Constraint {
-                vertices: clamp.clone(),
-                motion: Motion::Fixed,
-            }])
-            .options(IntegratorOptions::default())
-            .policy(policy)
-            .build()?;
-        let mut state = sim.rest_state();
+    let tets = beam(args.n).0.num_tets();
+    for (name, policy) in STEP_POLICIES {
+        let (mut sim, mut state) = beam_integrator(args.n, policy)?;
         let mut last = Instant::now();
         let run = sim.run(
             &mut state,
             &RunOptions::steps(args.steps),
             &mut OnStep(|report: &StepReport, _: &State| {
-                // Wall time of the whole step as the caller sees it (the report's own excludes
-                // nothing but the call).
+                // Wall time of the whole step as the caller sees it.
                 let seconds = last.elapsed().as_secs_f64();
                 let solve = report.solver_seconds();
                 let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
                 println!(
-                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}}}"#,
+                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}}}"#,
                     report.step,
-                    mesh.num_tets(),
                     report.newton_iterations(),
                     report.linear_iterations(),
                     seconds - solve,

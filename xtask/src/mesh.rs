@@ -6,9 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use deform_mesh::generate::{BoxGrid, Split};
 use deform_mesh::io::{self, MshFormat, MshVersion};
-use deform_mesh::quality::rest_quality;
-use deform_mesh::topology::{edges, faces};
-use deform_mesh::{MeshOptions, TetMesh};
+use deform_mesh::{MeshInfo, MeshOptions, TetMesh};
 
 #[derive(Debug, Subcommand)]
 pub enum MeshTask {
@@ -97,7 +95,11 @@ pub fn run(task: MeshTask) -> Result<()> {
     match task {
         MeshTask::Info { file } => {
             let mesh = io::read(&file, &MeshOptions::default())?;
-            print!("{}", info(&file, &mesh));
+            print!(
+                "file            {}\n{}",
+                file.display(),
+                MeshInfo::of(&mesh)
+            );
             Ok(())
         }
         MeshTask::Convert { input, output, msh } => {
@@ -163,70 +165,4 @@ fn write(path: &Path, mesh: &TetMesh, msh: &MshArgs) -> Result<()> {
         io::write(path, mesh)?;
     }
     Ok(())
-}
-
-/// The report of `mesh info`.
-pub fn info(file: &Path, mesh: &TetMesh) -> String {
-    use std::fmt::Write;
-    let mut s = String::new();
-    let q = rest_quality(mesh);
-    let f = faces(mesh);
-    let (lo, hi) = mesh.bounding_box();
-    let report = mesh.build_report();
-    let _ = writeln!(s, "file            {}", file.display());
-    let _ = writeln!(s, "vertices        {}", mesh.num_vertices());
-    let _ = writeln!(s, "tets            {}", mesh.num_tets());
-    let _ = writeln!(s, "edges           {}", edges(mesh).len());
-    let _ = writeln!(
-        s,
-        "surface         {} triangles, {} interior faces, {} non-manifold faces",
-        f.boundary.len(),
-        f.interior.len(),
-        f.nonmanifold.len()
-    );
-    let _ = writeln!(s, "volume          {:.9e}", q.total_volume);
-    let _ = writeln!(
-        s,
-        "bounding box    [{:.6}, {:.6}, {:.6}] - [{:.6}, {:.6}, {:.6}]",
-        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
-    );
-    let _ = writeln!(
-        s,
-        "element volume  {:.3e} .. {:.3e}",
-        q.min_volume, q.max_volume
-    );
-    let _ = writeln!(
-        s,
-        "dihedral angle  {:.2} .. {:.2} deg",
-        q.min_dihedral_deg, q.max_dihedral_deg
-    );
-    let _ = writeln!(
-        s,
-        "aspect ratio    max {:.3}, mean {:.3} (1 = regular)",
-        q.max_aspect_ratio, q.mean_aspect_ratio
-    );
-    let _ = writeln!(s, "inverted        {}", q.inverted);
-    let _ = writeln!(
-        s,
-        "reoriented      {} (negatively oriented in the file)",
-        report.reoriented
-    );
-    let _ = writeln!(
-        s,
-        "dropped         {} unreferenced vertices",
-        report.dropped_vertices
-    );
-    let mut regions: Vec<u32> = mesh.regions().to_vec();
-    regions.sort_unstable();
-    regions.dedup();
-    for r in regions {
-        let count = mesh.regions().iter().filter(|&&x| x == r).count();
-        let name = mesh
-            .region_names()
-            .get(&r)
-            .map(|n| format!(" \"{n}\""))
-            .unwrap_or_default();
-        let _ = writeln!(s, "region {r}{name:<10} {count} tets");
-    }
-    s
 }

@@ -166,3 +166,22 @@ fn bad_input_fails_naming_the_file() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("bad.ron") && err.contains("Rubber"), "{err}");
 }
+
+#[test]
+fn bench_prints_one_json_object_per_measurement() {
+    let out = ok(&["bench", "step", "--n", "1"]);
+    let lines: Vec<&str> = out.lines().collect();
+    assert_eq!(lines.len(), 9, "one line per policy: {out}");
+    assert!(
+        lines
+            .iter()
+            .all(|l| l.starts_with("{\"what\": \"step\"") && l.ends_with('}'))
+    );
+    let out = ok(&["bench", "assembly", "--n", "1", "--repeats", "2"]);
+    assert!(out.contains("\"tets\": 24"), "{out}");
+    let out = ok(&["bench", "solvers", "--n", "1", "--repeats", "1"]);
+    assert!(
+        out.contains("\"solver\": \"direct\"") && out.contains("pcg_ic0_1e-6"),
+        "{out}"
+    );
+}

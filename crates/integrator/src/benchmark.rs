@@ -61,3 +61,236 @@ pub fn beam_free_coordinates(n: usize) -> Vec<[f64; 3]> {
         .map(|p| [p.x, p.y, p.z])
         .collect()
 }
+
+/// Median over `repeats` of `f`'s wall time, and its last result.
+fn median_time<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
+    let mut times = Vec::new();
+    let mut last = None;
+    for _ in 0..repeats.max(1) {
+        let t = std::time::Instant::now();
+        last = Some(f());
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    (last.expect("at least one run"), times[times.len() / 2])
+}
+
+/// Median wall time of one assembly of energy, forces and K of `material` on the beam of
+/// size `n` at its deformed state.
+///
+/// # Errors
+/// The assembly's.
+pub fn time_assembly(
+    n: usize,
+    material: MaterialField,
+    repeats: usize,
+) -> Result<f64, deform_assembly::AssemblyError> {
+    let (mesh, _, x) = beam(n);
+    let mut asm = Assembly::new(&mesh, material)?;
+    let mut k = asm.stiffness_matrix();
+    let mut f = vec![0.0; x.len()];
+    let (result, seconds) = median_time(repeats, || {
+        let mut e = 0.0;
+        asm.evaluate(
+            &x,
+            deform_assembly::Outputs {
+                energy: Some(&mut e),
+                forces: Some(&mut f),
+                stiffness: Some(&mut k),
+                tangent: Tangent::Exact,
+            },
+        )
+    });
+    result.map(|()| seconds)
+}
+
+/// One direct-solver configuration on a system: median phase times and what it produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DirectTiming {
+    /// Its name in reports.
+    pub name: &'static str,
+    /// Median analysis, factorisation and solve times (s).
+    pub analyze: f64,
+    /// Factorisation.
+    pub factorize: f64,
+    /// Solve.
+    pub solve: f64,
+    /// Nonzeros of the factor.
+    pub factor_nnz: usize,
+    /// `||b - A x|| / ||b||`.
+    pub relative_residual: f64,
+    /// Refinement steps (mixed precision).
+    pub refinement_steps: usize,
+}
+
+/// The direct solver on `a x = b`: ordered from the matrix alone (`_graph`, what PARDISO
+/// gets) or with the nodes' `coordinates`, on one thread or two tasks, in double or mixed
+/// precision; medians of `repeats`.
+///
+/// # Errors
+/// The solver's.
+pub fn time_direct(
+    a: &CsMat<f64>,
+    b: &[f64],
+    coordinates: &[[f64; 3]],
+    repeats: usize,
+) -> Result<Vec<DirectTiming>, deform_solvers::SolverError> {
+    use deform_solvers::{Precision, SolverSpec};
+    let mut out = Vec::new();
+    for (name, parallel, precision, geometry) in [
+        ("direct_graph", true, Precision::Double, false),
+        ("direct_one_thread", false, Precision::Double, true),
+        ("direct", true, Precision::Double, true),
+        ("direct_mixed_graph", true, Precision::Mixed, false),
+        ("direct_mixed", true, Precision::Mixed, true),
+        ("direct_mixed_one_thread", false, Precision::Mixed, true),
+    ] {
+        let (mut analyze, mut factor, mut solve) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut nnz, mut residual, mut steps) = (0, f64::NAN, 0);
+        for _ in 0..repeats.max(1) {
+            let spec = SolverSpec::Direct {
+                ordering: Default::default(),
+                indefinite: Default::default(),
+                parallel,
+                precision,
+            };
+            let mut s = spec.build()?;
+            if geometry {
+                s.set_coordinates(Some(coordinates));
+            }
+            let (r, t) = median_time(1, || s.analyze(a));
+            r?;
+            analyze.push(t);
+            let (setup, t) = median_time(1, || s.factorize(a));
+            nnz = setup?.factor_nnz;
+            factor.push(t);
+            let mut x = vec![0.0; b.len()];
+            let (stats, t) = median_time(1, || s.solve(a, b, &mut x));
+            let stats = stats?;
+            residual = stats.relative_residual();
+            steps = stats.iterations;
+            solve.push(t);
+        }
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        out.push(DirectTiming {
+            name,
+            analyze: median(analyze),
+            factorize: median(factor),
+            solve: median(solve),
+            factor_nnz: nnz,
+            relative_residual: residual,
+            refinement_steps: steps,
+        });
+    }
+    Ok(out)
+}
+
+/// CG and PCG (Jacobi, IC(0)) on `a x = b` from a cold start: `(name, iterations, median
+/// seconds)` over `repeats`.
+///
+/// # Errors
+/// The solver's.
+pub fn time_iterative(
+    a: &CsMat<f64>,
+    b: &[f64],
+    repeats: usize,
+) -> Result<Vec<(&'static str, usize, f64)>, deform_solvers::SolverError> {
+    let mut out = Vec::new();
+    for (name, spec) in [
+        (
+            "cg_1e-6",
+            "Cg(tolerance: (rel: 1e-6, max_iterations: 100000))",
+        ),
+        (
+            "pcg_jacobi_1e-6",
+            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-6, max_iterations: 100000))",
+        ),
+        (
+            "pcg_jacobi_1e-8",
+            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8, max_iterations: 100000))",
+        ),
+        (
+            "pcg_ic0_1e-6",
+            "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-6, max_iterations: 100000))",
+        ),
+    ] {
+        let spec: deform_solvers::SolverSpec = ron::from_str(spec).expect("a valid spec");
+        let (iterations, seconds) = median_time(repeats, || {
+            let mut s = spec.build()?;
+            let mut x = vec![0.0; b.len()];
+            s.factorize(a)?;
+            Ok::<_, deform_solvers::SolverError>(s.solve(a, b, &mut x)?.iterations)
+        });
+        out.push((name, iterations?, seconds));
+    }
+    Ok(out)
+}
+
+/// The solver policies `cargo xtask bench step` compares, by name.
+pub const STEP_POLICIES: [(&str, &str); 9] = [
+    ("direct", "Fixed(Direct())"),
+    ("direct_one_thread", "Fixed(Direct(parallel: false))"),
+    ("direct_mixed", "Fixed(Direct(precision: Mixed))"),
+    // Factorise once (PCG with a fresh factor converges in one iteration), then reuse the
+    // stale factor in later Newton iterations and steps.
+    (
+        "stale_cholesky_pcg",
+        "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20), tolerance: (rel: 1e-8)))",
+    ),
+    // The same with the factor in single precision.
+    (
+        "stale_cholesky_pcg_mixed",
+        "Fixed(Pcg(preconditioner: StaleCholesky(max_age: 20, precision: Mixed), tolerance: (rel: 1e-8)))",
+    ),
+    // The hand schedule: refactorise after a solve needing more than 20 iterations.
+    (
+        "stale_factor_20",
+        "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-8)), refactor_above: 20)",
+    ),
+    (
+        "pcg_ic0",
+        "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8)))",
+    ),
+    (
+        "eisenstat_walker_ic0",
+        "EisenstatWalker(solver: Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8)))",
+    ),
+    (
+        "pcg_jacobi",
+        "Fixed(Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+    ),
+];
+
+/// The clamped beam of size `n` under gravity from rest, as an integrator with `policy`
+/// (one of [`STEP_POLICIES`]' texts) and its initial state.
+///
+/// # Errors
+/// A policy text that does not parse or build.
+pub fn beam_integrator(
+    n: usize,
+    policy: &str,
+) -> Result<(crate::Integrator, crate::State), crate::PolicyError> {
+    let (mesh, material, _) = beam(n);
+    let clamp: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].x == 0.0)
+        .collect();
+    let policy = ron::from_str::<crate::PolicySpec>(policy)
+        .map_err(|e| crate::PolicyError::Invalid {
+            field: "policy",
+            reason: e.to_string(),
+        })?
+        .build()?;
+    let sim = crate::Integrator::builder(&mesh, material)
+        .constraints(vec![crate::Constraint {
+            vertices: clamp,
+            motion: crate::Motion::Fixed,
+        }])
+        .policy(policy)
+        .build()
+        .expect("the benchmark beam builds");
+    let state = sim.rest_state();
+    Ok((sim, state))
+}

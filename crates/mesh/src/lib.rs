@@ -26,6 +26,7 @@
 
 pub mod error;
 pub mod generate;
+mod info;
 pub mod io;
 mod mass;
 mod mesh;
@@ -34,6 +35,7 @@ pub mod select;
 pub mod topology;
 
 pub use error::MeshError;
+pub use info::MeshInfo;
 pub use mass::ConsistentMass;
 pub use mesh::{BuildReport, MeshOptions, TetMesh, Unreferenced};
 

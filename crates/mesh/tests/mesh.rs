@@ -308,3 +308,20 @@ fn faces_classify_boundary_and_interior() {
     assert_eq!(f.interior, vec![[0, 1]]);
     assert!(f.nonmanifold.is_empty());
 }
+
+#[test]
+fn the_summary_counts_the_beam() {
+    let mesh = deform_mesh::generate::BoxGrid::beam(1).build().unwrap();
+    let info = deform_mesh::MeshInfo::of(&mesh);
+    assert_eq!((info.vertices, info.tets), (20, 24));
+    // 18 unit squares of surface, two triangles each; every face used once or twice.
+    assert_eq!(info.boundary_faces, 36);
+    assert_eq!(info.nonmanifold_faces, 0);
+    assert_eq!(4 * info.tets, info.boundary_faces + 2 * info.interior_faces);
+    assert!((info.quality.total_volume - 0.0625).abs() < 1e-15);
+    let text = info.to_string();
+    assert!(
+        text.contains("tets            24") && text.contains("region"),
+        "{text}"
+    );
+}
