@@ -13,9 +13,9 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use deform_fs::write_atomic;
+use serde::Deserialize;
 
 use crate::experiment::{self, ExperimentArgs};
-use crate::render;
 use crate::simulate;
 
 /// Arguments of `demo`.
@@ -27,90 +27,35 @@ pub struct DemoArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
-    /// The base scene to simulate first (default: the bundled cantilever).
+    /// What to run (RON: a base scene and experiments; default `assets/demo.ron`).
     #[arg(long)]
-    pub scene: Option<PathBuf>,
-    /// Run every experiment file (`*.ron`) of this folder, in name order, instead of the
-    /// bundled set.
-    #[arg(long)]
-    pub experiments: Option<PathBuf>,
+    pub demo: Option<PathBuf>,
 }
 
-const EXPERIMENTS: [(&str, &str); 8] = [
-    (
-        "tune_backward_euler",
-        "the story: a 4x coarser Backward Euler tuned with the base's data, against the untuned one",
-    ),
-    (
-        "fit_material",
-        "force-model optimisation: E and nu from trajectories with 1 % position noise",
-    ),
-    (
-        "select_model",
-        "model selection: which energy made the data",
-    ),
-    (
-        "coarse_dt",
-        "accuracy: a 4x coarser time step learns from the base model",
-    ),
-    (
-        "select_solver",
-        "solver selection: a learned policy against fixed solvers and Eisenstat-Walker",
-    ),
-    (
-        "tune_solver",
-        "solver optimisation: the least-work tolerance that keeps the trajectory",
-    ),
-    (
-        "tune_jacobi",
-        "solver optimisation: Jacobi's relaxation and tolerance, jointly",
-    ),
-    (
-        "tune_refactor",
-        "solver optimisation: when stale-factor PCG refactorises, and its tolerance",
-    ),
-];
+/// A demo file: the base scene and the experiments, each with its introduction.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Demo {
+    scene: PathBuf,
+    experiments: Vec<DemoExperiment>,
+}
 
-/// The experiments to run: `(name, description, file)`.
-fn experiments(root: &Path, dir: Option<&Path>) -> Result<Vec<(String, String, PathBuf)>> {
-    let Some(dir) = dir else {
-        return Ok(EXPERIMENTS
-            .iter()
-            .map(|(name, what)| {
-                let file = root.join(format!("assets/experiments/{name}.ron"));
-                ((*name).to_owned(), (*what).to_owned(), file)
-            })
-            .collect());
-    };
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
-        let path = entry?.path();
-        if path.extension().is_none_or(|x| x != "ron") {
-            continue;
-        }
-        // Scenes may sit beside the experiments that name them; anything else must load.
-        if let Err(e) = deform_learn::experiment::Experiment::load(&path) {
-            if deform_integrator::Scene::load(&path).is_ok() {
-                continue;
-            }
-            return Err(e.into());
-        }
-        files.push(path);
-    }
-    files.sort();
-    Ok(files
-        .into_iter()
-        .map(|f| {
-            let name = f
-                .file_stem()
-                .map_or(String::new(), |s| s.to_string_lossy().into_owned());
-            (name.clone(), format!("experiment `{name}`"), f)
-        })
-        .collect())
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DemoExperiment {
+    file: PathBuf,
+    about: String,
 }
 
 pub fn run(args: DemoArgs) -> Result<()> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let file = args
+        .demo
+        .clone()
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/demo.ron"));
+    let text =
+        std::fs::read_to_string(&file).with_context(|| format!("reading {}", file.display()))?;
+    let demo: Demo = ron::from_str(&text).with_context(|| format!("{}", file.display()))?;
+    let dir = file.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let started = Instant::now();
@@ -120,10 +65,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     );
 
     let t = Instant::now();
-    let scene = args
-        .scene
-        .clone()
-        .unwrap_or_else(|| root.join("assets/scenes/cantilever.ron"));
+    let scene = dir.join(&demo.scene);
     let folder = scene
         .file_stem()
         .map_or("base".to_owned(), |s| s.to_string_lossy().into_owned());
@@ -145,7 +87,11 @@ pub fn run(args: DemoArgs) -> Result<()> {
         sim.run.step_seconds
     )?;
 
-    for (name, what, file) in experiments(&root, args.experiments.as_deref())? {
+    for DemoExperiment { file, about: what } in demo.experiments {
+        let file = dir.join(file);
+        let name = file
+            .file_stem()
+            .map_or(String::new(), |s| s.to_string_lossy().into_owned());
         let t = Instant::now();
         let out = args.out.join(&name);
         let (result, text) = experiment::run(ExperimentArgs {
@@ -153,7 +99,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
             out: Some(out.clone()),
             quiet: args.quiet,
         })?;
-        let summary = render::headline(&result);
+        let summary = result.headline();
         // Demote the experiment's title under the demo's.
         writeln!(
             report,

@@ -45,60 +45,6 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     Ok(md)
 }
 
-/// The one-line summary of an experiment's headline figure.
-pub fn headline(report: &ExperimentReport) -> String {
-    match &report.task {
-        TaskReport::FitMaterial(r) => format!(
-            "E off by {:.3} %, nu by {:.3} %; rollout error fitted / true {:.3}",
-            100.0 * r.young_error(),
-            100.0 * r.poisson_error(),
-            r.rollout_ratio()
-        ),
-        TaskReport::SelectModel(r) => {
-            let top = r
-                .ensemble
-                .members
-                .iter()
-                .max_by(|a, b| a.energy_share.total_cmp(&b.energy_share));
-            format!(
-                "{} carries {:.1} % of the energy; best single model {}",
-                top.map_or("-".to_owned(), |m| m.model.to_string()),
-                100.0 * top.map_or(0.0, |m| m.energy_share),
-                r.best_single()
-                    .and_then(|m| m.member)
-                    .map_or("-".to_owned(), |m| m.to_string())
-            )
-        }
-        TaskReport::SelectSolver(r) => r
-            .cases
-            .last()
-            .and_then(|c| {
-                let (l, bw, bs) = (
-                    c.learned()?,
-                    c.best_fixed(true, Key::Work)?,
-                    c.best_fixed(true, Key::SolverSeconds)?,
-                );
-                Some(format!(
-                    "{}: {} / best fixed without reuse {:.2}x work, {:.2}x solver time",
-                    c.label,
-                    l.contender.name(),
-                    l.measured.work / bw.measured.work,
-                    l.measured.seconds / bs.measured.seconds.max(f64::MIN_POSITIVE)
-                ))
-            })
-            .unwrap_or_default(),
-        TaskReport::TuneBackwardEuler(r) => {
-            let (e, w, t) = r.ratios();
-            format!("tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x")
-        }
-        TaskReport::TuneSolver(r) => format!(
-            "{}: {:.2}x the work as configured",
-            values(r, &r.result.log10_values),
-            r.work_ratio()
-        ),
-    }
-}
-
 /// `rollout_error.svg` and `.png`: RMS position error per step of each series.
 fn plot_rollouts(out: &Path, series: &[Series]) -> Result<()> {
     plot(
@@ -478,16 +424,6 @@ fn story(r: &StoryReport, out: &Path, md: &mut String) -> Result<()> {
     )
 }
 
-/// `name value` of each tuned parameter.
-fn values(r: &TuneSolverReport, log10: &[f64]) -> String {
-    r.parameters
-        .iter()
-        .zip(log10)
-        .map(|(n, x)| format!("{n:?} {:.3e}", 10f64.powf(*x)))
-        .collect::<Vec<_>>()
-        .join(", ")
-}
-
 fn tune_solver(r: &TuneSolverReport, md: &mut String) -> Result<()> {
     let names: Vec<String> = r.parameters.iter().map(|p| format!("{p:?}")).collect();
     let (best, configured) = (&r.result.best, &r.result.samples[0]);
@@ -496,14 +432,14 @@ fn tune_solver(r: &TuneSolverReport, md: &mut String) -> Result<()> {
         "Tuned `{}` ({}): {}, work {:.4e} over {} steps (factorisation flops x {}), trajectory error {:.1e} (bound {:e}); {} evaluations (`tuning.csv`).\n\nAs configured ({}): work {:.4e}, error {:.1e}; tuned / configured: {:.3}.",
         r.solver.name(),
         names.join(", "),
-        values(r, &r.result.log10_values),
+        r.tuned_values(),
         best.work,
         r.steps,
         r.factor_weight,
         best.error,
         r.accuracy,
         r.result.samples.len(),
-        values(r, &configured.log10_values),
+        r.values(&configured.log10_values),
         configured.work,
         configured.error,
         r.work_ratio()

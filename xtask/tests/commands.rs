@@ -124,10 +124,8 @@ fn demo_composes_the_reports_of_a_folder_of_experiments() {
         "--out",
         out.to_str().unwrap(),
         "--quiet",
-        "--scene",
-        tiny("tiny_beam.ron").to_str().unwrap(),
-        "--experiments",
-        tiny("").to_str().unwrap(),
+        "--demo",
+        tiny("demo.ron").to_str().unwrap(),
     ]);
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     for name in [

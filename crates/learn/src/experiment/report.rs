@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::fit_material::FitMaterialReport;
 use super::select_model::SelectModelReport;
+use super::select_solver::Key;
 use super::select_solver::SelectSolverReport;
 use super::story::StoryReport;
 use super::tune_solver::TuneSolverReport;
@@ -71,4 +72,60 @@ pub enum TaskReport {
     TuneBackwardEuler(StoryReport),
     /// Solver optimisation.
     TuneSolver(TuneSolverReport),
+}
+
+impl ExperimentReport {
+    /// The one-line summary of an experiment's headline figure.
+    pub fn headline(&self) -> String {
+        match &self.task {
+            TaskReport::FitMaterial(r) => format!(
+                "E off by {:.3} %, nu by {:.3} %; rollout error fitted / true {:.3}",
+                100.0 * r.young_error(),
+                100.0 * r.poisson_error(),
+                r.rollout_ratio()
+            ),
+            TaskReport::SelectModel(r) => {
+                let top = r
+                    .ensemble
+                    .members
+                    .iter()
+                    .max_by(|a, b| a.energy_share.total_cmp(&b.energy_share));
+                format!(
+                    "{} carries {:.1} % of the energy; best single model {}",
+                    top.map_or("-".to_owned(), |m| m.model.to_string()),
+                    100.0 * top.map_or(0.0, |m| m.energy_share),
+                    r.best_single()
+                        .and_then(|m| m.member)
+                        .map_or("-".to_owned(), |m| m.to_string())
+                )
+            }
+            TaskReport::SelectSolver(r) => r
+                .cases
+                .last()
+                .and_then(|c| {
+                    let (l, bw, bs) = (
+                        c.learned()?,
+                        c.best_fixed(true, Key::Work)?,
+                        c.best_fixed(true, Key::SolverSeconds)?,
+                    );
+                    Some(format!(
+                        "{}: {} / best fixed without reuse {:.2}x work, {:.2}x solver time",
+                        c.label,
+                        l.contender.name(),
+                        l.measured.work / bw.measured.work,
+                        l.measured.seconds / bs.measured.seconds.max(f64::MIN_POSITIVE)
+                    ))
+                })
+                .unwrap_or_default(),
+            TaskReport::TuneBackwardEuler(r) => {
+                let (e, w, t) = r.ratios();
+                format!("tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x")
+            }
+            TaskReport::TuneSolver(r) => format!(
+                "{}: {:.2}x the work as configured",
+                r.tuned_values(),
+                r.work_ratio()
+            ),
+        }
+    }
 }

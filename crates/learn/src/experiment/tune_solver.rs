@@ -26,6 +26,21 @@ pub struct TuneSolverReport {
 }
 
 impl TuneSolverReport {
+    /// `Parameter value` of each tuned parameter, comma-separated.
+    pub fn tuned_values(&self) -> String {
+        self.values(&self.result.log10_values)
+    }
+
+    /// `Parameter value` of each parameter at the given log10 values.
+    pub fn values(&self, log10: &[f64]) -> String {
+        self.parameters
+            .iter()
+            .zip(log10)
+            .map(|(n, x)| format!("{n:?} {:.3e}", 10f64.powf(*x)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
     /// Tuned work over the configured values' work.
     pub fn work_ratio(&self) -> f64 {
         self.result.best.work / self.result.samples[0].work
