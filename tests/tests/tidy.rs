@@ -253,3 +253,22 @@ fn docs_name_no_missing_file() {
     }
     assert!(missing.is_empty(), "docs name missing files: {missing:#?}");
 }
+
+#[test]
+fn nothing_names_files_outside_the_repository() {
+    let mut texts = files("docs", ".md");
+    texts.push(root().join("README.md"));
+    texts.extend(sources());
+    texts.extend(files("assets", ".ron"));
+    // Built from parts so that this file does not name the folder itself.
+    let needle = ["shared", "/"].concat();
+    let outside: Vec<String> = texts
+        .iter()
+        .filter(|p| std::fs::read_to_string(p).unwrap().contains(&needle))
+        .map(|p| relative(p))
+        .collect();
+    assert!(
+        outside.is_empty(),
+        "name files outside the repository: {outside:?}"
+    );
+}

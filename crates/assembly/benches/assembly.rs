@@ -1,4 +1,4 @@
-//! Assembly throughput on the beam family of `shared/BENCHMARKS.md` (Neo-Hookean,
+//! Assembly throughput on the beam family of `docs/benchmarks.md` (Neo-Hookean,
 //! E = 1e6, nu = 0.4, deformed state `X + (0.01 x z, 0.005 sin 3x, -0.1 x^2)`): pattern build,
 //! energy, forces, K fill (exact and projected), energy + forces + K in one pass, and the
 //! matrix-free differential. Criterion reports elements (tets) per second.

@@ -1,5 +1,5 @@
 //! Linear solvers on the Backward-Euler systems `K(x) + M/dt^2` of the beam family of
-//! `shared/BENCHMARKS.md` (free DOFs: n = 8: 7,776; n = 16: 55,488; n = 32: 418,116):
+//! the beam family of `docs/benchmarks.md` (free DOFs: n = 8: 7,776; n = 16: 55,488; n = 32: 418,116):
 //! direct Cholesky (analyze, factorize sequential and parallel, solve), CG and PCG to 1e-6
 //! and 1e-8 relative residual, the sparse matrix-vector product, and a STREAM-triad loop for
 //! the machine's memory bandwidth. Iteration counts and bandwidths are printed to stderr.

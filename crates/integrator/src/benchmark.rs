@@ -1,4 +1,4 @@
-//! The systems of `shared/BENCHMARKS.md`, for benchmarks and for exporting to other solvers.
+//! The systems of the beam family of `docs/benchmarks.md`, for benchmarks and for exporting to other solvers.
 
 use deform_assembly::{Assembly, DofMap, MaterialField, Tangent};
 use deform_materials::{Lame, Model, NeoHookean};
