@@ -401,3 +401,20 @@ fn bad_tetgen_files_name_the_file_and_line() {
         Err(ReadError::UnknownFormat { .. })
     ));
 }
+
+#[test]
+fn tetgen_output_names_pair_up() {
+    // TetGen writes `NAME.1.node` / `NAME.1.ele`; either file, or the stem, names the pair.
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = deform_mesh::generate::BoxGrid::beam(1).build().unwrap();
+    let stem = dir.path().join("slab.1");
+    io::write_tetgen(&stem, &mesh).unwrap();
+    assert!(dir.path().join("slab.1.node").exists() && dir.path().join("slab.1.ele").exists());
+    for name in ["slab.1.ele", "slab.1.node", "slab.1"] {
+        let back = io::read_tetgen(&dir.path().join(name), &Default::default())
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(back.num_tets(), mesh.num_tets(), "{name}");
+    }
+    let back = io::read(&dir.path().join("slab.1.ele"), &Default::default()).unwrap();
+    assert_eq!(back.num_vertices(), mesh.num_vertices());
+}

@@ -221,18 +221,30 @@ pub fn read_msh(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError
     parse_msh(&data, path)?.into_mesh(path, options)
 }
 
+/// The `.node` and `.ele` files of a TetGen pair named by either file or by their stem. Only
+/// the last extension is replaced, so TetGen's own names (`slab.1.node`, `slab.1.ele`) pair
+/// up.
+fn tetgen_pair(path: &Path) -> (PathBuf, PathBuf) {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("node" | "ele") => (path.with_extension("node"), path.with_extension("ele")),
+        _ => {
+            let with = |ext: &str| {
+                let mut name = path.as_os_str().to_owned();
+                name.push(ext);
+                PathBuf::from(name)
+            };
+            (with(".node"), with(".ele"))
+        }
+    }
+}
+
 /// Reads and validates a TetGen pair; `path` may name the `.node`, the `.ele` or their
 /// common stem.
 ///
 /// # Errors
 /// Any [`ReadError`], naming the file and line.
 pub fn read_tetgen(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
-    let stem = match path.extension().and_then(|e| e.to_str()) {
-        Some("node" | "ele") => path.with_extension(""),
-        _ => path.to_owned(),
-    };
-    let node_path = stem.with_extension("node");
-    let ele_path = stem.with_extension("ele");
+    let (node_path, ele_path) = tetgen_pair(path);
     let node = read_bytes(&node_path)?;
     let ele = read_bytes(&ele_path)?;
     parse_tetgen(&node, &ele, &node_path, &ele_path)?.into_mesh(&ele_path, options)
@@ -276,14 +288,9 @@ pub fn write_msh(path: &Path, mesh: &TetMesh, format: MshFormat) -> Result<(), W
 /// # Errors
 /// [`WriteError`] naming the path.
 pub fn write_tetgen(stem: &Path, mesh: &TetMesh) -> Result<(), WriteError> {
-    let stem = match stem.extension().and_then(|e| e.to_str()) {
-        Some("node" | "ele") => stem.with_extension(""),
-        _ => stem.to_owned(),
-    };
-    write_atomic(&stem.with_extension("node"), |w| {
-        tetgen::write_node(w, mesh)
-    })?;
-    write_atomic(&stem.with_extension("ele"), |w| tetgen::write_ele(w, mesh))
+    let (node_path, ele_path) = tetgen_pair(stem);
+    write_atomic(&node_path, |w| tetgen::write_node(w, mesh))?;
+    write_atomic(&ele_path, |w| tetgen::write_ele(w, mesh))
 }
 
 /// Writes the boundary surface at `positions` as Wavefront `.obj`.
