@@ -169,8 +169,7 @@ const FORMAT: u32 = 1;
 /// Split `count` trajectories by the fractions `(train, validation)`, the rest test; at least
 /// one trajectory in each non-empty split when there are three or more.
 fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
-    let train = ((fractions.0 * count as f64).round() as usize).clamp(1, count);
-    let val = ((fractions.1 * count as f64).round() as usize).min(count - train);
+    let (train, val, _) = split_counts(count, fractions);
     if k < train {
         Split::Train
     } else if k < train + val {
@@ -178,6 +177,13 @@ fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
     } else {
         Split::Test
     }
+}
+
+/// Trajectories in the train, validation and test splits of `count` by `fractions`.
+pub(crate) fn split_counts(count: usize, fractions: (f64, f64)) -> (usize, usize, usize) {
+    let train = ((fractions.0 * count as f64).round() as usize).clamp(1, count.max(1));
+    let val = ((fractions.1 * count as f64).round() as usize).min(count.saturating_sub(train));
+    (train, val, count.saturating_sub(train + val))
 }
 
 /// How to make the dataset.

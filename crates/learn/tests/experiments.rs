@@ -194,3 +194,105 @@ fn bad_experiments_name_the_file_and_field() {
     let e = Experiment::load(&path).unwrap_err().to_string();
     assert!(e.contains("bad.ron") && e.contains("Rubber"), "{e}");
 }
+
+#[test]
+fn every_bad_setting_is_refused_at_load_naming_its_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.ron");
+    let solver = r#"SelectSolver(candidates: [Direct()])"#;
+    let story = r#"TuneBackwardEuler(output_error: (), candidates: [Direct()])"#;
+    let cases = [
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("[Direct()]", "[]"),
+            "task.candidates",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            story.replace("[Direct()]", "[]"),
+            "task.candidates",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], forcing: Some((NaN, 0.9)))"),
+            "task.forcing",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], factor_weight: NaN)"),
+            "task.factor_weight",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], neighbours: 0)"),
+            "task.neighbours",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], min_success: 2.0)"),
+            "task.min_success",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], repeats: 0)"),
+            "task.repeats",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            "FitMaterial(output_error: Some((rollout: 0)))".into(),
+            "task.output_error",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            story.replace("])", "], accuracy: -1.0)"),
+            "task.accuracy",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            "TuneSolver(solver: Pcg(preconditioner: Jacobi), parameters: [Omega, Omega])".into(),
+            "task.parameters",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            "TuneSolver(solver: Pcg(preconditioner: Jacobi), accuracy: NaN)".into(),
+            "task.accuracy",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1, split: (0.6, 0.2)",
+            "FitMaterial()".into(),
+            "dataset.split",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1, noise: Some((position: -0.1, velocity: 0.0, seed: 1))",
+            "FitMaterial()".into(),
+            "dataset.noise",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
+            "SelectModel(members: [])".into(),
+            "task.members",
+        ),
+    ];
+    for (dataset, task, field) in cases {
+        let text = format!(
+            r#"Experiment(name: "x", scene: "s.ron", dataset: ({dataset}, split: (0.34, 0.33)), task: {task})"#
+        )
+        .replace(", split: (0.6, 0.2), split: (0.34, 0.33)", ", split: (0.6, 0.2)");
+        std::fs::write(&path, &text).unwrap();
+        match Experiment::load(&path) {
+            Err(deform_learn::LearnError::Config {
+                field: f, path: p, ..
+            }) => {
+                assert_eq!((f.as_str(), p.as_path()), (field, path.as_path()), "{text}")
+            }
+            other => panic!("{text}: expected a Config error naming {field}, got {other:?}"),
+        }
+    }
+    // Solver tuning uses no test trajectory: three trajectories split 0.6 / 0.2 are fine.
+    std::fs::write(
+        &path,
+        r#"Experiment(name: "x", scene: "s.ron", dataset: (trajectories: 3, steps: 3, seed: 1), task: TuneSolver(solver: Pcg(preconditioner: Jacobi)))"#,
+    )
+    .unwrap();
+    Experiment::load(&path).unwrap();
+}

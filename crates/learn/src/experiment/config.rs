@@ -249,8 +249,124 @@ impl Experiment {
         Ok(e)
     }
 
-    /// Checks the values serde cannot: the field and why.
+    /// Checks the values serde cannot, before any work starts: the field and why.
     fn validate(&self) -> Result<(), (&'static str, String)> {
+        self.validate_dataset()?;
+        let positive = |field: &'static str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((field, format!("{v} must be finite and > 0")))
+            }
+        };
+        let output = |field: &'static str, o: &OutputErrorOptions| {
+            if o.rollout == 0 {
+                return Err((field, "rollout must be at least 1".to_owned()));
+            }
+            if !(o.velocity_weight.is_finite() && o.velocity_weight >= 0.0) {
+                return Err((
+                    field,
+                    format!("velocity_weight {} must be >= 0", o.velocity_weight),
+                ));
+            }
+            Ok(())
+        };
+        let candidates = |c: &[deform_solvers::SolverSpec]| {
+            if c.is_empty() {
+                return Err(("task.candidates", "needs at least one solver".to_owned()));
+            }
+            for s in c {
+                s.build().map_err(|e| ("task.candidates", e.to_string()))?;
+            }
+            Ok(())
+        };
+        match &self.task {
+            Task::FitMaterial { output_error, .. } => {
+                if let Some(o) = output_error {
+                    output("task.output_error", o)?;
+                }
+            }
+            Task::SelectModel {
+                members,
+                output_error,
+            } => {
+                if members.is_empty() {
+                    return Err(("task.members", "needs at least one model".into()));
+                }
+                if let Some(o) = output_error {
+                    output("task.output_error", o)?;
+                }
+            }
+            Task::SelectSolver {
+                candidates: c,
+                neighbours,
+                min_success,
+                factor_weight,
+                repeats,
+                forcing,
+                tune,
+                ..
+            } => {
+                candidates(c)?;
+                if *neighbours == 0 {
+                    return Err(("task.neighbours", "must be at least 1".into()));
+                }
+                if !(*min_success >= 0.0 && *min_success <= 1.0) {
+                    return Err((
+                        "task.min_success",
+                        format!("{min_success} must be in [0, 1]"),
+                    ));
+                }
+                positive("task.factor_weight", *factor_weight)?;
+                if *repeats == 0 {
+                    return Err(("task.repeats", "must be at least 1".into()));
+                }
+                if let Some((eta, gamma)) = forcing
+                    && !(*eta > 0.0 && *eta < 1.0 && *gamma > 0.0 && *gamma <= 1.0)
+                {
+                    return Err((
+                        "task.forcing",
+                        format!("({eta}, {gamma}): eta_max must be in (0, 1), gamma in (0, 1]"),
+                    ));
+                }
+                if let Some(t) = tune {
+                    positive("task.tune.accuracy", t.accuracy)?;
+                }
+            }
+            Task::TuneBackwardEuler {
+                output_error,
+                candidates: c,
+                factor_weight,
+                accuracy,
+                ..
+            } => {
+                output("task.output_error", output_error)?;
+                candidates(c)?;
+                positive("task.factor_weight", *factor_weight)?;
+                positive("task.accuracy", *accuracy)?;
+            }
+            Task::TuneSolver {
+                solver,
+                parameters,
+                factor_weight,
+                accuracy,
+                ..
+            } => {
+                solver.build().map_err(|e| ("task.solver", e.to_string()))?;
+                if parameters.is_empty() {
+                    return Err(("task.parameters", "needs at least one parameter".into()));
+                }
+                if (1..parameters.len()).any(|i| parameters[..i].contains(&parameters[i])) {
+                    return Err(("task.parameters", format!("{parameters:?} repeats one")));
+                }
+                positive("task.factor_weight", *factor_weight)?;
+                positive("task.accuracy", *accuracy)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn validate_dataset(&self) -> Result<(), (&'static str, String)> {
         let d = &self.dataset;
         if d.trajectories < 3 {
             return Err((
@@ -272,6 +388,28 @@ impl Experiment {
             return Err((
                 "dataset.split",
                 format!("({a}, {b}) must leave room for a test split"),
+            ));
+        }
+        // Every task but solver tuning reports on the test trajectories.
+        let needs_test = !matches!(self.task, Task::TuneSolver { .. });
+        if needs_test && crate::dataset::split_counts(d.trajectories, d.split).2 == 0 {
+            return Err((
+                "dataset.split",
+                format!(
+                    "({a}, {b}) of {} trajectories leaves no test trajectory",
+                    d.trajectories
+                ),
+            ));
+        }
+        if let Some(n) = &d.noise
+            && !(n.position.is_finite()
+                && n.position >= 0.0
+                && n.velocity.is_finite()
+                && n.velocity >= 0.0)
+        {
+            return Err((
+                "dataset.noise",
+                format!("{n:?}: levels must be finite and >= 0"),
             ));
         }
         Ok(())
