@@ -455,6 +455,12 @@ impl Dataset {
                 reason: format!("format {} is not the supported {FORMAT}", meta.format),
             });
         }
+        if meta.vertices == 0 {
+            return Err(DatasetError::Meta {
+                path: meta_path,
+                reason: "vertices must be at least 1".into(),
+            });
+        }
         let mut trajectories = Vec::with_capacity(meta.trajectories.len());
         for m in &meta.trajectories {
             let read = |file: &str| -> Result<Vec<Vec<f64>>, DatasetError> {
@@ -491,6 +497,20 @@ impl Dataset {
     }
 }
 
+/// Rejects a non-finite value of an array of `frame` values per step, naming the file, step
+/// and vertex.
+fn finite(path: &Path, data: &[f64], frame: usize) -> Result<(), DatasetError> {
+    match data.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(DatasetError::Inconsistent(format!(
+            "{}: non-finite value at step {}, vertex {}",
+            path.display(),
+            i / frame,
+            (i % frame) / 3
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
 /// 3), optional velocities. Without velocities they follow from Backward Euler's own relation
 /// `v^n+1 = (x^n+1 - x^n) / dt`; the first frame has no velocity then and is dropped, so the
@@ -504,9 +524,9 @@ pub fn import_trajectory(
     dt: f64,
 ) -> Result<Trajectory, DatasetError> {
     let a = npy::read(positions)?;
-    if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 {
+    if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 || a.shape[1] == 0 {
         return Err(DatasetError::Inconsistent(format!(
-            "{}: shape {:?}, expected (steps + 1 >= 2, vertices, 3)",
+            "{}: shape {:?}, expected (steps + 1 >= 2, vertices >= 1, 3)",
             positions.display(),
             a.shape
         )));
@@ -517,6 +537,7 @@ pub fn import_trajectory(
         )));
     }
     let frame = 3 * a.shape[1];
+    finite(positions, &a.data, frame)?;
     let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
     let v = match velocities {
         Some(path) => {
@@ -529,6 +550,7 @@ pub fn import_trajectory(
                     a.shape
                 )));
             }
+            finite(path, &b.data, frame)?;
             b.data.chunks(frame).map(<[f64]>::to_vec).collect()
         }
         None => {

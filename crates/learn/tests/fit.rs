@@ -859,3 +859,30 @@ fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
     assert!(reused >= solves / 2, "{reused} of {solves}");
     assert!(work <= 1.05 * best, "learned {work} vs best fixed {best}");
 }
+
+#[test]
+fn imports_and_loads_refuse_empty_and_non_finite_arrays() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("x.npy");
+    // (3, 0, 3): no vertex (was a panic).
+    npy::write(&p, &[3, 0, 3], &[]).unwrap();
+    let e = import_trajectory(&p, None, 0.01).unwrap_err().to_string();
+    assert!(e.contains("x.npy") && e.contains("vertices"), "{e}");
+    // A NaN position names the step and vertex.
+    let mut data = vec![0.0; 3 * 2 * 3];
+    data[3 * 2 + 4] = f64::NAN; // step 1, vertex 1
+    npy::write(&p, &[3, 2, 3], &data).unwrap();
+    let e = import_trajectory(&p, None, 0.01).unwrap_err().to_string();
+    assert!(e.contains("step 1, vertex 1"), "{e}");
+    // A dataset whose metadata says zero vertices (was a panic).
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 3, 2);
+    data.save(dir.path()).unwrap();
+    let meta = dir.path().join("meta.ron");
+    let text = std::fs::read_to_string(&meta).unwrap();
+    let vertices = format!("vertices: {}", data.meta.vertices);
+    assert!(text.contains(&vertices), "{text}");
+    std::fs::write(&meta, text.replace(&vertices, "vertices: 0")).unwrap();
+    let e = Dataset::load(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("meta.ron") && e.contains("vertices"), "{e}");
+}
