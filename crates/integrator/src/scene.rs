@@ -227,6 +227,17 @@ impl Scene {
         if self.steps == 0 {
             return Err(invalid("steps", "must be at least 1".into()));
         }
+        // The name becomes a results folder: a plain file name only.
+        let plain = Path::new(&self.name).file_name() == Some(std::ffi::OsStr::new(&self.name));
+        if !plain || self.name.contains(['/', '\\']) {
+            return Err(invalid(
+                "name",
+                format!(
+                    "{:?} must be a plain file name (it names the results folder)",
+                    self.name
+                ),
+            ));
+        }
         if let Some(t) = self.output.track
             && !t.iter().all(|c| c.is_finite())
         {

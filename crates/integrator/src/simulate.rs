@@ -71,6 +71,14 @@ pub fn simulate(
     observer: &mut dyn Observer,
 ) -> Result<Simulation, SimulateError> {
     let scene = Scene::load(scene_path)?;
+    if steps == Some(0) {
+        return Err(SceneError::Invalid {
+            path: scene_path.to_path_buf(),
+            field: "steps".into(),
+            reason: "the number of steps asked for must be at least 1".into(),
+        }
+        .into());
+    }
     let built = scene.build(scene_path)?;
     let (mesh, mut sim, mut state) = (built.mesh, built.integrator, built.state);
     let steps = steps.unwrap_or(scene.steps);

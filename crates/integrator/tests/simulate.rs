@@ -72,3 +72,31 @@ fn a_failed_step_names_the_scene_and_keeps_the_steps_before_it() {
     );
     assert!(matches!(missing, Err(SimulateError::Scene(_))));
 }
+
+#[test]
+fn zero_steps_and_path_like_names_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let path = scene(dir.path(), "(rel: 1e-8)");
+    let e = simulate(&path, Some(0), Some(&out), &mut NoObserver).unwrap_err();
+    assert!(e.to_string().contains("steps"), "{e}");
+    assert!(!out.join("summary.txt").exists());
+    for name in ["", "..", "../../x", "/abs", "a/b"] {
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("name: \"tiny\"", &format!("name: {name:?}"));
+        std::fs::write(&path, text).unwrap();
+        let e = simulate(&path, None, None, &mut NoObserver).unwrap_err();
+        assert!(
+            matches!(&e, SimulateError::Scene(deform_integrator::SceneError::Invalid { field, .. }) if field == "name"),
+            "{name:?}: {e}"
+        );
+        std::fs::write(
+            &path,
+            std::fs::read_to_string(&path)
+                .unwrap()
+                .replace(&format!("name: {name:?}"), "name: \"tiny\""),
+        )
+        .unwrap();
+    }
+}
