@@ -4,6 +4,7 @@
 //! `summary.txt`, every file written atomically.
 
 use std::fmt::Write as _;
+use std::io::Write as _;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 
@@ -87,11 +88,15 @@ pub fn simulate(
         Path::to_path_buf,
     );
     std::fs::create_dir_all(&out).map_err(|e| write_error(&out, e))?;
+    clear_previous_run(&out)?;
     let tracked = scene.tracked_vertex(&mesh);
+    // Appended and flushed step by step, so it always matches the frames on disk.
+    let csv_path = out.join("steps.csv");
+    let mut csv = std::fs::File::create(&csv_path).map_err(|e| write_error(&csv_path, e))?;
+    csv.write_all(b"step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n")
+        .map_err(|e| write_error(&csv_path, e))?;
     let mut log = StepLog {
-        csv: String::from(
-            "step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n",
-        ),
+        csv: (csv, csv_path),
         masses: sim.assembly().vertex_masses(sim.mass()),
         tracked,
         frames: Frames {
@@ -108,8 +113,6 @@ pub fn simulate(
     if let Some(e) = log.error {
         return Err(e);
     }
-    let csv = std::mem::take(&mut log.csv);
-    deform_fs::write_text(&out.join("steps.csv"), &csv).map_err(fs_error)?;
     let t_before = state.t;
     let run = run.into_result().map_err(|e| SimulateError::Step {
         scene: scene_path.to_path_buf(),
@@ -147,6 +150,23 @@ pub fn simulate(
         state,
         tracked: (tracked, position),
     })
+}
+
+/// Removes what an earlier run left in `out` (frames, series, CSV, summary, and the
+/// temporaries of atomic writes a killed run left behind), so the folder only ever holds
+/// one run's files.
+fn clear_previous_run(out: &Path) -> Result<(), SimulateError> {
+    let entries = std::fs::read_dir(out).map_err(|e| write_error(out, e))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let ours = (name.starts_with("frame_") && name.ends_with(".vtu"))
+            || ["series.pvd", "steps.csv", "summary.txt"].contains(&name.as_str())
+            || (name.starts_with('.') && name.contains(".tmp"));
+        if ours && entry.path().is_file() {
+            std::fs::remove_file(entry.path()).map_err(|e| write_error(&entry.path(), e))?;
+        }
+    }
+    Ok(())
 }
 
 fn write_error(path: &Path, e: impl std::fmt::Display) -> SimulateError {
@@ -187,7 +207,7 @@ impl Frames<'_> {
 /// Writes `steps.csv` rows and frames step by step, then hands the step to the caller's
 /// observer; stops the run when a file cannot be written.
 struct StepLog<'a> {
-    csv: String,
+    csv: (std::fs::File, PathBuf),
     masses: Vec<f64>,
     tracked: usize,
     frames: Frames<'a>,
@@ -209,8 +229,9 @@ impl Observer for StepLog<'_> {
             .map(|(i, v)| 0.5 * self.masses[i / 3] * v * v)
             .sum();
         let tracked = &state.x[3 * self.tracked..3 * self.tracked + 3];
+        let mut row = String::new();
         let _ = writeln!(
-            self.csv,
+            row,
             "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9}",
             report.t,
             report.dt,
@@ -227,6 +248,11 @@ impl Observer for StepLog<'_> {
             tracked[1],
             tracked[2]
         );
+        let (file, path) = &mut self.csv;
+        if let Err(e) = file.write_all(row.as_bytes()).and_then(|()| file.flush()) {
+            self.error = Some(write_error(path, e));
+            return ControlFlow::Break(());
+        }
         if let Err(e) = self.frames.write(step, state) {
             self.error = Some(e);
             return ControlFlow::Break(());

@@ -100,3 +100,25 @@ fn zero_steps_and_path_like_names_are_refused() {
         .unwrap();
     }
 }
+
+#[test]
+fn a_rerun_leaves_only_its_own_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let path = scene(dir.path(), "(rel: 1e-8)");
+    simulate(&path, None, Some(&out), &mut NoObserver).unwrap();
+    assert!(out.join("frame_00004.vtu").exists());
+    // A temporary a killed run left behind, and a file of the user's.
+    std::fs::write(out.join(".steps.csv.tmp12345"), "half").unwrap();
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    simulate(&path, Some(2), Some(&out), &mut NoObserver).unwrap();
+    assert!(
+        !out.join("frame_00004.vtu").exists(),
+        "a frame of the earlier run"
+    );
+    assert!(out.join("frame_00002.vtu").exists());
+    assert!(!out.join(".steps.csv.tmp12345").exists());
+    assert!(out.join("notes.txt").exists(), "other files are left alone");
+    let csv = std::fs::read_to_string(out.join("steps.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 3);
+}
