@@ -99,7 +99,8 @@ pub struct IntegratorOptions {
     pub mass: MassKind,
     /// Newton options.
     pub newton: NewtonOptions,
-    /// On failure, retry with dt halved (two half steps) up to this many times.
+    /// On failure, retry with the substep halved and go on, up to this many failed solves
+    /// in a step (at most 20: dt / 2^20).
     pub max_retries: usize,
     /// When the chosen linear solver fails, solve with the direct solver instead of failing.
     pub fallback_to_direct: bool,
@@ -158,6 +159,12 @@ impl IntegratorOptions {
         }
         if n.max_iterations == 0 {
             return bad("newton.max_iterations", "must be at least 1".into());
+        }
+        if self.max_retries > 20 {
+            return bad(
+                "max_retries",
+                format!("{} is more than 20 halvings of dt", self.max_retries),
+            );
         }
         Ok(())
     }
@@ -498,47 +505,54 @@ impl Integrator {
     ) -> Result<StepReport, StepError> {
         let start = Instant::now();
         let dt = self.options.dt;
-        let mut report = self.advance(state, dt, 0, observer)?;
+        let mut report = self.advance(state, dt, observer)?;
         report.step = self.steps_taken;
         report.seconds = start.elapsed().as_secs_f64();
         self.steps_taken += 1;
         Ok(report)
     }
 
-    /// `dt` in one Newton solve, or in two halves (recursively) when it fails.
+    /// `dt` in one Newton solve or, when that fails, in substeps: each failure halves the
+    /// substep and the step goes on from where it got, so at most `max_retries` solves fail
+    /// and the cost of retrying is linear in `max_retries`.
     fn advance(
         &mut self,
         state: &mut State,
         dt: f64,
-        depth: usize,
         observer: &mut dyn Observer,
     ) -> Result<StepReport, StepError> {
-        match self.newton(state, Mode::Dynamic { dt }, observer) {
-            Ok((next, report)) => {
-                *state = next;
-                Ok(report)
+        let (mut current, mut h, mut remaining) = (state.clone(), dt, dt);
+        let (mut retries, mut smallest) = (0, dt);
+        let mut iterations: Vec<IterationReport> = Vec::new();
+        loop {
+            let sub = h.min(remaining);
+            match self.newton(&current, Mode::Dynamic { dt: sub }, observer) {
+                Ok((next, report)) => {
+                    current = next;
+                    remaining -= sub;
+                    smallest = smallest.min(sub);
+                    if iterations.is_empty() && remaining <= 1e-12 * dt {
+                        *state = current;
+                        return Ok(report);
+                    }
+                    iterations.extend(report.iterations.iter().cloned());
+                    if remaining <= 1e-12 * dt {
+                        *state = current;
+                        return Ok(StepReport {
+                            iterations,
+                            retries,
+                            dt: smallest,
+                            ..report
+                        });
+                    }
+                }
+                Err(e) if retries < self.options.max_retries && retryable(&e) => {
+                    iterations.extend(e.report().iterations.iter().cloned());
+                    retries += 1;
+                    h = sub / 2.0;
+                }
+                Err(e) => return Err(e.with_earlier(&iterations, retries)),
             }
-            Err(e) if depth < self.options.max_retries && retryable(&e) => {
-                let earlier = e.report().iterations.clone();
-                let mut half = state.clone();
-                let first = self
-                    .advance(&mut half, dt / 2.0, depth + 1, observer)
-                    .map_err(|e2| e2.with_earlier(&earlier, depth + 1))?;
-                let second = self
-                    .advance(&mut half, dt / 2.0, depth + 1, observer)
-                    .map_err(|e2| e2.with_earlier(&earlier, depth + 1))?;
-                *state = half;
-                let mut iterations = earlier;
-                iterations.extend(first.iterations);
-                iterations.extend(second.iterations);
-                Ok(StepReport {
-                    iterations,
-                    retries: 1 + first.retries.max(second.retries),
-                    dt: first.dt.min(second.dt),
-                    ..second
-                })
-            }
-            Err(e) => Err(e),
         }
     }
 

@@ -966,3 +966,33 @@ fn a_failed_choice_falls_back_to_the_direct_solver_and_is_charged() {
     let mut state = s.rest_state();
     assert!(matches!(s.step(&mut state), Err(StepError::Solver { .. })));
 }
+
+#[test]
+fn a_hopeless_step_fails_after_max_retries_solves_and_big_retry_counts_are_refused() {
+    let mesh = beam();
+    let mut opts = IntegratorOptions::default();
+    opts.newton.max_iterations = 1;
+    opts.newton.rel = 1e-15;
+    opts.newton.abs = 0.0;
+    opts.max_retries = 20;
+    let mut s = sim(&mesh, clamp(&mesh), opts.clone(), "Fixed(Direct())");
+    let mut state = s.rest_state();
+    let started = std::time::Instant::now();
+    let err = s.step(&mut state).unwrap_err();
+    // Twenty failed solves end it; the substeps that converged on the way are few (a
+    // binary tree of retries would take up to 2^20 solves).
+    assert_eq!(err.report().retries, 20, "{err}");
+    assert!(err.report().newton_iterations() <= 64, "{err}");
+    assert!(started.elapsed().as_secs_f64() < 30.0);
+    assert_eq!(state.t, 0.0, "the state is unchanged");
+    opts.max_retries = 1000;
+    assert!(matches!(
+        Integrator::builder(&mesh, material(NH))
+            .options(opts)
+            .build(),
+        Err(IntegratorError::Invalid {
+            field: "max_retries",
+            ..
+        })
+    ));
+}
