@@ -62,17 +62,29 @@ pub fn beam_free_coordinates(n: usize) -> Vec<[f64; 3]> {
         .collect()
 }
 
+/// `f`'s result and wall time.
+fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
+    let t = std::time::Instant::now();
+    let out = f();
+    (out, t.elapsed().as_secs_f64())
+}
+
+/// The middle value (the upper one of an even count).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
 /// Median over `repeats` of `f`'s wall time, and its last result.
 fn median_time<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
     let mut times = Vec::new();
     let mut last = None;
     for _ in 0..repeats.max(1) {
-        let t = std::time::Instant::now();
-        last = Some(f());
-        times.push(t.elapsed().as_secs_f64());
+        let (out, t) = timed(&mut f);
+        last = Some(out);
+        times.push(t);
     }
-    times.sort_by(f64::total_cmp);
-    (last.expect("at least one run"), times[times.len() / 2])
+    (last.expect("at least one run"), median(times))
 }
 
 /// Median wall time of one assembly of energy, forces and K of `material` on the beam of
@@ -158,23 +170,19 @@ pub fn time_direct(
             if geometry {
                 s.set_coordinates(Some(coordinates));
             }
-            let (r, t) = median_time(1, || s.analyze(a));
+            let (r, t) = timed(|| s.analyze(a));
             r?;
             analyze.push(t);
-            let (setup, t) = median_time(1, || s.factorize(a));
+            let (setup, t) = timed(|| s.factorize(a));
             nnz = setup?.factor_nnz;
             factor.push(t);
             let mut x = vec![0.0; b.len()];
-            let (stats, t) = median_time(1, || s.solve(a, b, &mut x));
+            let (stats, t) = timed(|| s.solve(a, b, &mut x));
             let stats = stats?;
             residual = stats.relative_residual();
             steps = stats.iterations;
             solve.push(t);
         }
-        let median = |mut v: Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v[v.len() / 2]
-        };
         out.push(DirectTiming {
             name,
             analyze: median(analyze),

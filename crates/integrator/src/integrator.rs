@@ -527,15 +527,11 @@ impl Integrator {
         loop {
             let sub = h.min(remaining);
             match self.newton(&current, Mode::Dynamic { dt: sub }, observer) {
-                Ok((next, report)) => {
+                Ok((next, mut report)) => {
                     current = next;
                     remaining -= sub;
                     smallest = smallest.min(sub);
-                    if iterations.is_empty() && remaining <= 1e-12 * dt {
-                        *state = current;
-                        return Ok(report);
-                    }
-                    iterations.extend(report.iterations.iter().cloned());
+                    iterations.append(&mut report.iterations);
                     if remaining <= 1e-12 * dt {
                         *state = current;
                         return Ok(StepReport {

@@ -234,7 +234,6 @@ pub fn run(
         .trajectories
         .iter()
         .filter(|m| m.split == Split::Train);
-    observer.start(Stage::SolverData, (train.len() * steps) as u64);
     let runs: Vec<Run<'_>> = train_meta
         .clone()
         .map(|m| {
@@ -243,22 +242,11 @@ pub fn run(
             (variant, origin, steps)
         })
         .collect();
-    let logged = collect_runs(&runs, candidates, |_| observer.advance(1))?;
-    observer.finish();
+    let (policy, logged) = learn_policy(&runs, candidates, *factor_weight, fitted, observer)?;
     if let Some(path) = solver_data {
         logged.save(&path)?;
         files.push("solver_data".into());
     }
-    let policy = LearnedPolicy::train(
-        &logged,
-        PolicyOptions {
-            neighbours: DEFAULT_NEIGHBOURS,
-            min_success: DEFAULT_MIN_SUCCESS,
-            factor_weight: *factor_weight,
-            young: fitted.to_young().0,
-            forcing: Some(DEFAULT_FORCING),
-        },
-    );
 
     // 4. Solver optimisation: the largest forcing term, on the first training trajectory.
     let mut tune_scene = tuned_scene.clone();
@@ -381,6 +369,32 @@ fn side_by_side(
     }
     observer.finish();
     Ok(rows)
+}
+
+/// Logs every candidate on the Newton systems of `runs` and learns a policy from the logs
+/// (default options, forcing on, the fitted Young's modulus as a feature).
+fn learn_policy(
+    runs: &[Run<'_>],
+    candidates: &[deform_solvers::SolverSpec],
+    factor_weight: f64,
+    fitted: Lame,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(LearnedPolicy, crate::solver_data::SolverDataset), LearnError> {
+    let total: usize = runs.iter().map(|r| r.2).sum();
+    observer.start(Stage::SolverData, total as u64);
+    let logged = collect_runs(runs, candidates, |_| observer.advance(1))?;
+    observer.finish();
+    let policy = LearnedPolicy::train(
+        &logged,
+        PolicyOptions {
+            neighbours: DEFAULT_NEIGHBOURS,
+            min_success: DEFAULT_MIN_SUCCESS,
+            factor_weight,
+            young: fitted.to_young().0,
+            forcing: Some(DEFAULT_FORCING),
+        },
+    );
+    Ok((policy, logged))
 }
 
 /// Tunes the learned policy's largest forcing term for the least work within `accuracy`.
