@@ -1,5 +1,5 @@
 //! `cargo xtask bench ...`: quick, scriptable measurements on the beam family of
-//! the beam family of `docs/benchmarks.md`, printed as one JSON object per line so `bench/peers/*.py` can put
+//! `docs/benchmarks.md`, printed as one JSON object per line so `bench/peers/*.py` can put
 //! them beside the peers measured in the same run. (The criterion benches of each crate are
 //! the detailed, statistically careful version.)
 

@@ -25,6 +25,7 @@ pub struct ExperimentArgs {
     pub quiet: bool,
 }
 
+/// A progress bar of `len` steps labelled `what` (hidden when `quiet`).
 pub(crate) fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     let b = if quiet {
         ProgressBar::hidden()
@@ -33,7 +34,7 @@ pub(crate) fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
     };
     b.set_style(
         ProgressStyle::with_template(&format!(
-            "{what:>10} {{bar:30}} {{pos}}/{{len}} {{msg}} [{{elapsed_precise}}]"
+            "{what:>10} {{bar:30}} {{pos}}/{{len}} {{msg}} [{{elapsed_precise}}, eta {{eta}}]"
         ))
         .expect("a valid template"),
     );

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use deform_mesh::generate::{BoxGrid, Split};
 use deform_mesh::io::{self, MshFormat, MshVersion};
@@ -36,8 +36,8 @@ pub enum MeshTask {
         #[arg(long, value_parser = parse_triple::<f64>)]
         size: Option<[f64; 3]>,
         /// Tets per cube: 5 or 6.
-        #[arg(long, default_value_t = 6)]
-        split: u8,
+        #[arg(long, value_enum, default_value = "6")]
+        split: SplitArg,
         /// Output file (.msh, .node/.ele, .vtu, .obj).
         #[arg(long)]
         out: PathBuf,
@@ -54,28 +54,30 @@ pub enum Shape {
     Box,
 }
 
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum SplitArg {
+    #[value(name = "5")]
+    Five,
+    #[value(name = "6")]
+    Six,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum VersionArg {
+    #[value(name = "2.2")]
+    V2_2,
+    #[value(name = "4.1")]
+    V4_1,
+}
+
 #[derive(Debug, Args)]
 pub struct MshArgs {
-    /// Gmsh format version for .msh output: 2.2 or 4.1.
-    #[arg(long, default_value = "4.1")]
-    msh_version: String,
+    /// Gmsh format version for .msh output.
+    #[arg(long, value_enum, default_value = "4.1")]
+    msh_version: VersionArg,
     /// Write .msh as binary.
     #[arg(long)]
     binary: bool,
-}
-
-impl MshArgs {
-    fn format(&self) -> Result<MshFormat> {
-        let version = match self.msh_version.as_str() {
-            "2.2" => MshVersion::V2_2,
-            "4.1" => MshVersion::V4_1,
-            v => bail!("--msh-version must be 2.2 or 4.1, got {v}"),
-        };
-        Ok(MshFormat {
-            version,
-            binary: self.binary,
-        })
-    }
 }
 
 fn parse_triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
@@ -103,15 +105,7 @@ pub fn run(task: MeshTask) -> Result<()> {
             Ok(())
         }
         MeshTask::Convert { input, output, msh } => {
-            let mesh = io::read(&input, &MeshOptions::default())?;
-            write(&output, &mesh, &msh)?;
-            println!(
-                "wrote {} ({} vertices, {} tets)",
-                output.display(),
-                mesh.num_vertices(),
-                mesh.num_tets()
-            );
-            Ok(())
+            write(&output, &io::read(&input, &MeshOptions::default())?, &msh)
         }
         MeshTask::Generate {
             shape,
@@ -122,47 +116,48 @@ pub fn run(task: MeshTask) -> Result<()> {
             msh,
         } => {
             let split = match split {
-                5 => Split::Five,
-                6 => Split::Six,
-                s => bail!("--split must be 5 or 6, got {s}"),
+                SplitArg::Five => Split::Five,
+                SplitArg::Six => Split::Six,
             };
             let cells = cells.unwrap_or(match shape {
                 Shape::Beam => [16, 4, 4],
                 Shape::Box => [4, 4, 4],
             });
+            // A beam of cubes along a unit length; a unit box.
             let size = size.unwrap_or(match shape {
-                Shape::Beam => [
-                    1.0,
-                    cells[1] as f64 / cells[0] as f64,
-                    cells[2] as f64 / cells[0] as f64,
-                ],
+                Shape::Beam => cells.map(|c| c as f64 / cells[0] as f64),
                 Shape::Box => [1.0; 3],
             });
-            let mesh = BoxGrid {
+            let grid = BoxGrid {
                 cells,
                 size,
                 origin: [0.0; 3],
                 split,
-            }
-            .build()
-            .context("invalid grid")?;
-            write(&out, &mesh, &msh)?;
-            println!(
-                "wrote {} ({} vertices, {} tets)",
-                out.display(),
-                mesh.num_vertices(),
-                mesh.num_tets()
-            );
-            Ok(())
+            };
+            write(&out, &grid.build().context("invalid grid")?, &msh)
         }
     }
 }
 
+/// Writes `mesh` by `path`'s extension and says so.
 fn write(path: &Path, mesh: &TetMesh, msh: &MshArgs) -> Result<()> {
     if path.extension().and_then(|e| e.to_str()) == Some("msh") {
-        io::write_msh(path, mesh, msh.format()?)?;
+        let version = match msh.msh_version {
+            VersionArg::V2_2 => MshVersion::V2_2,
+            VersionArg::V4_1 => MshVersion::V4_1,
+        };
+        io::write_msh(
+            path,
+            mesh,
+            MshFormat {
+                version,
+                binary: msh.binary,
+            },
+        )?;
     } else {
         io::write(path, mesh)?;
     }
+    let (v, t) = (mesh.num_vertices(), mesh.num_tets());
+    println!("wrote {} ({v} vertices, {t} tets)", path.display());
     Ok(())
 }

@@ -6,12 +6,20 @@ use std::path::Path;
 use std::sync::Once;
 
 use anyhow::{Context, Result, anyhow};
-use deform_learn::experiment::Series;
+use deform_learn::experiment::{Plot, Series};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font};
 
 static FONT: Once = Once::new();
+
+/// Pixels (PNG) or points (SVG).
+const SIZE: (u32, u32) = (800, 500);
+
+/// Eight distinguishable colours (Okabe-Ito), so a policy comparison does not repeat one.
+const COLORS: [u32; 8] = [
+    0x0072b2, 0xd55e00, 0x009e73, 0xcc79a7, 0x56b4e9, 0xe69f00, 0x000000, 0xf0e442,
+];
 
 fn register() {
     FONT.call_once(|| {
@@ -30,14 +38,8 @@ type Points = Vec<(String, Vec<(f64, f64)>)>;
 /// A line plot of named series against their index, written to `stem.svg` and `stem.png`
 /// (each atomically: drawn to a temporary file, then renamed); with `log`, of the series'
 /// base-10 logarithms. Nothing is written when no series has a point.
-pub fn plot(
-    stem: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[Series],
-    log: bool,
-) -> Result<()> {
+pub fn plot(stem: &Path, p: &Plot) -> Result<()> {
+    let (series, log) = (&p.series, p.log);
     let points: Points = series
         .iter()
         .map(|Series { name, values }| {
@@ -54,38 +56,33 @@ pub fn plot(
         return Ok(());
     }
     let y_desc = if log {
-        format!("log10 {y_label}")
+        format!("log10 {}", p.y_label)
     } else {
-        y_label.to_owned()
+        p.y_label.to_owned()
     };
     register();
-    let svg = stem.with_extension("svg");
-    let tmp = stem.with_extension("svg.tmp");
+    let labels = [p.title.as_str(), p.x_label, &y_desc];
+    let (svg, svg_tmp) = (stem.with_extension("svg"), stem.with_extension("svg.tmp"));
     draw(
-        SVGBackend::new(&tmp, (800, 500)).into_drawing_area(),
-        title,
-        x_label,
-        &y_desc,
+        SVGBackend::new(&svg_tmp, SIZE).into_drawing_area(),
+        labels,
         &points,
     )?;
-    std::fs::rename(&tmp, &svg).with_context(|| format!("writing {}", svg.display()))?;
-    let png = stem.with_extension("png");
-    let tmp = stem.with_extension("tmp.png");
+    let (png, png_tmp) = (stem.with_extension("png"), stem.with_extension("tmp.png"));
     draw(
-        BitMapBackend::new(&tmp, (800, 500)).into_drawing_area(),
-        title,
-        x_label,
-        &y_desc,
+        BitMapBackend::new(&png_tmp, SIZE).into_drawing_area(),
+        labels,
         &points,
     )?;
-    std::fs::rename(&tmp, &png).with_context(|| format!("writing {}", png.display()))
+    for (tmp, path) in [(svg_tmp, svg), (png_tmp, png)] {
+        std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
 }
 
 fn draw<DB: DrawingBackend>(
     root: DrawingArea<DB, Shift>,
-    title: &str,
-    x_label: &str,
-    y_desc: &str,
+    [title, x_label, y_desc]: [&str; 3],
     series: &Points,
 ) -> Result<()>
 where
@@ -117,19 +114,9 @@ where
         .y_desc(y_desc)
         .draw()
         .map_err(err)?;
-    // Eight distinguishable colours (Okabe-Ito), so a policy comparison does not repeat one.
-    let colors = [
-        RGBColor(0, 114, 178),
-        RGBColor(213, 94, 0),
-        RGBColor(0, 158, 115),
-        RGBColor(204, 121, 167),
-        RGBColor(86, 180, 233),
-        RGBColor(230, 159, 0),
-        RGBColor(0, 0, 0),
-        RGBColor(240, 228, 66),
-    ];
     for (k, (name, points)) in series.iter().enumerate() {
-        let color = colors[k % colors.len()];
+        let c = COLORS[k % COLORS.len()];
+        let color = RGBColor((c >> 16) as u8, (c >> 8) as u8, c as u8);
         chart
             .draw_series(LineSeries::new(
                 points.iter().copied(),

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use clap::Args;
 use deform_integrator::{Observer, Simulation, State, StepReport};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 /// Arguments of `simulate`.
 #[derive(Debug, Args)]
@@ -48,17 +48,7 @@ pub fn simulate(
         Some(n) => n,
         None => deform_integrator::Scene::load(scene_path)?.steps,
     };
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(total as u64)
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} {bar:30} {pos}/{len} steps  {msg}  [{elapsed_precise}, eta {eta}]",
-        )
-        .expect("a valid template"),
-    );
+    let bar = crate::experiment::bar(quiet, total as u64, "steps");
     let result = deform_integrator::simulate(scene_path, steps, out, &mut Bar(&bar));
     bar.finish_and_clear();
     Ok(result?)

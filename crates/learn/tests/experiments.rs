@@ -132,6 +132,41 @@ fn select_solver_reports_the_recorded_figures() {
 }
 
 #[test]
+fn select_solver_plots_every_case_from_its_rows() {
+    let report = report("select_solver");
+    let plots = report.plots();
+    let TaskReport::SelectSolver(r) = &report.task else {
+        panic!("task")
+    };
+    let stems: Vec<&str> = plots.iter().map(|p| p.stem.as_str()).collect();
+    let what = ["work", "newton", "choices"];
+    let want: Vec<String> = (0..r.cases.len())
+        .flat_map(|c| what.map(|w| format!("case{c}_{w}")))
+        .collect();
+    assert_eq!(stems, want);
+    for (case, plots) in r.cases.iter().zip(plots.chunks(3)) {
+        let [work, newton, choices] = plots else {
+            panic!("three plots per case")
+        };
+        assert!(work.log && !newton.log);
+        assert_eq!(work.series.len(), case.rows.len());
+        for ((row, w), n) in case.rows.iter().zip(&work.series).zip(&newton.series) {
+            let m = &row.measured;
+            same("work per step sums to work", w.values.iter().sum(), m.work);
+            assert_eq!(n.values.iter().sum::<f64>(), m.newton as f64);
+        }
+        let learned = case.learned().unwrap();
+        let values = &choices.series[0].values;
+        assert_eq!(values.len(), learned.measured.newton);
+        assert!(
+            values
+                .iter()
+                .all(|&i| i >= -1.0 && i < r.candidates.len() as f64)
+        );
+    }
+}
+
+#[test]
 fn the_story_reports_the_recorded_figures() {
     let TaskReport::TuneBackwardEuler(r) = report("tune_backward_euler").task else {
         panic!("task")

@@ -64,16 +64,23 @@ pub struct FitMaterialReport {
 }
 
 impl FitMaterialReport {
+    /// Row `i`'s relative errors in Young's modulus and Poisson's ratio against the truth.
+    pub fn errors(&self, i: usize) -> (f64, f64) {
+        let (truth, row) = (&self.rows[0], &self.rows[i]);
+        (
+            (row.young - truth.young).abs() / truth.young,
+            (row.poisson - truth.poisson).abs() / truth.poisson,
+        )
+    }
+
     /// The last estimate's relative error in Young's modulus.
     pub fn young_error(&self) -> f64 {
-        let (truth, last) = (&self.rows[0], &self.rows[self.rows.len() - 1]);
-        (last.young - truth.young).abs() / truth.young
+        self.errors(self.rows.len() - 1).0
     }
 
     /// The last estimate's relative error in Poisson's ratio.
     pub fn poisson_error(&self) -> f64 {
-        let (truth, last) = (&self.rows[0], &self.rows[self.rows.len() - 1]);
-        (last.poisson - truth.poisson).abs() / truth.poisson
+        self.errors(self.rows.len() - 1).1
     }
 
     /// Mean rollout error of the fitted parameters over the true parameters'.

@@ -36,7 +36,7 @@ use deform_integrator::Scene;
 use deform_integrator::scene::Built;
 
 pub use config::{Experiment, PolicyTune, SceneRun, Task};
-pub use report::{ExperimentReport, Series, TaskReport};
+pub use report::{ExperimentReport, Plot, Series, TaskReport};
 
 pub use crate::dataset::DatasetSpec;
 

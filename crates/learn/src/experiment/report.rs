@@ -7,10 +7,10 @@ use serde::{Deserialize, Serialize};
 
 use super::fit_material::FitMaterialReport;
 use super::select_model::SelectModelReport;
-use super::select_solver::Key;
-use super::select_solver::SelectSolverReport;
+use super::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
 use super::story::StoryReport;
 use super::tune_solver::TuneSolverReport;
+use crate::compare::Choice;
 use crate::dataset::DatasetSpec;
 
 /// A named sequence of values, one per step (or iteration): a line of a plot, a column of a
@@ -30,6 +30,59 @@ impl Series {
             name: name.into(),
             values,
         }
+    }
+}
+
+/// A line plot of a report: what to draw (values against their index), not how.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plot {
+    /// File stem in the results folder (`rollout_error`: `rollout_error.svg` and `.png`).
+    pub stem: String,
+    /// The title.
+    pub title: String,
+    /// The x axis' label.
+    pub x_label: &'static str,
+    /// The y axis' label (of the values, also with `log`).
+    pub y_label: &'static str,
+    /// Plot the values' base-10 logarithms (non-positive values left out).
+    pub log: bool,
+    /// The lines.
+    pub series: Vec<Series>,
+}
+
+impl Plot {
+    fn new(stem: impl Into<String>, title: impl Into<String>, axes: [&'static str; 2]) -> Self {
+        let [x_label, y_label] = axes;
+        let (stem, title) = (stem.into(), title.into());
+        let (log, series) = (false, Vec::new());
+        Self {
+            stem,
+            title,
+            x_label,
+            y_label,
+            log,
+            series,
+        }
+    }
+
+    fn log(mut self) -> Self {
+        self.log = true;
+        self
+    }
+
+    fn with(mut self, series: Vec<Series>) -> Self {
+        self.series = series;
+        self
+    }
+
+    /// `rollout_error`: RMS position error per step of each series.
+    fn rollouts(series: Vec<Series>) -> Self {
+        Self::new(
+            "rollout_error",
+            "test rollout RMS position error",
+            ["step", "m"],
+        )
+        .with(series)
     }
 }
 
@@ -75,6 +128,41 @@ pub enum TaskReport {
 }
 
 impl ExperimentReport {
+    /// The report's plots.
+    pub fn plots(&self) -> Vec<Plot> {
+        match &self.task {
+            TaskReport::FitMaterial(r) => {
+                let losses = r.output_error.iter().flat_map(|f| &f.iterations);
+                let loss = Series::new("loss", losses.map(|it| it.loss).collect());
+                vec![
+                    Plot::new(
+                        "loss",
+                        "output-error loss per iteration",
+                        ["iteration", "loss"],
+                    )
+                    .log()
+                    .with(vec![loss]),
+                    Plot::rollouts(r.rollouts.clone()),
+                ]
+            }
+            TaskReport::SelectModel(r) => vec![Plot::rollouts(r.rollouts.clone())],
+            TaskReport::SelectSolver(r) => r
+                .cases
+                .iter()
+                .enumerate()
+                .flat_map(|(i, c)| r.plots(i, c))
+                .collect(),
+            TaskReport::TuneBackwardEuler(r) => {
+                let errors = |i: usize, name: &str| Series::new(name, r.rows[i].errors.clone());
+                vec![Plot::rollouts(vec![
+                    errors(1, "untuned"),
+                    errors(2, "tuned"),
+                ])]
+            }
+            TaskReport::TuneSolver(_) => Vec::new(),
+        }
+    }
+
     /// The one-line summary of an experiment's headline figure.
     pub fn headline(&self) -> String {
         match &self.task {
@@ -103,17 +191,13 @@ impl ExperimentReport {
                 .cases
                 .last()
                 .and_then(|c| {
-                    let (l, bw, bs) = (
-                        c.learned()?,
-                        c.best_fixed(true, Key::Work)?,
-                        c.best_fixed(true, Key::SolverSeconds)?,
-                    );
+                    let l = c.learned()?;
                     Some(format!(
                         "{}: {} / best fixed without reuse {:.2}x work, {:.2}x solver time",
                         c.label,
                         l.contender.name(),
-                        l.measured.work / bw.measured.work,
-                        l.measured.seconds / bs.measured.seconds.max(f64::MIN_POSITIVE)
+                        c.ratio_to_best(l, true, Key::Work)?,
+                        c.ratio_to_best(l, true, Key::SolverSeconds)?
                     ))
                 })
                 .unwrap_or_default(),
@@ -127,5 +211,59 @@ impl ExperimentReport {
                 r.work_ratio()
             ),
         }
+    }
+}
+
+impl SelectSolverReport {
+    /// Case `ci`'s plots: work and Newton iterations per step of every policy, and the
+    /// learned policy's solver at every Newton iteration (its index among the candidates,
+    /// -1 for a fallback).
+    fn plots(&self, ci: usize, case: &CaseReport) -> Vec<Plot> {
+        let stem = |what: &str| format!("case{ci}_{what}");
+        let per_step = |f: fn(&(f64, usize)) -> f64| -> Vec<Series> {
+            let series = |row: &PolicyRow| {
+                Series::new(
+                    row.contender.name(),
+                    row.measured.per_step.iter().map(f).collect(),
+                )
+            };
+            case.rows.iter().map(series).collect()
+        };
+        let label = &case.label;
+        let mut plots = vec![
+            Plot::new(
+                stem("work"),
+                format!("work per step: {label}"),
+                ["step", "work"],
+            )
+            .log()
+            .with(per_step(|p| p.0)),
+            Plot::new(
+                stem("newton"),
+                format!("Newton iterations per step: {label}"),
+                ["step", "iterations"],
+            )
+            .with(per_step(|p| p.1 as f64)),
+        ];
+        if let Some(learned) = case.learned() {
+            let index = |c: &Choice| {
+                let found = self
+                    .candidates
+                    .iter()
+                    .position(|s| !c.fallback && *s == c.solver);
+                found.map_or(-1.0, |i| i as f64)
+            };
+            let choices = Series::new(
+                "learned",
+                learned.measured.choices.iter().map(index).collect(),
+            );
+            let title = format!("learned policy's solver per Newton iteration: {label}");
+            let axes = [
+                "Newton iteration (all steps)",
+                "candidate index (-1: fallback)",
+            ];
+            plots.push(Plot::new(stem("choices"), title, axes).with(vec![choices]));
+        }
+        plots
     }
 }

@@ -38,6 +38,9 @@ pub struct SelectModelReport {
     pub rollouts: Vec<Series>,
 }
 
+/// Rollout errors below this (m) are rounding noise.
+pub const ROUNDING_LEVEL: f64 = 1e-9;
+
 impl SelectModelReport {
     /// The single model with the least validation error.
     pub fn best_single(&self) -> Option<&ModelErrors> {
@@ -53,6 +56,13 @@ impl SelectModelReport {
     /// The ensemble's row.
     pub fn ensemble_errors(&self) -> Option<&ModelErrors> {
         self.models.iter().find(|m| m.member.is_none())
+    }
+
+    /// The ensemble's test error over the best single model's; `Some(None)` when both are
+    /// below [`ROUNDING_LEVEL`], where a ratio of two rounding noises would mislead.
+    pub fn ensemble_over_best(&self) -> Option<Option<f64>> {
+        let (best, ens) = (self.best_single()?.test, self.ensemble_errors()?.test);
+        Some((ens.max(best) >= ROUNDING_LEVEL).then(|| ens / best.max(f64::MIN_POSITIVE)))
     }
 }
 

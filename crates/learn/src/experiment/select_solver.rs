@@ -157,6 +157,9 @@ pub enum Key {
 }
 
 impl Key {
+    /// Every key, in report order.
+    pub const ALL: [Key; 3] = [Key::Work, Key::SolverSeconds, Key::StepSeconds];
+
     /// The row's value.
     pub fn of(self, m: &Measured) -> f64 {
         match self {
@@ -188,6 +191,22 @@ impl CaseReport {
             .filter(|r| r.contender.is_fixed() && r.within_accuracy())
             .filter(|r| !(without_reuse && r.contender.reuses_factor()))
             .min_by(|a, b| key.of(&a.measured).total_cmp(&key.of(&b.measured)))
+    }
+
+    /// `row`'s `key` over the best fixed candidate's (see [`Self::best_fixed`]).
+    pub fn ratio_to_best(&self, row: &PolicyRow, without_reuse: bool, key: Key) -> Option<f64> {
+        let best = self.best_fixed(without_reuse, key)?;
+        Some(key.of(&row.measured) / key.of(&best.measured).max(f64::MIN_POSITIVE))
+    }
+
+    /// What the learned policy's solver choice adds on top of its tuned Newton settings:
+    /// its work, solver time and step time over the direct solver's with the same
+    /// settings, when both ran.
+    pub fn solver_choice_alone(&self) -> Option<(&PolicyRow, &PolicyRow, [f64; 3])> {
+        let (l, d) = (self.learned()?, self.tuned_direct()?);
+        l.contender.settings()?;
+        let ratio = |k: Key| k.of(&l.measured) / k.of(&d.measured).max(f64::MIN_POSITIVE);
+        Some((l, d, Key::ALL.map(ratio)))
     }
 
     /// The last learned row (tuned when it ran).
