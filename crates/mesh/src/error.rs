@@ -53,6 +53,35 @@ pub enum MeshError {
         /// The absolute threshold the volume was compared with.
         threshold: f64,
     },
+    /// Two tetrahedra have the same four vertices.
+    #[error("element {element} has the same four vertices as element {first}")]
+    DuplicateElement {
+        /// The later element.
+        element: usize,
+        /// The earlier one.
+        first: usize,
+    },
+    /// Two tetrahedra share a face and lie on the same side of it, so they overlap.
+    #[error(
+        "elements {first} and {second} share the face {face:?} and lie on the same side of it: they overlap"
+    )]
+    OverlappingElements {
+        /// The smaller element index.
+        first: usize,
+        /// The larger one.
+        second: usize,
+        /// The shared face's vertices, sorted.
+        face: [usize; 3],
+    },
+    /// More than two tetrahedra share a face (rejected unless
+    /// [`crate::MeshOptions::allow_nonmanifold`]).
+    #[error("the face {face:?} is shared by {} elements ({elements:?}); a solid's face has at most two", elements.len())]
+    NonManifoldFace {
+        /// The face's vertices, sorted.
+        face: [usize; 3],
+        /// The elements sharing it, ascending.
+        elements: Vec<usize>,
+    },
     /// Vertices not used by any tetrahedron, with [`crate::Unreferenced::Error`].
     #[error("{count} vertices are not used by any element (first: {first})")]
     UnreferencedVertices {

@@ -6,6 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::error::MeshError;
+use crate::topology::check_conforming;
 
 /// What to do with vertices that no tetrahedron uses.
 ///
@@ -32,6 +33,10 @@ pub struct MeshOptions {
     pub degenerate_tolerance: f64,
     /// Policy for vertices that no element uses.
     pub unreferenced: Unreferenced,
+    /// Accept faces shared by more than two elements (a non-manifold mesh: touching solids,
+    /// or elements stacked on one another). Off by default, since a solid's face belongs to
+    /// at most two elements; duplicate and overlapping elements are always rejected.
+    pub allow_nonmanifold: bool,
 }
 
 impl Default for MeshOptions {
@@ -39,6 +44,7 @@ impl Default for MeshOptions {
         Self {
             degenerate_tolerance: 1e-10,
             unreferenced: Unreferenced::Drop,
+            allow_nonmanifold: false,
         }
     }
 }
@@ -201,6 +207,7 @@ impl TetMesh {
             dm_inv.push(inv);
             volumes.push(det / 6.0);
         }
+        check_conforming(&tets, options.allow_nonmanifold)?;
 
         Ok(Self {
             rest,

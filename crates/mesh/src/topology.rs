@@ -4,6 +4,7 @@
 //! Everything here is deterministic: outputs are sorted or in element order, never in hash order.
 
 use crate::TetMesh;
+use crate::error::MeshError;
 use crate::mesh::TET_EDGES;
 
 /// Local faces of a positively oriented tetrahedron, each ordered so that its right-hand
@@ -58,6 +59,67 @@ pub fn faces(mesh: &TetMesh) -> Faces {
     }
     out.interior.sort_unstable();
     out
+}
+
+/// Checks that positively oriented `tets` form a conforming solid: no two elements with the
+/// same four vertices, no two on the same side of a shared face, and (unless
+/// `allow_nonmanifold`) no face shared by more than two. Errors name the elements.
+pub(crate) fn check_conforming(
+    tets: &[[usize; 4]],
+    allow_nonmanifold: bool,
+) -> Result<(), MeshError> {
+    let mut sorted: Vec<([usize; 4], usize)> = tets
+        .iter()
+        .enumerate()
+        .map(|(e, t)| {
+            let mut k = *t;
+            k.sort_unstable();
+            (k, e)
+        })
+        .collect();
+    sorted.sort_unstable();
+    let duplicate = sorted.windows(2).filter(|w| w[0].0 == w[1].0);
+    if let Some(w) = duplicate.min_by_key(|w| w[1].1) {
+        return Err(MeshError::DuplicateElement {
+            element: w[1].1,
+            first: w[0].1,
+        });
+    }
+    // Each face with its side: the parity of its outward orientation against the sorted
+    // key. Two elements on opposite sides of a face see it with opposite orientations.
+    let mut keyed: Vec<([usize; 3], bool, usize)> = Vec::with_capacity(4 * tets.len());
+    for (e, t) in tets.iter().enumerate() {
+        for f in TET_FACES {
+            let [a, b, c] = [t[f[0]], t[f[1]], t[f[2]]];
+            let odd = ((a > b) as u8 + (a > c) as u8 + (b > c) as u8) % 2 == 1;
+            let mut key = [a, b, c];
+            key.sort_unstable();
+            keyed.push((key, odd, e));
+        }
+    }
+    keyed.sort_unstable();
+    for group in keyed.chunk_by(|x, y| x.0 == y.0) {
+        match group {
+            [(face, side_a, first), (_, side_b, second)] if side_a == side_b => {
+                let (first, second, face) = (*first, *second, *face);
+                return Err(MeshError::OverlappingElements {
+                    first,
+                    second,
+                    face,
+                });
+            }
+            [_, _, _, ..] if !allow_nonmanifold => {
+                let mut elements: Vec<usize> = group.iter().map(|g| g.2).collect();
+                elements.sort_unstable();
+                return Err(MeshError::NonManifoldFace {
+                    face: group[0].0,
+                    elements,
+                });
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 /// Outward-oriented boundary triangles, in element order.

@@ -418,3 +418,143 @@ fn tetgen_output_names_pair_up() {
     let back = io::read(&dir.path().join("slab.1.ele"), &Default::default()).unwrap();
     assert_eq!(back.num_vertices(), mesh.num_vertices());
 }
+
+/// Two tets on either side of the face 1-2-3 (z = 0), Gmsh 4.1 ASCII.
+const GOOD_41: &str = "$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 5 1 5\n3 1 0 5\n1\n2\n3\n4\n5\n0 0 0\n1 0 0\n0 1 0\n0 0 1\nNODE5\n$EndNodes\n$Elements\n1 2 1 2\n3 1 4 2\n1 1 2 3 4\n2 1 3 2 5\n$EndElements\n";
+
+fn msh41(node5: &str, elements: &str) -> String {
+    let good = GOOD_41.replace("NODE5", node5);
+    let start = good.find("$Elements\n").unwrap();
+    format!("{}$Elements\n{elements}$EndElements\n", &good[..start])
+}
+
+#[test]
+fn duplicate_overlapping_and_nonmanifold_elements_are_refused_naming_them() {
+    let good = GOOD_41.replace("NODE5", "0 0 -1");
+    let mesh = io::parse_msh(good.as_bytes(), Path::new("a.msh"))
+        .and_then(|raw| raw.into_mesh(Path::new("a.msh"), &MeshOptions::default()))
+        .unwrap();
+    assert_eq!(mesh.num_tets(), 2);
+    // The element block doubled (as a copy-paste would): the same four nodes again.
+    let doubled = msh41(
+        "0 0 -1",
+        "1 3 1 3\n3 1 4 3\n1 1 2 3 4\n2 1 3 2 5\n3 4 3 2 1\n",
+    );
+    let e = parse_err(&doubled);
+    assert!(
+        matches!(
+            e,
+            ReadError::Invalid {
+                error: MeshError::DuplicateElement {
+                    element: 2,
+                    first: 0
+                },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("file elements 1 and 3"), "{e}");
+    // The second tet folded onto the first's side of their shared face.
+    let e = parse_err(&msh41(
+        "0.2 0.2 0.5",
+        "1 2 1 2\n3 1 4 2\n1 1 2 3 4\n2 1 3 2 5\n",
+    ));
+    assert!(
+        matches!(
+            e,
+            ReadError::Invalid {
+                error: MeshError::OverlappingElements {
+                    first: 0,
+                    second: 1,
+                    face: [0, 1, 2]
+                },
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("file elements 1 and 2"), "{e}");
+    // Three tets on one face: refused by default, accepted when asked for.
+    let three = GOOD_41
+        .replace("NODE5", "0 0 -1\n0.3 0.3 2")
+        .replace(
+            "1 5 1 5\n3 1 0 5\n1\n2\n3\n4\n5\n",
+            "1 6 1 6\n3 1 0 6\n1\n2\n3\n4\n5\n6\n",
+        )
+        .replace("1 2 1 2\n3 1 4 2\n", "1 3 1 3\n3 1 4 3\n")
+        .replace("2 1 3 2 5\n", "2 1 3 2 5\n3 1 2 3 6\n");
+    let e = parse_err(&three);
+    assert!(
+        matches!(&e, ReadError::Invalid { error: MeshError::NonManifoldFace { face: [0, 1, 2], elements }, .. } if elements == &[0, 1, 2]),
+        "{e}"
+    );
+    assert!(e.to_string().contains("file elements 1, 2, 3"), "{e}");
+    let allow = MeshOptions {
+        allow_nonmanifold: true,
+        ..MeshOptions::default()
+    };
+    let raw = io::parse_msh(three.as_bytes(), Path::new("a.msh")).unwrap();
+    assert_eq!(
+        raw.into_mesh(Path::new("a.msh"), &allow)
+            .unwrap()
+            .num_tets(),
+        3
+    );
+}
+
+#[test]
+fn header_counts_must_match_what_follows() {
+    // Gmsh 4.1: the header's totals against the blocks.
+    let good = GOOD_41.replace("NODE5", "0 0 -1");
+    let e = parse_err(&good.replace("1 5 1 5\n", "1 6 1 6\n"));
+    assert!(
+        matches!(&e, ReadError::Parse { line: 5, expected, .. } if expected.contains("6 nodes (the header's total)")),
+        "{e}"
+    );
+    let e = parse_err(&good.replace("1 2 1 2\n", "1 1 1 2\n"));
+    assert!(
+        matches!(&e, ReadError::Parse { line: 19, found, .. } if found == "2 in the blocks"),
+        "{e}"
+    );
+    // TetGen: a header that undercounts would drop the rest.
+    let node = "5 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n5 0 0 -1\n";
+    let (np, ep) = (Path::new("a.node"), Path::new("a.ele"));
+    let e =
+        io::parse_tetgen(node.as_bytes(), b"1 4 0\n1 1 2 3 4\n2 1 3 2 5\n", np, ep).unwrap_err();
+    assert!(
+        matches!(&e, ReadError::Parse { path, line: 3, .. } if path == ep),
+        "{e}"
+    );
+    assert!(
+        e.to_string().contains("after the header's 1 tetrahedra"),
+        "{e}"
+    );
+    let e = io::parse_tetgen(
+        node.replace("5 3 0 0", "4 3 0 0").as_bytes(),
+        b"1 4 0\n1 1 2 3 4\n",
+        np,
+        ep,
+    );
+    assert!(matches!(&e, Err(ReadError::Parse { line: 6, .. })), "{e:?}");
+}
+
+#[test]
+fn non_tetrahedral_volume_elements_are_refused_not_dropped() {
+    // A hexahedron block beside the tets (4.1) and a prism (2.2): part of the volume.
+    let hex = msh41(
+        "0 0 -1",
+        "2 3 1 3\n3 1 4 2\n1 1 2 3 4\n2 1 3 2 5\n3 2 5 1\n3 1 2 3 4 5 1 2 3\n",
+    );
+    let e = parse_err(&hex);
+    assert!(
+        matches!(&e, ReadError::Unsupported { line: 23, what, .. } if what.contains("type 5")),
+        "{e}"
+    );
+    let prism = GOOD_22.replace("$Elements\n2\n", "$Elements\n3\n3 6 2 0 1 1 2 3 1 2 4\n");
+    let e = parse_err(&prism);
+    assert!(
+        matches!(&e, ReadError::Unsupported { line: 13, what, .. } if what.contains("type 6")),
+        "{e}"
+    );
+}

@@ -285,6 +285,34 @@ fn parse_names(c: &mut Cursor, b: &mut Builder) -> Parse<()> {
     c.keyword("$EndPhysicalNames")
 }
 
+/// Volume element types other than the linear and quadratic tetrahedron (whose corners
+/// deform keeps): a mesh with them would lose part of its volume without a word.
+fn other_volume(kind: i64) -> bool {
+    matches!(kind, 5..=7 | 12..=14 | 17..=19 | 29..=31 | 92 | 93)
+}
+
+/// The refusal of a non-tetrahedral volume element.
+fn not_a_tet(at: usize, kind: i64) -> ParseError {
+    ParseError::unsupported(
+        at,
+        format!(
+            "volume element of Gmsh type {kind} (hexahedron, prism, pyramid or high-order tetrahedron): deform simulates linear tetrahedra, so mesh the volume with tetrahedra"
+        ),
+    )
+}
+
+/// The header's total against the sum of the blocks (4.1).
+fn check_total(at: usize, header: usize, blocks: usize, what: &str) -> Parse<()> {
+    if header == blocks {
+        return Ok(());
+    }
+    Err(ParseError::expected(
+        at,
+        format!("{header} {what} (the header's total)"),
+        format!("{blocks} in the blocks"),
+    ))
+}
+
 /// Reads a count, either an ASCII token or a binary `size_t`.
 fn count(c: &mut Cursor, h: &Header, what: &str) -> Parse<u64> {
     if h.binary {
@@ -382,8 +410,10 @@ fn parse_nodes_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
 fn parse_nodes_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
     let blocks = count(c, h, "number of node blocks")?;
     let blocks = plausible(c, blocks, 4, "node blocks")?;
+    let total_at = c.offset();
     let n = count(c, h, "number of nodes")?;
     let n = plausible(c, n, 8, "nodes")?;
+    let mut in_blocks = 0usize;
     count(c, h, "minimum node tag")?;
     count(c, h, "maximum node tag")?;
     b.positions.reserve(n);
@@ -405,6 +435,7 @@ fn parse_nodes_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
         };
         let m = count(c, h, "nodes in block")?;
         let m = plausible(c, m, 8, "nodes in block")?;
+        in_blocks = in_blocks.saturating_add(m);
         let tags_at = c.offset();
         let mut tags = Vec::with_capacity(m);
         for _ in 0..m {
@@ -419,7 +450,7 @@ fn parse_nodes_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
             b.node(tag, p, at)?;
         }
     }
-    Ok(())
+    check_total(total_at, n, in_blocks, "nodes")
 }
 
 fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
@@ -447,6 +478,7 @@ fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
                     }
                     b.tet(tag, &nodes[..4], region(first_tag, at)?, at)?;
                 }
+                _ if other_volume(kind) => return Err(not_a_tet(at, kind)),
                 _ => {
                     c.line();
                 }
@@ -471,6 +503,9 @@ fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
         };
         let np = nodes_per_element(kind)
             .ok_or_else(|| ParseError::unsupported(at, format!("binary element type {kind}")))?;
+        if other_volume(kind) {
+            return Err(not_a_tet(at, kind));
+        }
         if follow == 0 || follow > n - read {
             return Err(ParseError::expected(
                 at,
@@ -507,20 +542,26 @@ fn parse_elements_22(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
 fn parse_elements_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
     let blocks = count(c, h, "number of element blocks")?;
     let blocks = plausible(c, blocks, 4, "element blocks")?;
+    let total_at = c.offset();
     let n = count(c, h, "number of elements")?;
-    plausible(c, n, 4, "elements")?;
+    let n = plausible(c, n, 4, "elements")?;
+    let mut in_blocks = 0usize;
     count(c, h, "minimum element tag")?;
     count(c, h, "maximum element tag")?;
     let mut nodes = Vec::new();
     for _ in 0..blocks {
-        int(c, h, "entity dimension")?;
+        let dim = int(c, h, "entity dimension")?;
         let entity = int(c, h, "entity tag")?;
         let at = c.offset();
         let kind = int(c, h, "element type")?;
         let m = count(c, h, "elements in block")?;
         let m = plausible(c, m, 4, "elements in block")?;
+        in_blocks = in_blocks.saturating_add(m);
         let reg = b.volume_physical.get(&entity).copied().unwrap_or(0);
         let keep = kind == TET4 || kind == TET10;
+        if dim == 3 && !keep && m > 0 {
+            return Err(not_a_tet(at, kind));
+        }
         match nodes_per_element(kind) {
             Some(np) => {
                 for _ in 0..m {
@@ -549,7 +590,7 @@ fn parse_elements_41(c: &mut Cursor, h: &Header, b: &mut Builder) -> Parse<()> {
             }
         }
     }
-    Ok(())
+    check_total(total_at, n, in_blocks, "elements")
 }
 
 /// Writes `mesh` as `.msh` in `format`. Regions become physical groups (4.1: one volume

@@ -146,6 +146,25 @@ impl RawMesh {
                     | MeshError::DegenerateElement { element, .. } => element_tags
                         .get(*element)
                         .map(|t| format!("file element {t}")),
+                    MeshError::DuplicateElement {
+                        element: b,
+                        first: a,
+                    }
+                    | MeshError::OverlappingElements {
+                        first: a,
+                        second: b,
+                        ..
+                    } => {
+                        let (a, b) = (element_tags.get(*a), element_tags.get(*b));
+                        a.zip(b).map(|(a, b)| format!("file elements {a} and {b}"))
+                    }
+                    MeshError::NonManifoldFace { elements, .. } => {
+                        let tags: Option<Vec<String>> = elements
+                            .iter()
+                            .map(|e| element_tags.get(*e).map(u64::to_string))
+                            .collect();
+                        tags.map(|t| format!("file elements {}", t.join(", ")))
+                    }
                     MeshError::NonFiniteCoordinate { vertex, .. } => {
                         node_tags.get(*vertex).map(|t| format!("file node {t}"))
                     }

@@ -12,7 +12,7 @@ use std::io::Write;
 use nalgebra::Vector3;
 
 use super::RawMesh;
-use super::cursor::{Cursor, Parse, ParseError};
+use super::cursor::{Cursor, Parse, ParseError, show};
 use crate::TetMesh;
 
 /// Parses a `.node` file: positions, and the index base (0 or 1).
@@ -71,7 +71,21 @@ pub(crate) fn parse_node(data: &[u8]) -> Parse<(Vec<Vector3<f64>>, u64)> {
             c.parse::<f64>("point attribute or marker")?;
         }
     }
+    end_after(&mut c, n, "points")?;
     Ok((positions, base))
+}
+
+/// Refuses lines after the header's count of records: a header that undercounts would
+/// otherwise drop the rest silently.
+fn end_after(c: &mut Cursor, n: usize, what: &str) -> Parse<()> {
+    match c.peek_token() {
+        None => Ok(()),
+        Some(t) => Err(ParseError::expected(
+            c.here(),
+            format!("end of file after the header's {n} {what}"),
+            show(t),
+        )),
+    }
 }
 
 /// Parses an `.ele` file against a point numbering starting at `base`.
@@ -137,6 +151,7 @@ pub(crate) fn parse_ele(data: &[u8], base: u64) -> Parse<Elements> {
         regions.push(region);
         ids.push(id);
     }
+    end_after(&mut c, n, "tetrahedra")?;
     Ok((tets, regions, ids))
 }
 
