@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use deform_assembly::MaterialField;
 use deform_materials::MaterialSpec;
 use deform_mesh::generate::BoxGrid;
+use deform_mesh::memory;
 use deform_mesh::select::Selector;
 use deform_mesh::{MeshOptions, TetMesh};
 use serde::{Deserialize, Serialize};
@@ -183,16 +184,30 @@ impl Scene {
             field: field.to_owned(),
             reason,
         };
+        // Refuse what cannot fit before allocating it, generated or read.
+        let fits = |vertices: usize, tets: usize| {
+            let needed = memory::simulation_lower_bound(vertices, tets);
+            memory::check_fits(needed).map_err(|reason| {
+                invalid(
+                    "mesh",
+                    format!("{vertices} vertices and {tets} tets: the simulation {reason}"),
+                )
+            })
+        };
         let mesh = match &self.mesh {
             MeshSource::File(file) => deform_mesh::io::read(file, &MeshOptions::default())
                 .map_err(|e| invalid("mesh", e.to_string()))?,
             MeshSource::Generate(grid) => {
+                fits(grid.num_vertices(), grid.num_tets())?;
                 grid.build().map_err(|e| invalid("mesh", e.to_string()))?
             }
-            MeshSource::Beam(n) => BoxGrid::beam(*n)
-                .build()
-                .map_err(|e| invalid("mesh", e.to_string()))?,
+            MeshSource::Beam(n) => {
+                let grid = BoxGrid::beam(*n);
+                fits(grid.num_vertices(), grid.num_tets())?;
+                grid.build().map_err(|e| invalid("mesh", e.to_string()))?
+            }
         };
+        fits(mesh.num_vertices(), mesh.num_tets())?;
         let model = self
             .material
             .build()

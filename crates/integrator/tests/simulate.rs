@@ -102,6 +102,44 @@ fn zero_steps_and_path_like_names_are_refused() {
 }
 
 #[test]
+fn a_scene_too_large_for_the_machine_is_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = scene(dir.path(), "(rel: 1e-8)");
+    // Beam(300): 648 million tets, 80 GB for the mesh alone; Beam(560), 1.4 TB, fits on no machine.
+    for huge in [
+        "Beam(2000)",
+        "Generate((cells: (100000, 100000, 100000), size: (1.0, 1.0, 1.0)))",
+    ] {
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("Beam(1)", huge);
+        std::fs::write(&path, text).unwrap();
+        let e = simulate(&path, None, Some(&dir.path().join("out")), &mut NoObserver).unwrap_err();
+        let text = e.to_string();
+        assert!(
+            matches!(&e, SimulateError::Scene(deform_integrator::SceneError::Invalid { field, .. }) if field == "mesh"),
+            "{huge}: {e}"
+        );
+        assert!(
+            text.contains("needs at least") && text.contains("GB available"),
+            "{text}"
+        );
+        std::fs::write(
+            &path,
+            std::fs::read_to_string(&path)
+                .unwrap()
+                .replace(huge, "Beam(1)"),
+        )
+        .unwrap();
+    }
+    // A generator called directly refuses too.
+    let e = deform_mesh::generate::BoxGrid::beam(560)
+        .build()
+        .unwrap_err();
+    assert!(e.to_string().contains("needs at least"), "{e}");
+}
+
+#[test]
 fn a_rerun_leaves_only_its_own_files() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");

@@ -89,8 +89,20 @@ impl BoxGrid {
 
     /// Number of vertices the grid will have.
     pub fn num_vertices(&self) -> usize {
-        let [nx, ny, nz] = self.cells;
-        (nx + 1) * (ny + 1) * (nz + 1)
+        // Saturating, so that a hostile grid is measured (and refused), not overflowed.
+        let [nx, ny, nz] = self.cells.map(|c| c.saturating_add(1));
+        nx.saturating_mul(ny).saturating_mul(nz)
+    }
+
+    /// Number of tetrahedra the grid will have.
+    pub fn num_tets(&self) -> usize {
+        let per_cell = match self.split {
+            Split::Five => 5,
+            Split::Six => 6,
+        };
+        self.cells
+            .iter()
+            .fold(per_cell, |n, c| n.saturating_mul(*c))
     }
 
     /// Builds the mesh.
@@ -136,6 +148,13 @@ impl BoxGrid {
                 reason: format!("grid {:?} is too large", self.cells),
             });
         }
+        let tets = self.num_tets();
+        crate::memory::check_fits(crate::memory::mesh_bytes(self.num_vertices(), tets)).map_err(
+            |reason| MeshError::InvalidParameter {
+                field: "cells",
+                reason: format!("a grid of {tets} tets {reason}"),
+            },
+        )?;
         let h = Vector3::new(
             self.size[0] / nx as f64,
             self.size[1] / ny as f64,

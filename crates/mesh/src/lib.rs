@@ -29,6 +29,7 @@ pub mod generate;
 mod info;
 pub mod io;
 mod mass;
+pub mod memory;
 mod mesh;
 pub mod quality;
 pub mod select;
