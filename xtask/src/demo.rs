@@ -56,8 +56,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
         std::fs::read_to_string(&file).with_context(|| format!("reading {}", file.display()))?;
     let demo: Demo = ron::from_str(&text).with_context(|| format!("{}", file.display()))?;
     let dir = file.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    let _lock = deform_fs::lock_folder(&args.out)?;
     let started = Instant::now();
     let mut rows = Vec::new();
     let mut report = String::from(

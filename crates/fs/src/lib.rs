@@ -1,7 +1,7 @@
 //! Crash-consistent file output: [`write_atomic`] writes into a temporary file beside the
 //! target, syncs it and renames it over the target, so a reader never sees a half-written
 //! file and a failed write leaves the old one in place. A leaf crate: every deform crate
-//! that writes files uses it.
+//! that writes files uses it. [`lock_folder`] gives one run at a time an output folder.
 //!
 //! ```
 //! let dir = tempfile::tempdir().unwrap();
@@ -59,6 +59,60 @@ pub fn write_atomic(
     })
 }
 
+/// An exclusive lock on an output folder, held until dropped. The operating system
+/// releases it when the process ends, so a killed run leaves no stale lock.
+#[derive(Debug)]
+pub struct FolderLock {
+    _file: fs::File,
+}
+
+/// A folder that could not be locked.
+#[derive(Debug, thiserror::Error)]
+pub enum LockError {
+    /// Another run holds the lock.
+    #[error("{}: another run is writing into this folder; wait for it to finish or choose another folder", dir.display())]
+    Busy {
+        /// The folder.
+        dir: PathBuf,
+    },
+    /// The folder or its lock file could not be created.
+    #[error("{}: {error}", path.display())]
+    Io {
+        /// The folder or lock file.
+        path: PathBuf,
+        /// The OS error.
+        error: std::io::Error,
+    },
+}
+
+/// Creates `dir` if needed and locks it for one run: a second run into the same folder,
+/// from this process or another, gets [`LockError::Busy`] instead of mixing its files
+/// with the first's. The lock is the hidden file `.deform.lock` in `dir`.
+///
+/// # Errors
+/// [`LockError`].
+pub fn lock_folder(dir: &Path) -> Result<FolderLock, LockError> {
+    let io = |path: &Path| {
+        let path = path.to_owned();
+        move |error| LockError::Io { path, error }
+    };
+    fs::create_dir_all(dir).map_err(io(dir))?;
+    let path = dir.join(".deform.lock");
+    let file = fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(io(&path))?;
+    match file.try_lock() {
+        Ok(()) => Ok(FolderLock { _file: file }),
+        Err(fs::TryLockError::WouldBlock) => Err(LockError::Busy {
+            dir: dir.to_owned(),
+        }),
+        Err(fs::TryLockError::Error(error)) => Err(LockError::Io { path, error }),
+    }
+}
+
 /// Writes `text` to `path` atomically.
 ///
 /// # Errors
@@ -70,6 +124,18 @@ pub fn write_text(path: &Path, text: &str) -> Result<(), WriteError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_locked_folder_refuses_a_second_run_until_the_first_ends() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("run");
+        let first = lock_folder(&out).unwrap();
+        let e = lock_folder(&out).unwrap_err();
+        assert!(matches!(&e, LockError::Busy { dir } if *dir == out), "{e}");
+        assert!(e.to_string().contains("another run"), "{e}");
+        drop(first);
+        lock_folder(&out).unwrap();
+    }
 
     #[test]
     fn a_failed_write_keeps_the_old_file_and_leaves_no_temporary() {

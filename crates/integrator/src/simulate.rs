@@ -32,6 +32,9 @@ pub enum SimulateError {
         /// Why.
         reason: String,
     },
+    /// Another run is writing into the output folder, or it cannot be created.
+    #[error(transparent)]
+    Locked(#[from] deform_fs::LockError),
     /// A step failed (the files hold the steps before it).
     #[error("{}: step {step} (t = {t:.4} s): {source}", scene.display())]
     Step {
@@ -87,7 +90,7 @@ pub fn simulate(
         || Path::new("target/deform/simulate").join(&scene.name),
         Path::to_path_buf,
     );
-    std::fs::create_dir_all(&out).map_err(|e| write_error(&out, e))?;
+    let _lock = deform_fs::lock_folder(&out)?;
     clear_previous_run(&out)?;
     let tracked = scene.tracked_vertex(&mesh);
     // Appended and flushed step by step, so it always matches the frames on disk.

@@ -140,6 +140,27 @@ fn a_scene_too_large_for_the_machine_is_refused_before_allocating() {
 }
 
 #[test]
+fn a_second_run_into_a_busy_folder_is_refused_and_touches_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let path = scene(dir.path(), "(rel: 1e-8)");
+    simulate(&path, Some(2), Some(&out), &mut NoObserver).unwrap();
+    let before = std::fs::read_to_string(out.join("steps.csv")).unwrap();
+    let first = deform_fs::lock_folder(&out).unwrap();
+    let e = simulate(&path, Some(1), Some(&out), &mut NoObserver).unwrap_err();
+    assert!(
+        matches!(e, SimulateError::Locked(deform_fs::LockError::Busy { .. })),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("steps.csv")).unwrap(),
+        before
+    );
+    drop(first);
+    simulate(&path, Some(1), Some(&out), &mut NoObserver).unwrap();
+}
+
+#[test]
 fn a_rerun_leaves_only_its_own_files() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");

@@ -42,6 +42,9 @@ pub enum LearnError {
     /// A scene.
     #[error(transparent)]
     Scene(#[from] SceneError),
+    /// Another run is writing into the results folder, or it cannot be created.
+    #[error(transparent)]
+    Locked(#[from] deform_fs::LockError),
     /// A dataset.
     #[error(transparent)]
     Dataset(#[from] DatasetError),

@@ -141,12 +141,8 @@ pub fn run(
 ) -> Result<ExperimentReport, LearnError> {
     let started = Instant::now();
     let base = Scene::load(&experiment.scene)?;
-    if let Some(out) = out {
-        std::fs::create_dir_all(out).map_err(|source| LearnError::Io {
-            path: out.to_path_buf(),
-            source,
-        })?;
-    }
+    // One run at a time per results folder.
+    let _lock = out.map(deform_fs::lock_folder).transpose()?;
     let spec = &experiment.dataset;
     observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
     let mut data = dataset::generate(&base, &experiment.scene, spec, |_, _| observer.advance(1))?;
