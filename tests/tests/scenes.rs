@@ -90,3 +90,46 @@ fn bad_scenes_name_the_file_and_field() {
     assert!(e.contains("missing.msh"), "{e}");
     assert!(Scene::load(Path::new("/nonexistent/scene.ron")).is_err());
 }
+
+#[test]
+fn every_value_is_refused_at_load_before_any_mesh_is_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.ron");
+    let base = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e6, nu: 0.4)), density: 1000.0, steps: 1"#;
+    for (extra, field) in [
+        (", integrator: (dt: NaN)", "integrator"),
+        (", integrator: (max_retries: 1000)", "integrator"),
+        (
+            ", policy: Fixed(Pcg(preconditioner: Jacobi, tolerance: (rel: -1.0)))",
+            "policy",
+        ),
+        (
+            ", constraints: [(select: Indices([0]), motion: Translate(velocity: (NaN, 0.0, 0.0)))]",
+            "constraints[0].motion",
+        ),
+        (", initial: (velocity: (inf, 0.0, 0.0))", "initial"),
+        (", initial: (scale: Some((0.0, 1.0, 1.0)))", "initial.scale"),
+        (", output: (track: Some((NaN, 0.0, 0.0)))", "output.track"),
+    ] {
+        std::fs::write(&path, format!("{base}{extra})")).unwrap();
+        match Scene::load(&path) {
+            Err(SceneError::Invalid {
+                field: f, path: p, ..
+            }) => {
+                assert_eq!(
+                    (f.as_str(), p.as_path()),
+                    (field, path.as_path()),
+                    "{extra}"
+                )
+            }
+            other => panic!("{extra}: expected an Invalid error naming {field}, got {other:?}"),
+        }
+    }
+    // A generated mesh too large for any machine is refused at load, before it is built.
+    std::fs::write(&path, format!("{})", base.replace("Beam(1)", "Beam(560)"))).unwrap();
+    let e = Scene::load(&path).unwrap_err();
+    assert!(
+        matches!(&e, SceneError::Invalid { field, .. } if field == "mesh"),
+        "{e}"
+    );
+}

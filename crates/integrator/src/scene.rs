@@ -142,6 +142,16 @@ pub enum SceneError {
     },
 }
 
+/// Refuses a simulation of `vertices` and `tets` that cannot fit in memory.
+fn fits(origin: &Path, vertices: usize, tets: usize) -> Result<(), SceneError> {
+    let needed = memory::simulation_lower_bound(vertices, tets);
+    memory::check_fits(needed).map_err(|reason| SceneError::Invalid {
+        path: origin.to_owned(),
+        field: "mesh".into(),
+        reason: format!("{vertices} vertices and {tets} tets: the simulation {reason}"),
+    })
+}
+
 /// A scene turned into an integrator, its mesh and initial state.
 pub struct Built {
     /// The mesh.
@@ -153,7 +163,7 @@ pub struct Built {
 }
 
 impl Scene {
-    /// Reads and validates a scene file.
+    /// Reads a scene file and validates its values ([`Scene::validate`]).
     ///
     /// # Errors
     /// [`SceneError`] naming the file (and line, column or field).
@@ -171,7 +181,80 @@ impl Scene {
         {
             *file = path.parent().unwrap_or(Path::new(".")).join(&*file);
         }
+        scene.validate(path)?;
         Ok(scene)
+    }
+
+    /// Checks every value that does not need the mesh, naming the field: material,
+    /// density, time stepping, policy, the constraints' motions, initial conditions, steps,
+    /// name and output. [`Scene::load`] and [`Scene::build`] call it, so a bad value is
+    /// refused before anything is allocated. `origin` names the scene in errors.
+    ///
+    /// # Errors
+    /// [`SceneError::Invalid`] naming the field.
+    pub fn validate(&self, origin: &Path) -> Result<(), SceneError> {
+        let invalid = |field: &str, reason: String| {
+            let (path, field) = (origin.to_owned(), field.to_owned());
+            Err(SceneError::Invalid {
+                path,
+                field,
+                reason,
+            })
+        };
+        if let Err(e) = self.material.build() {
+            return invalid("material", e.to_string());
+        }
+        if !(self.density.is_finite() && self.density > 0.0) {
+            return invalid(
+                "density",
+                format!("{} must be finite and > 0", self.density),
+            );
+        }
+        if let Err(e) = self.integrator.validate() {
+            return invalid("integrator", e.to_string());
+        }
+        if let Err(e) = self.policy.build() {
+            return invalid("policy", e.to_string());
+        }
+        for (i, c) in self.constraints.iter().enumerate() {
+            if let Err(reason) = c.motion.validate() {
+                return invalid(&format!("constraints[{i}].motion"), reason);
+            }
+        }
+        let finite = |v: &[f64; 3]| v.iter().all(|x| x.is_finite());
+        let init = &self.initial;
+        if !finite(&init.velocity) || !finite(&init.angular_velocity) {
+            return invalid("initial", "velocities must be finite".into());
+        }
+        if let Some(s) = init.scale
+            && !s.iter().all(|x| x.is_finite() && *x > 0.0)
+        {
+            return invalid("initial.scale", format!("{s:?} must be finite and > 0"));
+        }
+        if self.steps == 0 {
+            return invalid("steps", "must be at least 1".into());
+        }
+        // The name becomes a results folder: a plain file name only.
+        let plain = Path::new(&self.name).file_name() == Some(std::ffi::OsStr::new(&self.name));
+        if !plain || self.name.contains(['/', '\\']) {
+            let name = &self.name;
+            return invalid(
+                "name",
+                format!("{name:?} must be a plain file name (it names the results folder)"),
+            );
+        }
+        if self.output.track.is_some_and(|t| !finite(&t)) {
+            return invalid("output.track", "must be finite".into());
+        }
+        // Refuse a generated mesh that cannot fit before allocating it.
+        match &self.mesh {
+            MeshSource::File(_) => Ok(()),
+            MeshSource::Generate(grid) => fits(origin, grid.num_vertices(), grid.num_tets()),
+            MeshSource::Beam(n) => {
+                let grid = BoxGrid::beam(*n);
+                fits(origin, grid.num_vertices(), grid.num_tets())
+            }
+        }
     }
 
     /// Builds the mesh, integrator and initial state. `origin` names the scene in errors.
@@ -179,45 +262,28 @@ impl Scene {
     /// # Errors
     /// [`SceneError::Invalid`] naming the field.
     pub fn build(&self, origin: &Path) -> Result<Built, SceneError> {
+        self.validate(origin)?;
         let invalid = |field: &str, reason: String| SceneError::Invalid {
             path: origin.to_owned(),
             field: field.to_owned(),
             reason,
         };
-        // Refuse what cannot fit before allocating it, generated or read.
-        let fits = |vertices: usize, tets: usize| {
-            let needed = memory::simulation_lower_bound(vertices, tets);
-            memory::check_fits(needed).map_err(|reason| {
-                invalid(
-                    "mesh",
-                    format!("{vertices} vertices and {tets} tets: the simulation {reason}"),
-                )
-            })
-        };
         let mesh = match &self.mesh {
             MeshSource::File(file) => deform_mesh::io::read(file, &MeshOptions::default())
                 .map_err(|e| invalid("mesh", e.to_string()))?,
             MeshSource::Generate(grid) => {
-                fits(grid.num_vertices(), grid.num_tets())?;
                 grid.build().map_err(|e| invalid("mesh", e.to_string()))?
             }
-            MeshSource::Beam(n) => {
-                let grid = BoxGrid::beam(*n);
-                fits(grid.num_vertices(), grid.num_tets())?;
-                grid.build().map_err(|e| invalid("mesh", e.to_string()))?
-            }
+            MeshSource::Beam(n) => BoxGrid::beam(*n)
+                .build()
+                .map_err(|e| invalid("mesh", e.to_string()))?,
         };
-        fits(mesh.num_vertices(), mesh.num_tets())?;
+        // A file's size is known only now; generated meshes were measured by `validate`.
+        fits(origin, mesh.num_vertices(), mesh.num_tets())?;
         let model = self
             .material
             .build()
             .map_err(|e| invalid("material", e.to_string()))?;
-        if !(self.density.is_finite() && self.density > 0.0) {
-            return Err(invalid(
-                "density",
-                format!("{} must be finite and > 0", self.density),
-            ));
-        }
         let mut constraints = Vec::new();
         for (i, c) in self.constraints.iter().enumerate() {
             let vertices = c
@@ -239,25 +305,6 @@ impl Scene {
             .policy
             .build()
             .map_err(|e| invalid("policy", e.to_string()))?;
-        if self.steps == 0 {
-            return Err(invalid("steps", "must be at least 1".into()));
-        }
-        // The name becomes a results folder: a plain file name only.
-        let plain = Path::new(&self.name).file_name() == Some(std::ffi::OsStr::new(&self.name));
-        if !plain || self.name.contains(['/', '\\']) {
-            return Err(invalid(
-                "name",
-                format!(
-                    "{:?} must be a plain file name (it names the results folder)",
-                    self.name
-                ),
-            ));
-        }
-        if let Some(t) = self.output.track
-            && !t.iter().all(|c| c.is_finite())
-        {
-            return Err(invalid("output.track", "must be finite".into()));
-        }
         let mut integrator = Integrator::builder(&mesh, MaterialField::Uniform(model))
             .density(self.density)
             .constraints(constraints)
