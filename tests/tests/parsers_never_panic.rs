@@ -1,5 +1,6 @@
-//! Every mesh parser, fed random and mutated bytes of real files, returns `Ok` or a typed
-//! error and never panics (the `cargo fuzz` targets in `fuzz/` do the same at scale).
+//! Every parser of user input (meshes, scenes, experiments, `.npy` arrays), fed random and
+//! mutated bytes of real files, returns `Ok` or a typed error and never panics (the
+//! `cargo fuzz` targets in `fuzz/` do the same at scale).
 
 use std::path::Path;
 
@@ -134,4 +135,69 @@ proptest! {
         check_tetgen(&node, &ele);
         check_tetgen(b"4 3 0 0\n1 0 0 0\n2 1 0 0\n3 0 1 0\n4 0 0 1\n", &ele);
     }
+}
+
+/// Every bundled file of `folder` (scenes or experiments).
+fn ron_files(folder: &str) -> Vec<Vec<u8>> {
+    let mut files: Vec<_> = std::fs::read_dir(asset(folder))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "ron"))
+        .collect();
+    files.sort();
+    files.iter().map(|p| std::fs::read(p).unwrap()).collect()
+}
+
+/// A valid `.npy` of shape (3, 2, 3).
+fn npy_file() -> Vec<u8> {
+    let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (3, 2, 3), }";
+    let header = format!("{header:<117}\n");
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((header.len() as u16).to_le_bytes());
+    bytes.extend(header.as_bytes());
+    for i in 0..18 {
+        bytes.extend((i as f64).to_le_bytes());
+    }
+    bytes
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(256))]
+
+    #[test]
+    fn scene_parser_survives_mutated_bundled_scenes(file in any::<prop::sample::Index>(), muts in prop::collection::vec(mutation(), 1..4)) {
+        let files = ron_files("scenes");
+        let bytes = muts.iter().fold(files[file.index(files.len())].clone(), apply);
+        let _ = deform_integrator::Scene::parse(&String::from_utf8_lossy(&bytes), Path::new("f.ron"));
+    }
+
+    #[test]
+    fn experiment_parser_survives_mutated_bundled_experiments(file in any::<prop::sample::Index>(), muts in prop::collection::vec(mutation(), 1..4)) {
+        let files = ron_files("experiments");
+        let bytes = muts.iter().fold(files[file.index(files.len())].clone(), apply);
+        let text = String::from_utf8_lossy(&bytes);
+        let _ = deform_learn::experiment::Experiment::parse(&text, Path::new("f.ron"));
+    }
+
+    #[test]
+    fn npy_parser_survives_mutated_arrays(muts in prop::collection::vec(mutation(), 1..4)) {
+        let bytes = muts.iter().fold(npy_file(), apply);
+        let _ = deform_learn::npy::parse(&bytes);
+    }
+}
+
+#[test]
+fn the_unmutated_files_parse() {
+    for (i, f) in ron_files("scenes").iter().enumerate() {
+        let text = String::from_utf8_lossy(f);
+        deform_integrator::Scene::parse(&text, Path::new("f.ron"))
+            .unwrap_or_else(|e| panic!("scene {i}: {e}"));
+    }
+    for (i, f) in ron_files("experiments").iter().enumerate() {
+        let text = String::from_utf8_lossy(f);
+        deform_learn::experiment::Experiment::parse(&text, Path::new("f.ron"))
+            .unwrap_or_else(|e| panic!("experiment {i}: {e}"));
+    }
+    let a = deform_learn::npy::parse(&npy_file()).unwrap();
+    assert_eq!(a.shape, vec![3, 2, 3]);
 }

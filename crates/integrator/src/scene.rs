@@ -163,6 +163,20 @@ pub struct Built {
 }
 
 impl Scene {
+    /// Parses scene text and validates its values ([`Scene::validate`]); `path` names it in
+    /// errors. Relative mesh paths stay as written.
+    ///
+    /// # Errors
+    /// [`SceneError::Parse`] (with line and column) or [`SceneError::Invalid`].
+    pub fn parse(text: &str, path: &Path) -> Result<Self, SceneError> {
+        let scene: Scene = ron::from_str(text).map_err(|e| SceneError::Parse {
+            path: path.to_owned(),
+            error: e.to_string(),
+        })?;
+        scene.validate(path)?;
+        Ok(scene)
+    }
+
     /// Reads a scene file and validates its values ([`Scene::validate`]).
     ///
     /// # Errors
@@ -172,10 +186,7 @@ impl Scene {
             path: path.to_owned(),
             error,
         })?;
-        let mut scene: Scene = ron::from_str(&text).map_err(|e| SceneError::Parse {
-            path: path.to_owned(),
-            error: e.to_string(),
-        })?;
+        let mut scene = Self::parse(&text, path)?;
         if let MeshSource::File(file) = &mut scene.mesh
             && file.is_relative()
         {

@@ -209,6 +209,25 @@ pub struct Experiment {
 }
 
 impl Experiment {
+    /// Parses experiment text and validates it; `path` names it in errors. Scene paths
+    /// stay as written.
+    ///
+    /// # Errors
+    /// [`LearnError::Parse`] (with line and column) or [`LearnError::Config`] naming the
+    /// field.
+    pub fn parse(text: &str, path: &Path) -> Result<Self, LearnError> {
+        let e: Experiment = ron::from_str(text).map_err(|e| LearnError::Parse {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        e.validate().map_err(|(field, reason)| LearnError::Config {
+            path: path.to_path_buf(),
+            field: field.to_owned(),
+            reason,
+        })?;
+        Ok(e)
+    }
+
     /// Reads an experiment file; scene paths are made relative to its directory.
     ///
     /// # Errors
@@ -219,10 +238,7 @@ impl Experiment {
             path: path.to_path_buf(),
             source,
         })?;
-        let mut e: Experiment = ron::from_str(&text).map_err(|e| LearnError::Parse {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })?;
+        let mut e = Self::parse(&text, path)?;
         let dir = path.parent().unwrap_or(Path::new("."));
         if e.scene.is_relative() {
             e.scene = dir.join(&e.scene);
@@ -241,11 +257,6 @@ impl Experiment {
                 }
             }
         }
-        e.validate().map_err(|(field, reason)| LearnError::Config {
-            path: path.to_path_buf(),
-            field: field.to_owned(),
-            reason,
-        })?;
         Ok(e)
     }
 
