@@ -113,6 +113,37 @@ pub fn lock_folder(dir: &Path) -> Result<FolderLock, LockError> {
     }
 }
 
+/// Starts a run in `dir` by removing what an earlier run left there: every entry whose name
+/// `ours(name, is_dir)` claims (directories with their contents), and the stale temporaries
+/// of killed atomic writes (`.NAME.tmpPID`). Other files are left alone. Take
+/// [`lock_folder`] first, so no running writer is cleared away.
+///
+/// # Errors
+/// [`WriteError`] naming the entry that could not be removed.
+pub fn clear_previous_run(dir: &Path, ours: impl Fn(&str, bool) -> bool) -> Result<(), WriteError> {
+    let fail = |path: &Path| {
+        let path = path.to_owned();
+        move |error| WriteError { path, error }
+    };
+    for entry in fs::read_dir(dir).map_err(fail(dir))?.flatten() {
+        let (name, path) = (
+            entry.file_name().to_string_lossy().into_owned(),
+            entry.path(),
+        );
+        let is_dir = path.is_dir();
+        let temporary = !is_dir && name.starts_with('.') && name.contains(".tmp");
+        if temporary || (ours(&name, is_dir) && name != ".deform.lock") {
+            let removed = if is_dir {
+                fs::remove_dir_all(&path)
+            } else {
+                fs::remove_file(&path)
+            };
+            removed.map_err(fail(&path))?;
+        }
+    }
+    Ok(())
+}
+
 /// Writes `text` to `path` atomically.
 ///
 /// # Errors
@@ -124,6 +155,28 @@ pub fn write_text(path: &Path, text: &str) -> Result<(), WriteError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn clearing_removes_what_the_predicate_claims_and_stale_temporaries_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        for f in ["old.csv", "notes.txt", ".old.csv.tmp123"] {
+            std::fs::write(d.join(f), "x").unwrap();
+        }
+        std::fs::create_dir_all(d.join("frames/base")).unwrap();
+        std::fs::write(d.join("frames/base/a.vtu"), "x").unwrap();
+        let _lock = lock_folder(d).unwrap();
+        clear_previous_run(d, |name, is_dir| {
+            name.ends_with(".csv") || (is_dir && name == "frames")
+        })
+        .unwrap();
+        let mut left: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(left, [".deform.lock", "notes.txt"]);
+    }
 
     #[test]
     fn a_locked_folder_refuses_a_second_run_until_the_first_ends() {

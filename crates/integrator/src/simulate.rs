@@ -158,18 +158,13 @@ pub fn simulate(
 /// Removes what an earlier run left in `out` (frames, series, CSV, summary, and the
 /// temporaries of atomic writes a killed run left behind), so the folder only ever holds
 /// one run's files.
+/// Removes the previous run's frames, series, CSV and summary.
 fn clear_previous_run(out: &Path) -> Result<(), SimulateError> {
-    let entries = std::fs::read_dir(out).map_err(|e| write_error(out, e))?;
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let ours = (name.starts_with("frame_") && name.ends_with(".vtu"))
-            || ["series.pvd", "steps.csv", "summary.txt"].contains(&name.as_str())
-            || (name.starts_with('.') && name.contains(".tmp"));
-        if ours && entry.path().is_file() {
-            std::fs::remove_file(entry.path()).map_err(|e| write_error(&entry.path(), e))?;
-        }
-    }
-    Ok(())
+    deform_fs::clear_previous_run(out, |name, is_dir| {
+        let frame = name.starts_with("frame_") && name.ends_with(".vtu");
+        !is_dir && (frame || ["series.pvd", "steps.csv", "summary.txt"].contains(&name))
+    })
+    .map_err(fs_error)
 }
 
 fn write_error(path: &Path, e: impl std::fmt::Display) -> SimulateError {

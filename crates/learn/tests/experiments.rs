@@ -331,3 +331,33 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
     .unwrap();
     Experiment::load(&path).unwrap();
 }
+
+#[test]
+fn a_rerun_replaces_the_previous_runs_files_and_keeps_the_users() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let mut e = Experiment::load(&data("select_solver.ron")).unwrap();
+    let first = run(&e, Some(&out), &mut NoProgress).unwrap();
+    // What a renderer adds: report.md and the plots the report describes.
+    std::fs::write(out.join("report.md"), "# old").unwrap();
+    for p in first.plots() {
+        std::fs::write(out.join(format!("{}.svg", p.stem)), "<svg/>").unwrap();
+    }
+    std::fs::write(out.join("notes.csv"), "mine").unwrap();
+    assert!(out.join("case1_work.svg").exists() && out.join("solver_data").is_dir());
+    // The rerun has one case fewer: the held-out case's plots must not linger.
+    let deform_learn::experiment::Task::SelectSolver { held_out, .. } = &mut e.task else {
+        panic!("task")
+    };
+    held_out.clear();
+    let second = run(&e, Some(&out), &mut NoProgress).unwrap();
+    assert!(!out.join("case1_work.svg").exists());
+    assert!(!out.join("report.md").exists());
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.csv")).unwrap(),
+        "mine"
+    );
+    for f in &second.files {
+        assert!(out.join(f).exists(), "{}", f.display());
+    }
+}

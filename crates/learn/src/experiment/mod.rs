@@ -127,8 +127,46 @@ impl Context<'_> {
     }
 }
 
+/// The list of what a run wrote in its results folder (top-level names, one per line),
+/// which the next run into the folder removes first. Listing, rather than matching names,
+/// leaves a user's own files alone even in a folder like `.`.
+const MANIFEST: &str = ".deform-run";
+
+/// The data folders a run may leave half-written: listed before the run starts, so a killed
+/// run's are cleared too.
+const DATA_FOLDERS: [&str; 3] = ["dataset", "solver_data", "frames"];
+
+/// Removes what the previous run listed, then lists the data folders this one may write.
+fn clear_previous(out: &Path) -> Result<(), LearnError> {
+    let listed = std::fs::read_to_string(out.join(MANIFEST)).unwrap_or_default();
+    let listed: Vec<&str> = listed.lines().collect();
+    deform_fs::clear_previous_run(out, |name, _| listed.contains(&name)).map_err(io_error)?;
+    deform_fs::write_text(&out.join(MANIFEST), &DATA_FOLDERS.join("\n")).map_err(io_error)
+}
+
+/// Lists what `report`'s run wrote and what its renderer writes (`report.md`, the plots).
+fn write_manifest(out: &Path, report: &ExperimentReport) -> Result<(), LearnError> {
+    let mut names: std::collections::BTreeSet<String> = DATA_FOLDERS.map(String::from).into();
+    let top = report.files.iter().filter_map(|f| f.components().next());
+    names.extend(top.map(|c| c.as_os_str().to_string_lossy().into_owned()));
+    names.insert("report.md".into());
+    for p in report.plots() {
+        names.extend(["svg", "png"].map(|x| format!("{}.{x}", p.stem)));
+    }
+    let text: Vec<String> = names.into_iter().collect();
+    deform_fs::write_text(&out.join(MANIFEST), &text.join("\n")).map_err(io_error)
+}
+
+fn io_error(e: deform_fs::WriteError) -> LearnError {
+    LearnError::Io {
+        path: e.path,
+        source: e.error,
+    }
+}
+
 /// Runs an experiment: makes its dataset (saved in `out/dataset` when `out` is given),
-/// runs its task and returns the report. Files the task writes (datasets, solver data,
+/// runs its task and returns the report. The folder is locked for the run and cleared of
+/// what an earlier run listed in it (other files stay). Files the task writes (datasets, solver data,
 /// ParaView frames) go to `out` and are listed in [`ExperimentReport::files`]; with `out`
 /// `None` nothing is written.
 ///
@@ -141,8 +179,11 @@ pub fn run(
 ) -> Result<ExperimentReport, LearnError> {
     let started = Instant::now();
     let base = Scene::load(&experiment.scene)?;
-    // One run at a time per results folder.
+    // One run at a time per results folder, which then holds only this run's files.
     let _lock = out.map(deform_fs::lock_folder).transpose()?;
+    if let Some(out) = out {
+        clear_previous(out)?;
+    }
     let spec = &experiment.dataset;
     observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
     let mut data = dataset::generate(&base, &experiment.scene, spec, |_, _| observer.advance(1))?;
@@ -202,12 +243,10 @@ pub fn run(
     };
     if let Some(out) = out {
         for (name, text) in report.csv_files() {
-            deform_fs::write_text(&out.join(&name), &text).map_err(|e| LearnError::Io {
-                path: e.path,
-                source: e.error,
-            })?;
+            deform_fs::write_text(&out.join(&name), &text).map_err(io_error)?;
             report.files.push(name.into());
         }
+        write_manifest(out, &report)?;
     }
     report.seconds = started.elapsed().as_secs_f64();
     Ok(report)
