@@ -10,7 +10,10 @@
 //! - [`generate`]: deterministic box and beam generators (5- or 6-tet cube splits),
 //! - [`quality`]: dihedral angles, aspect ratios, volume range, inverted count,
 //! - [`io`]: Gmsh `.msh` (2.2 and 4.1, ASCII and binary), TetGen `.node`/`.ele`,
-//!   VTK `.vtu` + `.pvd` for ParaView, and surface `.obj`, all written atomically.
+//!   VTK `.vtu` + `.pvd` for ParaView, and surface `.obj`, all written atomically,
+//! - [`embed`]: points located in a mesh (element and barycentric weights), to carry a fine
+//!   model's states onto a coarse mesh,
+//! - [`memory`]: what a mesh and its simulation need, refused when the machine lacks it.
 //!
 //! ```
 //! use deform_mesh::generate::{BoxGrid, Split};
@@ -24,6 +27,7 @@
 //! # let _ = Split::Six;
 //! ```
 
+pub mod embed;
 pub mod error;
 pub mod generate;
 mod info;

@@ -325,3 +325,52 @@ fn the_summary_counts_the_beam() {
         "{text}"
     );
 }
+
+#[test]
+fn nested_grids_embed_exactly_and_outside_points_go_to_the_nearest_element() {
+    use deform_mesh::embed::Embedding;
+    for (fine_n, coarse_n) in [(4, 2), (4, 1), (8, 2)] {
+        let fine = BoxGrid::beam(fine_n).build().unwrap();
+        let coarse = BoxGrid::beam(coarse_n).build().unwrap();
+        let e = Embedding::locate(&fine, coarse.rest_positions());
+        assert!(e.outside.is_empty() && e.max_distance == 0.0);
+        // Every coarse vertex is a fine vertex: its weights pick that vertex alone.
+        for (i, (t, w)) in e.element.iter().zip(&e.weights).enumerate() {
+            let k = (0..4).max_by(|a, b| w[*a].total_cmp(&w[*b])).unwrap();
+            assert!((w[k] - 1.0).abs() < 1e-12, "vertex {i}: {w:?}");
+            let v = fine.tets()[*t][k];
+            assert!((fine.rest_positions()[v] - coarse.rest_positions()[i]).norm() < 1e-14);
+        }
+        // So any fine state maps to the fine values at those vertices.
+        let x: Vec<f64> = (0..3 * fine.num_vertices())
+            .map(|i| (i as f64 * 0.37).sin())
+            .collect();
+        let mapped = e.interpolate(&fine, &x);
+        for (i, (t, w)) in e.element.iter().zip(&e.weights).enumerate() {
+            let k = (0..4).max_by(|a, b| w[*a].total_cmp(&w[*b])).unwrap();
+            let v = fine.tets()[*t][k];
+            for d in 0..3 {
+                assert!((mapped[3 * i + d] - x[3 * v + d]).abs() < 1e-12);
+            }
+        }
+    }
+    // Linear fields are reproduced anywhere inside; a point outside is counted and snapped.
+    let fine = BoxGrid::beam(2).build().unwrap();
+    let inside = Vector3::new(0.313, 0.071, 0.2);
+    let outside = Vector3::new(1.5, 0.1, 0.1);
+    let e = Embedding::locate(&fine, &[inside, outside]);
+    assert_eq!(e.outside, vec![1]);
+    assert!((e.max_distance - 0.5).abs() < 1e-12, "{}", e.max_distance);
+    let linear: Vec<f64> = fine
+        .rest_positions()
+        .iter()
+        .flat_map(|p| [2.0 * p.x - p.y, p.z + 1.0, 3.0 * p.y])
+        .collect();
+    let at = e.interpolate(&fine, &linear);
+    let want = [2.0 * inside.x - inside.y, inside.z + 1.0, 3.0 * inside.y];
+    for d in 0..3 {
+        assert!((at[d] - want[d]).abs() < 1e-12);
+    }
+    // The outside point carries the value at its closest point, (1.0, 0.1, 0.1).
+    assert!((at[3] - (2.0 - 0.1)).abs() < 1e-12, "{}", at[3]);
+}
