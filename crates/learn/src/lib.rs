@@ -5,11 +5,13 @@
 //! ([`solver_data`], [`policy`]) and solver parameters ([`tuning`]). Every workflow the
 //! runner offers is a library function here: [`experiment::run`] runs an experiment file
 //! and returns a typed report; [`compare`] measures policies on whole simulations;
-//! [`rollout`] holds the one definition of the rollout error.
+//! [`rollout`] holds the one definition of the rollout error; [`coarsen`] carries a fine
+//! model's trajectories onto a coarse mesh, so a cheap model learns from an accurate one.
 //!
 //! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]); every
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
 
+pub mod coarsen;
 pub mod compare;
 pub mod dataset;
 pub mod ensemble;

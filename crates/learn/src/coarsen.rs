@@ -1,0 +1,154 @@
+//! Coarse-from-fine data: a fine model's trajectories carried onto a coarse mesh of the same
+//! body, so that a cheap model can learn from an accurate one. Each coarse rest vertex is
+//! located once in the fine rest mesh ([`Embedding`]); the coarse positions and velocities
+//! of every step are the fine state interpolated there. The result is an ordinary
+//! [`Dataset`] of the coarse scene, which every fit in this crate takes.
+//!
+//! ```
+//! use std::path::Path;
+//! use deform_integrator::Scene;
+//! use deform_learn::coarsen::{Constraints, coarsen};
+//! use deform_learn::dataset::{DatasetSpec, generate};
+//!
+//! let text = r#"Scene(name: "fine", mesh: Beam(2), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+//!     density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+//!     integrator: (dt: 0.01), steps: 3)"#;
+//! let fine = Scene::parse(text, Path::new("fine.ron")).unwrap();
+//! let coarse = Scene { mesh: deform_integrator::scene::MeshSource::Beam(1), ..fine.clone() };
+//! let data = generate(&fine, Path::new("fine.ron"), &DatasetSpec::new(1, 3, 7), |_, _| ()).unwrap();
+//! let (coarse_data, report) = coarsen(&data, &coarse, Path::new("coarse.ron"), Constraints::FromFine).unwrap();
+//! assert_eq!((report.vertices, report.outside), (20, 0));
+//! assert_eq!(coarse_data.trajectories[0].x[3].len(), 3 * 20);
+//! ```
+
+use std::path::Path;
+
+use deform_integrator::scene::ConstraintSpec;
+use deform_integrator::{Scene, SceneError};
+use deform_mesh::embed::Embedding;
+use deform_mesh::select::Selector;
+use serde::{Deserialize, Serialize};
+
+use crate::LearnError;
+use crate::dataset::{Dataset, Trajectory};
+
+/// Where the coarse model's constraints come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum Constraints {
+    /// Each fine constraint becomes a coarse one on the coarse vertices that lie on its
+    /// vertex set (all their interpolation weight on constrained fine vertices), with the
+    /// same motion.
+    #[default]
+    FromFine,
+    /// The coarse scene's own selectors.
+    OwnSelectors,
+}
+
+/// What the mapping did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarsenReport {
+    /// Coarse vertices.
+    pub vertices: usize,
+    /// Coarse tets.
+    pub tets: usize,
+    /// Fine tets over coarse tets.
+    pub ratio: f64,
+    /// Coarse vertices outside the fine mesh (placed on the nearest fine element).
+    pub outside: usize,
+    /// Their largest distance from the fine mesh (m).
+    pub max_distance: f64,
+    /// Coarse vertices constrained per constraint.
+    pub constrained: Vec<usize>,
+}
+
+/// Carries `fine`'s trajectories onto `coarse`'s mesh. The returned dataset has `coarse` as
+/// its scene (with its constraints replaced per `constraints`), the fine data's time step,
+/// splits and initial conditions. `origin` names the coarse scene in errors.
+///
+/// # Errors
+/// [`LearnError::Scene`] when either scene does not build or a mapped constraint selects
+/// no coarse vertex.
+pub fn coarsen(
+    fine: &Dataset,
+    coarse: &Scene,
+    origin: &Path,
+    constraints: Constraints,
+) -> Result<(Dataset, CoarsenReport), LearnError> {
+    let fine_scene = &fine.meta.scene;
+    let fine_mesh = fine_scene.build(origin)?.mesh;
+    let mut coarse = coarse.clone();
+    let coarse_mesh = coarse.build(origin)?.mesh;
+    let embedding = Embedding::locate(&fine_mesh, coarse_mesh.rest_positions());
+    if constraints == Constraints::FromFine {
+        let mut mapped = Vec::new();
+        for (i, c) in fine_scene.constraints.iter().enumerate() {
+            let on = c
+                .select
+                .select(&fine_mesh)
+                .map_err(|e| invalid(origin, i, e.to_string()))?;
+            let mut set = vec![false; fine_mesh.num_vertices()];
+            on.iter().for_each(|&v| set[v] = true);
+            let vertices = supported_by(&embedding, &fine_mesh, &set);
+            if vertices.is_empty() {
+                let reason = "no coarse vertex lies on this fine constraint".to_owned();
+                return Err(invalid(origin, i, reason));
+            }
+            let select = Selector::Indices(vertices);
+            mapped.push(ConstraintSpec {
+                select,
+                motion: c.motion.clone(),
+            });
+        }
+        coarse.constraints = mapped;
+    }
+    let coarse_mesh = coarse.build(origin)?.mesh;
+    let constrained = coarse
+        .constraints
+        .iter()
+        .map(|c| c.select.select(&coarse_mesh).map_or(0, |v| v.len()))
+        .collect();
+    let map = |states: &[Vec<f64>]| -> Vec<Vec<f64>> {
+        states
+            .iter()
+            .map(|s| embedding.interpolate(&fine_mesh, s))
+            .collect()
+    };
+    let trajectories = fine
+        .trajectories
+        .iter()
+        .map(|t| Trajectory {
+            x: map(&t.x),
+            v: map(&t.v),
+        })
+        .collect();
+    let mut meta = fine.meta.clone();
+    meta.scene = coarse;
+    meta.vertices = coarse_mesh.num_vertices();
+    let report = CoarsenReport {
+        vertices: coarse_mesh.num_vertices(),
+        tets: coarse_mesh.num_tets(),
+        ratio: fine_mesh.num_tets() as f64 / coarse_mesh.num_tets() as f64,
+        outside: embedding.outside.len(),
+        max_distance: embedding.max_distance,
+        constrained,
+    };
+    Ok((Dataset { meta, trajectories }, report))
+}
+
+/// The located points whose interpolation weight lies entirely on vertices in `set`.
+fn supported_by(e: &Embedding, mesh: &deform_mesh::TetMesh, set: &[bool]) -> Vec<usize> {
+    let on = |(&t, w): (&usize, &[f64; 4])| {
+        let tet = mesh.tets()[t];
+        (0..4).all(|a| w[a] <= 1e-12 || set[tet[a]])
+    };
+    let points = e.element.iter().zip(&e.weights).enumerate();
+    points.filter(|(_, p)| on(*p)).map(|(i, _)| i).collect()
+}
+
+fn invalid(origin: &Path, constraint: usize, reason: String) -> LearnError {
+    LearnError::Scene(SceneError::Invalid {
+        path: origin.to_owned(),
+        field: format!("constraints[{constraint}].select"),
+        reason,
+    })
+}

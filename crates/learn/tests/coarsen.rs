@@ -1,0 +1,76 @@
+//! Coarse-from-fine data: nested beams embed exactly, constraints map onto the coarse
+//! vertices that lie on them.
+
+use std::path::Path;
+
+use deform_integrator::Scene;
+use deform_integrator::scene::MeshSource;
+use deform_learn::coarsen::{Constraints, coarsen};
+use deform_learn::dataset::{DatasetSpec, generate};
+use deform_mesh::generate::BoxGrid;
+use deform_mesh::select::Selector;
+
+const FINE: &str = r#"Scene(name: "fine", mesh: Beam(4), material: NeoHookean(Young(e: 2e5, nu: 0.35)),
+    density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+    integrator: (dt: 0.01, newton: (rel: 1e-9)), steps: 4)"#;
+
+#[test]
+fn nested_beams_carry_the_fine_states_exactly_with_the_fine_constraints() {
+    let origin = Path::new("fine.ron");
+    let fine = Scene::parse(FINE, origin).unwrap();
+    let data = generate(&fine, origin, &DatasetSpec::new(2, 4, 11), |_, _| ()).unwrap();
+    let fine_mesh = BoxGrid::beam(4).build().unwrap();
+    for n in [2, 1] {
+        let coarse = Scene {
+            mesh: MeshSource::Beam(n),
+            constraints: Vec::new(),
+            ..fine.clone()
+        };
+        let (mapped, report) = coarsen(&data, &coarse, origin, Constraints::FromFine).unwrap();
+        let coarse_mesh = BoxGrid::beam(n).build().unwrap();
+        assert_eq!(report.ratio, (4 / n).pow(3) as f64);
+        assert_eq!((report.outside, report.max_distance), (0, 0.0));
+        // Every coarse vertex is a fine vertex: its states are the fine ones, to rounding.
+        let twin: Vec<usize> = coarse_mesh
+            .rest_positions()
+            .iter()
+            .map(|p| {
+                let near = |v: &usize| (fine_mesh.rest_positions()[*v] - p).norm();
+                (0..fine_mesh.num_vertices())
+                    .min_by(|a, b| near(a).total_cmp(&near(b)))
+                    .unwrap()
+            })
+            .collect();
+        for (t, f) in mapped.trajectories.iter().zip(&data.trajectories) {
+            assert_eq!(t.x.len(), f.x.len());
+            for (states, fine_states) in [(&t.x, &f.x), (&t.v, &f.v)] {
+                for (s, fs) in states.iter().zip(fine_states) {
+                    for (i, &v) in twin.iter().enumerate() {
+                        for d in 0..3 {
+                            assert!((s[3 * i + d] - fs[3 * v + d]).abs() < 1e-12);
+                        }
+                    }
+                }
+            }
+        }
+        // The clamp at x = 0, mapped, is the coarse beam's own x = 0 face.
+        let plane = Selector::Plane {
+            point: [0.0; 3],
+            normal: [-1.0, 0.0, 0.0],
+        };
+        let own = plane.select(&coarse_mesh).unwrap();
+        let Selector::Indices(mapped_set) = &mapped.meta.scene.constraints[0].select else {
+            panic!("mapped constraints are index sets")
+        };
+        assert_eq!(mapped_set, &own);
+        assert_eq!(report.constrained, vec![own.len()]);
+        assert_eq!(mapped.meta.vertices, coarse_mesh.num_vertices());
+    }
+    // Its own selectors, when asked for, are kept.
+    let own = Scene {
+        mesh: MeshSource::Beam(1),
+        ..fine.clone()
+    };
+    let (mapped, _) = coarsen(&data, &own, origin, Constraints::OwnSelectors).unwrap();
+    assert_eq!(mapped.meta.scene.constraints, fine.constraints);
+}
