@@ -47,6 +47,40 @@ impl Grouping {
         Self { group, labels }
     }
 
+    /// One group per element: a coefficient field over the mesh.
+    pub fn per_element(asm: &Assembly) -> Self {
+        let n = asm.num_elements() as u32;
+        Self {
+            group: (0..n).collect(),
+            labels: (0..n).collect(),
+        }
+    }
+
+    /// Groups given by a label per element (regions of a coarse mesh, clusters, ...): one
+    /// group per distinct label, in increasing label.
+    ///
+    /// # Errors
+    /// [`AssemblyError::DimensionMismatch`] when there is not one label per element.
+    pub fn from_labels(asm: &Assembly, labels: &[u32]) -> Result<Self, AssemblyError> {
+        check_len("labels", labels.len(), asm.num_elements())?;
+        let mut distinct = labels.to_vec();
+        distinct.sort_unstable();
+        distinct.dedup();
+        let group = labels
+            .iter()
+            .map(|l| distinct.binary_search(l).expect("every label is listed") as u32)
+            .collect();
+        Ok(Self {
+            group,
+            labels: distinct,
+        })
+    }
+
+    /// The group of each element.
+    pub fn groups(&self) -> &[u32] {
+        &self.group
+    }
+
     /// Number of groups.
     pub fn num_groups(&self) -> usize {
         self.labels.len()
@@ -114,6 +148,65 @@ impl Assembly {
     ) -> Result<TermJacobian, AssemblyError> {
         check_positions("dx", dx, self.num_dofs())?;
         self.term_pass(x, Some(dx), grouping)
+    }
+
+    /// `lambda^T df/dc`, or with `dx` `lambda^T d(K dx)/dc`: [`Assembly::term_forces`] and
+    /// [`Assembly::term_stiffness_products`] applied to `lambda` from the left, in one pass
+    /// over the elements without forming their `3N x columns` matrices, so that a
+    /// coefficient per element costs about what one per mesh does. Entry `g * terms + k`
+    /// belongs to term `k` of group `g`. Summed in element order: thread-count independent.
+    ///
+    /// # Errors
+    /// As [`Assembly::term_stiffness_products`], plus checks of `lambda`.
+    pub fn term_vjp(
+        &self,
+        x: &[f64],
+        dx: Option<&[f64]>,
+        lambda: &[f64],
+        grouping: &Grouping,
+    ) -> Result<Vec<f64>, AssemblyError> {
+        check_positions("x", x, self.num_dofs())?;
+        check_positions("lambda", lambda, self.num_dofs())?;
+        if let Some(dx) = dx {
+            check_positions("dx", dx, self.num_dofs())?;
+        }
+        check_len("grouping", grouping.group.len(), self.num_elements())?;
+        let geo = &self.geometry;
+        let terms = self.materials.max_terms();
+        let mut per_element = vec![0.0; self.num_elements() * terms];
+        if terms > 0 {
+            let mut chunks: Vec<&mut [f64]> = per_element.chunks_mut(terms).collect();
+            for_each_element_with_model(&self.materials, &mut chunks, |e, out, m| {
+                let (t, g) = (&geo.tets[e], &geo.grads[e]);
+                let f = admissible_gradient(geo, x, e, m)?;
+                let df = dx.map(|d| gradient(&corners(d, t), g));
+                let l = corners(lambda, t);
+                let w = geo.volumes[e];
+                for k in 0..m.num_terms() {
+                    let p = match &df {
+                        None => -w * m.term_first_piola(k, &f),
+                        Some(df) => w * mat3(&(m.term_dp_df(k, &f) * vec9(df))),
+                    };
+                    let c = corner_products(&p, g, 1.0);
+                    out[k] = (0..4).map(|a| l[a].dot(&c[a])).sum();
+                }
+                Ok(())
+            })?;
+        }
+        if let Some(i) = per_element.iter().position(|v| !v.is_finite()) {
+            return Err(AssemblyError::NonFiniteElement {
+                element: i / terms,
+                what: "term vector-Jacobian product",
+            });
+        }
+        let mut out = vec![0.0; terms * grouping.num_groups()];
+        for (e, values) in per_element.chunks(terms.max(1)).enumerate() {
+            let g = grouping.group[e] as usize;
+            for (k, v) in values.iter().enumerate().take(terms) {
+                out[g * terms + k] += v;
+            }
+        }
+        Ok(out)
     }
 
     fn term_pass(

@@ -560,3 +560,49 @@ proptest! {
         prop_assert!(k == k.transpose(), "K is not exactly symmetric");
     }
 }
+
+#[test]
+fn term_vector_jacobian_products_equal_the_jacobians_applied_from_the_left() {
+    let mesh = small_mesh();
+    let x = deformed(&mesh, 1.0);
+    let n = x.len();
+    let lambda: Vec<f64> = (0..n).map(|i| ((i * 7) % 11) as f64 / 11.0 - 0.4).collect();
+    let dx: Vec<f64> = (0..n).map(|i| ((i * 5) % 13) as f64 / 13.0 - 0.5).collect();
+    let asm = Assembly::new(
+        &mesh,
+        MaterialField::Uniform(model("StableNeoHookean(Lame(mu: 3e4, lambda: 5e4))")),
+    )
+    .unwrap();
+    let labels: Vec<u32> = (0..mesh.num_tets() as u32).map(|e| 7 - e % 3).collect();
+    let groupings = [
+        Grouping::global(&asm),
+        Grouping::per_element(&asm),
+        Grouping::from_labels(&asm, &labels).unwrap(),
+    ];
+    assert_eq!(groupings[2].labels(), &[5, 6, 7]);
+    for grouping in &groupings {
+        for d in [None, Some(dx.as_slice())] {
+            let got = asm.term_vjp(&x, d, &lambda, grouping).unwrap();
+            let j = match d {
+                None => asm.term_forces(&x, grouping).unwrap(),
+                Some(d) => asm.term_stiffness_products(&x, d, grouping).unwrap(),
+            };
+            assert_eq!(got.len(), j.num_columns());
+            for (c, g) in got.iter().enumerate() {
+                let want: f64 = j.column(c).iter().zip(&lambda).map(|(a, b)| a * b).sum();
+                assert!(
+                    (g - want).abs() <= 1e-9 * want.abs().max(1e-3),
+                    "column {c}: {g} vs {want}"
+                );
+            }
+        }
+    }
+    // A field's entries sum to the global ones.
+    let global = asm.term_vjp(&x, None, &lambda, &groupings[0]).unwrap();
+    let field = asm.term_vjp(&x, None, &lambda, &groupings[1]).unwrap();
+    for k in 0..2 {
+        let sum: f64 = field.iter().skip(k).step_by(2).sum();
+        assert!((sum - global[k]).abs() <= 1e-9 * global[k].abs());
+    }
+    assert!(Grouping::from_labels(&asm, &[1, 2]).is_err());
+}
