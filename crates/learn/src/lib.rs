@@ -34,5 +34,5 @@ pub use error::LearnError;
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
 pub use output::{
     OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error,
-    term_coefficients, with_term_coefficients,
+    fit_output_error_field, term_coefficients, with_term_coefficients,
 };

@@ -118,6 +118,10 @@ type Evaluation = (Vec<f64>, f64, Vec<f64>);
 /// Loss and gradient in the coefficients `c` for the pairs of `trajectories`.
 pub struct OutputError<'a> {
     sim: RefCell<&'a mut Integrator>,
+    /// The uniform material whose term coefficients are fitted.
+    base: Model,
+    /// Which elements share coefficients (`None`: one set for the whole mesh).
+    field: Option<Grouping>,
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
@@ -139,12 +143,14 @@ impl<'a> OutputError<'a> {
         options: OutputErrorOptions,
         progress: impl FnMut(usize, f64) + 'a,
     ) -> Result<Self, FitError> {
-        if !matches!(sim.assembly().materials(), MaterialField::Uniform(_)) {
+        let MaterialField::Uniform(base) = sim.assembly().materials() else {
             return Err(FitError::Invalid(
                 "the output-error fit needs a uniform material".into(),
             ));
-        }
+        };
         Ok(Self {
+            base: base.clone(),
+            field: None,
             sim: RefCell::new(sim),
             trajectories: trajectories.to_vec(),
             options,
@@ -153,6 +159,60 @@ impl<'a> OutputError<'a> {
             evaluations: RefCell::new(0),
             progress: RefCell::new(Box::new(progress)),
         })
+    }
+
+    /// Fits a coefficient field instead: one set of term coefficients per label (one label
+    /// per element: the element index for a per-element field, a region tag, a cluster);
+    /// coefficients are ordered by increasing label, then term. One adjoint solve per step
+    /// still gives the whole gradient.
+    ///
+    /// # Errors
+    /// [`FitError::Invalid`] when there is not one label per element.
+    pub fn with_field(mut self, labels: &[u32]) -> Result<Self, FitError> {
+        let grouping = Grouping::from_labels(self.sim.borrow().assembly(), labels)
+            .map_err(|e| FitError::Invalid(format!("field labels: {e}")))?;
+        self.field = Some(grouping);
+        Ok(self)
+    }
+
+    /// Number of coefficients: terms times groups.
+    pub fn num_coefficients(&self) -> usize {
+        let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
+        term_coefficients(&self.base).len() * groups
+    }
+
+    /// The base material's coefficients in every group: where a field fit starts.
+    pub fn uniform_start(&self) -> Vec<f64> {
+        let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
+        term_coefficients(&self.base).repeat(groups)
+    }
+
+    /// The material field of coefficients `c`.
+    ///
+    /// # Errors
+    /// [`FitError::Coefficients`] for a wrong length or an invalid pair.
+    pub fn materials(&self, c: &[f64]) -> Result<MaterialField, FitError> {
+        let invalid = |reason: String| FitError::Coefficients {
+            coefficients: c.to_vec(),
+            reason,
+        };
+        if c.len() != self.num_coefficients() {
+            let n = self.num_coefficients();
+            return Err(invalid(format!("{} coefficients, expected {n}", c.len())));
+        }
+        let model =
+            |c: &[f64]| with_term_coefficients(&self.base, c).map_err(|e| invalid(e.to_string()));
+        match &self.field {
+            None => Ok(MaterialField::Uniform(model(c)?)),
+            Some(g) => {
+                let terms = term_coefficients(&self.base).len().max(1);
+                let models = c.chunks(terms).map(model).collect::<Result<_, _>>()?;
+                Ok(MaterialField::PerElement {
+                    models,
+                    index: g.groups().to_vec(),
+                })
+            }
+        }
     }
 
     /// Loss and its gradient at coefficients `c`.
@@ -170,17 +230,14 @@ impl<'a> OutputError<'a> {
                 evaluations: self.options.max_evaluations,
             });
         }
+        let materials = self.materials(c)?;
         let mut sim = self.sim.borrow_mut();
-        let MaterialField::Uniform(model) = sim.assembly().materials() else {
-            unreachable!("checked in new")
+        sim.assembly_mut().set_materials(materials)?;
+        let grouping = match &self.field {
+            Some(g) => g.clone(),
+            None => Grouping::global(sim.assembly()),
         };
-        let model = with_term_coefficients(model, c).map_err(|e| FitError::Coefficients {
-            coefficients: c.to_vec(),
-            reason: e.to_string(),
-        })?;
-        sim.assembly_mut()
-            .set_materials(MaterialField::Uniform(model))?;
-        let mut work = Adjoint::new(&sim)?;
+        let mut work = Adjoint::new(&sim, grouping)?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
         let mut grad = vec![0.0; c.len()];
@@ -282,14 +339,14 @@ struct Adjoint {
 }
 
 impl Adjoint {
-    fn new(sim: &Integrator) -> Result<Self, FitError> {
+    fn new(sim: &Integrator, grouping: Grouping) -> Result<Self, FitError> {
         let a = sim.assembly().stiffness_matrix();
         Ok(Self {
             kmat: sim.assembly().stiffness_matrix(),
             reduced: sim.dofs().reduced_matrix(&a)?,
             a,
             mass: sim.mass().clone(),
-            grouping: Grouping::global(sim.assembly()),
+            grouping,
         })
     }
 
@@ -347,27 +404,18 @@ impl Adjoint {
             let mut lambda = vec![0.0; n];
             dofs.scatter(&lambda_free, &mut lambda).map_err(fail)?;
             // dL/dc += dt lambda^T (J_f - gamma J_k) at the step's end state.
-            let jf = sim
-                .assembly()
-                .term_forces(&next.x, &self.grouping)
+            let asm = sim.assembly();
+            let jf = asm
+                .term_vjp(&next.x, None, &lambda, &self.grouping)
                 .map_err(fail)?;
             let jk = if gamma != 0.0 {
-                Some(
-                    sim.assembly()
-                        .term_stiffness_products(&next.x, &next.v, &self.grouping)
-                        .map_err(fail)?,
-                )
+                asm.term_vjp(&next.x, Some(&next.v), &lambda, &self.grouping)
+                    .map_err(fail)?
             } else {
-                None
+                vec![0.0; jf.len()]
             };
-            for (j, gj) in grad.iter_mut().enumerate() {
-                let f = jf.column(j);
-                let kv = jk.as_ref().map(|m| m.column(j));
-                let mut sum = 0.0;
-                for i in 0..n {
-                    sum += lambda[i] * (f[i] - kv.as_ref().map_or(0.0, |kc| gamma * kc[i]));
-                }
-                *gj += dt * sum;
+            for ((gj, f), kv) in grad.iter_mut().zip(&jf).zip(&jk) {
+                *gj += dt * (f - gamma * kv);
             }
             if k == 0 {
                 break;
@@ -523,6 +571,32 @@ pub fn fit_output_error(
     progress: impl FnMut(usize, f64),
 ) -> Result<OutputErrorFit, FitError> {
     let objective = OutputError::new(sim, trajectories, options, progress)?;
+    minimise(&objective, initial)
+}
+
+/// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]): one set of
+/// term coefficients per label, starting from `initial` (the uniform material's coefficients
+/// in every group when `None`). The fitted field is left in `sim`.
+///
+/// # Errors
+/// [`FitError`] when the labels, the data or the first evaluation fail.
+pub fn fit_output_error_field(
+    sim: &mut Integrator,
+    trajectories: &[&Trajectory],
+    labels: &[u32],
+    initial: Option<&[f64]>,
+    options: OutputErrorOptions,
+    progress: impl FnMut(usize, f64),
+) -> Result<OutputErrorFit, FitError> {
+    let objective = OutputError::new(sim, trajectories, options, progress)?.with_field(labels)?;
+    let start = initial.map_or_else(|| objective.uniform_start(), <[f64]>::to_vec);
+    minimise(&objective, &start)
+}
+
+/// L-BFGS on the objective in log-coefficients from `initial`; the best iterate is left in
+/// the integrator.
+fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorFit, FitError> {
+    let options = objective.options;
     let (initial_loss, _) = objective.evaluate(initial)?;
     let records = Arc::new(Mutex::new(Vec::new()));
     // More-Thuente finds good first steps where L-BFGS has no curvature yet; the evaluation
@@ -532,7 +606,7 @@ pub fn fit_output_error(
         .and_then(|s| s.with_tolerance_cost(0.0))
         .map_err(|e| FitError::Optimiser(e.to_string()))?;
     let problem = LogProblem {
-        objective: &objective,
+        objective,
         start: initial.to_vec(),
     };
     let start = problem.parameters();
@@ -562,7 +636,7 @@ pub fn fit_output_error(
         Ok(res) if res.state().get_best_param().is_some() => {
             let state = res.state();
             let best = LogProblem {
-                objective: &objective,
+                objective,
                 start: initial.to_vec(),
             }
             .coefficients(state.get_best_param().expect("checked above"));

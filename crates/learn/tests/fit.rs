@@ -886,3 +886,74 @@ fn imports_and_loads_refuse_empty_and_non_finite_arrays() {
     let e = Dataset::load(dir.path()).unwrap_err().to_string();
     assert!(e.contains("meta.ron") && e.contains("vertices"), "{e}");
 }
+
+#[test]
+fn output_error_gradient_of_coefficient_fields_equals_finite_differences() {
+    // A coefficient pair per element and per label, at random values around the truth.
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 1, 4);
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let tets = sim.assembly().num_elements();
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 2,
+        velocity_weight: 0.5,
+        ..Default::default()
+    };
+    let per_element: Vec<u32> = (0..tets as u32).collect();
+    let by_label: Vec<u32> = (0..tets as u32).map(|e| 10 + e % 3).collect();
+    for labels in [per_element, by_label] {
+        let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+            .unwrap()
+            .with_field(&labels)
+            .unwrap();
+        let groups = labels
+            .iter()
+            .collect::<std::collections::BTreeSet<_>>()
+            .len();
+        assert_eq!(objective.num_coefficients(), 2 * groups);
+        let mut rng = deform_learn::rng::Rng::new(5);
+        let c: Vec<f64> = objective
+            .uniform_start()
+            .iter()
+            .map(|c| c * rng.range(0.5, 1.5))
+            .collect();
+        let (loss, grad) = objective.evaluate(&c).unwrap();
+        assert!(loss > 0.0 && grad.len() == c.len());
+        for j in [0, 1, c.len() / 2, c.len() - 1] {
+            let h = 1e-4 * c[j];
+            let (mut cp, mut cm) = (c.clone(), c.clone());
+            cp[j] += h;
+            cm[j] -= h;
+            let fd = (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0)
+                / (2.0 * h);
+            assert!(
+                (grad[j] - fd).abs()
+                    <= 1e-4
+                        * fd.abs()
+                            .max(1e-6 * grad.iter().fold(0.0f64, |m, g| m.max(g.abs()))),
+                "{groups} groups, coefficient {j}: {} vs {fd}",
+                grad[j]
+            );
+        }
+        // The field's gradient sums, per term, to the uniform fit's at uniform coefficients.
+        let start = objective.uniform_start();
+        let (_, field_grad) = objective.evaluate(&start).unwrap();
+        drop(objective);
+        let truth = deform_assembly::MaterialField::Uniform(s.material.build().unwrap());
+        sim.assembly_mut().set_materials(truth.clone()).unwrap();
+        let uniform =
+            deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
+        let (_, g) = uniform.evaluate(&start[..2]).unwrap();
+        for k in 0..2 {
+            let sum: f64 = field_grad.iter().skip(k).step_by(2).sum();
+            assert!(
+                (sum - g[k]).abs() <= 1e-8 * g[k].abs().max(1e-12),
+                "term {k}: {sum} vs {}",
+                g[k]
+            );
+        }
+        drop(uniform);
+        sim.assembly_mut().set_materials(truth).unwrap();
+    }
+}

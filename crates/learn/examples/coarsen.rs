@@ -1,0 +1,107 @@
+//! A coarse beam learns from a fine one (issue 17, first measurement): the fine beam's
+//! trajectories are carried onto a beam with 8x fewer tets, and the coarse model's rollout
+//! error on held-out trajectories is compared untuned (the fine E and nu), with the best
+//! homogeneous Lame pair, and with a Lame pair per coarse element (both by the output error
+//! with the adjoint).
+//!
+//! ```sh
+//! cargo run --release -p deform-learn --example coarsen -- [FINE_N] [STEPS]
+//! ```
+
+use std::path::Path;
+use std::time::Instant;
+
+use deform_integrator::Scene;
+use deform_integrator::scene::MeshSource;
+use deform_learn::coarsen::{Constraints, coarsen};
+use deform_learn::dataset::{DatasetSpec, Split, Variations, generate};
+use deform_learn::rollout::{mean_error, mean_rollout_errors};
+use deform_learn::{
+    OutputErrorOptions, Trajectory, fit_output_error, fit_output_error_field, term_coefficients,
+};
+
+const FINE: &str = r#"Scene(name: "fine", mesh: Beam(4), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+    density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+    integrator: (dt: 0.01, newton: (rel: 1e-10, abs: 1e-12)), steps: 1)"#;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let fine_n: usize = args.next().map_or(Ok(4), |a| a.parse())?;
+    let steps: usize = args.next().map_or(Ok(60), |a| a.parse())?;
+    let origin = Path::new("fine.ron");
+    let mut fine = Scene::parse(FINE, origin)?;
+    fine.mesh = MeshSource::Beam(fine_n);
+    let spec = DatasetSpec {
+        variations: Variations {
+            speed: 0.5,
+            spin: 1.0,
+            stretch: 0.05,
+            rest: false,
+        },
+        split: (0.5, 0.17),
+        ..DatasetSpec::new(6, steps, 3)
+    };
+    let started = Instant::now();
+    let data = generate(&fine, origin, &spec, |_, _| ())?;
+    let fine_seconds = started.elapsed().as_secs_f64();
+    let coarse = Scene {
+        mesh: MeshSource::Beam(fine_n / 2),
+        ..fine.clone()
+    };
+    let (data, report) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
+    println!(
+        "fine beam n = {fine_n}: {} trajectories x {steps} steps in {fine_seconds:.1} s; coarse: {} tets ({}x fewer), {} outside",
+        spec.trajectories, report.tets, report.ratio, report.outside
+    );
+    let (train, test) = (data.split(Split::Train), data.split(Split::Test));
+    let mut sim = data.meta.scene.build(origin)?.integrator;
+    let error = |sim: &mut deform_integrator::Integrator, set: &[&Trajectory]| {
+        mean_rollout_errors(sim, set).map(|e| mean_error(&e))
+    };
+    let untuned = error(&mut sim, &test)?;
+    println!("untuned coarse: test mean RMS rollout error {untuned:.4e} m");
+    let options = OutputErrorOptions {
+        rollout: 10,
+        max_iterations: 30,
+        ..Default::default()
+    };
+    let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
+        unreachable!("a uniform scene")
+    };
+    let start = term_coefficients(model);
+    let t = Instant::now();
+    let fit = fit_output_error(&mut sim, &train, &start, options, |_, _| ())?;
+    let homogeneous = error(&mut sim, &test)?;
+    println!(
+        "homogeneous fit: mu, lambda = {:.4e}, {:.4e}; loss {:.3e} -> {:.3e} in {} evaluations, {:.1} s; test error {homogeneous:.4e} m ({:.3}x untuned)",
+        fit.coefficients[0],
+        fit.coefficients[1],
+        fit.initial_loss,
+        fit.loss,
+        fit.evaluations,
+        t.elapsed().as_secs_f64(),
+        homogeneous / untuned
+    );
+    let tets = sim.assembly().num_elements() as u32;
+    let labels: Vec<u32> = (0..tets).collect();
+    let start: Vec<f64> = fit.coefficients.repeat(tets as usize);
+    let t = Instant::now();
+    let field =
+        fit_output_error_field(&mut sim, &train, &labels, Some(&start), options, |_, _| ())?;
+    let per_element = error(&mut sim, &test)?;
+    let mus: Vec<f64> = field.coefficients.iter().step_by(2).copied().collect();
+    let (lo, hi) = mus
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), m| (a.min(*m), b.max(*m)));
+    println!(
+        "per-element fit: {} coefficients, mu in [{lo:.3e}, {hi:.3e}]; loss {:.3e} -> {:.3e} in {} evaluations, {:.1} s; test error {per_element:.4e} m ({:.3}x untuned, {:.3}x homogeneous)",
+        field.coefficients.len(),
+        field.initial_loss,
+        field.loss,
+        field.evaluations,
+        t.elapsed().as_secs_f64(),
+        per_element / untuned,
+        per_element / homogeneous
+    );
+    Ok(())
+}
