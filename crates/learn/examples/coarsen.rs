@@ -62,7 +62,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("untuned coarse: test mean RMS rollout error {untuned:.4e} m");
     let options = OutputErrorOptions {
         rollout: 10,
-        max_iterations: 30,
+        max_iterations: 80,
         ..Default::default()
     };
     let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
