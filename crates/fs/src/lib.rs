@@ -1,7 +1,8 @@
 //! Crash-consistent file output: [`write_atomic`] writes into a temporary file beside the
 //! target, syncs it and renames it over the target, so a reader never sees a half-written
 //! file and a failed write leaves the old one in place. A leaf crate: every deform crate
-//! that writes files uses it. [`lock_folder`] gives one run at a time an output folder.
+//! that writes files uses it. [`lock_folder`] gives one run at a time an output folder, and
+//! [`npy`] reads and writes the `.npy` arrays of datasets and coefficient fields.
 //!
 //! ```
 //! let dir = tempfile::tempdir().unwrap();
@@ -9,6 +10,8 @@
 //! deform_fs::write_atomic(&path, |w| w.write_all(b"# results\n")).unwrap();
 //! assert_eq!(std::fs::read_to_string(&path).unwrap(), "# results\n");
 //! ```
+
+pub mod npy;
 
 use std::fs;
 use std::io::{BufWriter, Write};

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use deform_assembly::MaterialField;
-use deform_materials::MaterialSpec;
+use deform_materials::{MaterialSpec, Model};
 use deform_mesh::generate::BoxGrid;
 use deform_mesh::memory;
 use deform_mesh::select::Selector;
@@ -89,6 +89,11 @@ pub struct Scene {
     pub mesh: MeshSource,
     /// The material.
     pub material: MaterialSpec,
+    /// A learned coefficient field over `material`: an `.npy` of shape (tets, terms),
+    /// relative to the scene file, whose row `e` holds element `e`'s term coefficients
+    /// (`Model::term_coefficients`: `mu, lambda` for a single model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coefficients: Option<PathBuf>,
     /// Mass density (kg/m^3).
     pub density: f64,
     /// Boundary conditions.
@@ -142,6 +147,31 @@ pub enum SceneError {
     },
 }
 
+/// The per-element field of `file` over `model`: one model per element.
+fn coefficient_field(model: &Model, file: &Path, tets: usize) -> Result<MaterialField, String> {
+    let a = deform_fs::npy::read(file).map_err(|e| e.to_string())?;
+    let terms = model.term_coefficients().len();
+    if a.shape != [tets, terms] {
+        let shape = &a.shape;
+        return Err(format!(
+            "{}: shape {shape:?}, expected [{tets}, {terms}] (tets, terms)",
+            file.display()
+        ));
+    }
+    let models = a
+        .data
+        .chunks(terms.max(1))
+        .enumerate()
+        .map(|(e, c)| {
+            model
+                .with_term_coefficients(c)
+                .map_err(|err| format!("{}: element {e}: {err}", file.display()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let index = (0..tets as u32).collect();
+    Ok(MaterialField::PerElement { models, index })
+}
+
 /// Refuses a simulation of `vertices` and `tets` that cannot fit in memory.
 fn fits(origin: &Path, vertices: usize, tets: usize) -> Result<(), SceneError> {
     let needed = memory::simulation_lower_bound(vertices, tets);
@@ -187,10 +217,16 @@ impl Scene {
             error,
         })?;
         let mut scene = Self::parse(&text, path)?;
+        let dir = path.parent().unwrap_or(Path::new("."));
         if let MeshSource::File(file) = &mut scene.mesh
             && file.is_relative()
         {
-            *file = path.parent().unwrap_or(Path::new(".")).join(&*file);
+            *file = dir.join(&*file);
+        }
+        if let Some(file) = &mut scene.coefficients
+            && file.is_relative()
+        {
+            *file = dir.join(&*file);
         }
         scene.validate(path)?;
         Ok(scene)
@@ -295,6 +331,11 @@ impl Scene {
             .material
             .build()
             .map_err(|e| invalid("material", e.to_string()))?;
+        let materials = match &self.coefficients {
+            None => MaterialField::Uniform(model),
+            Some(file) => coefficient_field(&model, file, mesh.num_tets())
+                .map_err(|reason| invalid("coefficients", reason))?,
+        };
         let mut constraints = Vec::new();
         for (i, c) in self.constraints.iter().enumerate() {
             let vertices = c
@@ -316,7 +357,7 @@ impl Scene {
             .policy
             .build()
             .map_err(|e| invalid("policy", e.to_string()))?;
-        let mut integrator = Integrator::builder(&mesh, MaterialField::Uniform(model))
+        let mut integrator = Integrator::builder(&mesh, materials)
             .density(self.density)
             .constraints(constraints)
             .options(self.integrator.clone())

@@ -2,7 +2,8 @@
 //! trajectories are carried onto a beam with 8x fewer tets, and the coarse model's rollout
 //! error on held-out trajectories is compared untuned (the fine E and nu), with the best
 //! homogeneous Lame pair, and with a Lame pair per coarse element (both by the output error
-//! with the adjoint).
+//! with the adjoint). The per-element model is saved as a scene that `cargo xtask simulate`
+//! runs, with its field as cell data in a `.vtu` for ParaView.
 //!
 //! ```sh
 //! cargo run --release -p deform-learn --example coarsen -- [FINE_N] [STEPS]
@@ -13,12 +14,13 @@ use std::time::Instant;
 
 use deform_integrator::Scene;
 use deform_integrator::scene::MeshSource;
-use deform_learn::coarsen::{Constraints, coarsen};
+use deform_learn::coarsen::{Constraints, coarsen, save_model};
 use deform_learn::dataset::{DatasetSpec, Split, Variations, generate};
 use deform_learn::rollout::{mean_error, mean_rollout_errors};
 use deform_learn::{
     OutputErrorOptions, Trajectory, fit_output_error, fit_output_error_field, term_coefficients,
 };
+use deform_mesh::io::Vtu;
 
 const FINE: &str = r#"Scene(name: "fine", mesh: Beam(4), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
     density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
@@ -102,6 +104,31 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t.elapsed().as_secs_f64(),
         per_element / untuned,
         per_element / homogeneous
+    );
+    // The learned model as a scene to keep, and its field for ParaView.
+    let out = Path::new("target/deform/coarsen");
+    let model = Scene {
+        name: "coarse_beam".into(),
+        ..data.meta.scene.clone()
+    };
+    let saved = save_model(&model, &field.coefficients, out)?;
+    let mesh = model.build(&saved)?.mesh;
+    let lambdas: Vec<f64> = field
+        .coefficients
+        .iter()
+        .skip(1)
+        .step_by(2)
+        .copied()
+        .collect();
+    let vtu = out.join("coarse_beam_field.vtu");
+    Vtu::new(&mesh)
+        .cell_scalars("mu", &mus)
+        .cell_scalars("lambda", &lambdas)
+        .write(&vtu)?;
+    println!(
+        "saved {} (cargo xtask simulate {0}); field for ParaView: {}",
+        saved.display(),
+        vtu.display()
     );
     Ok(())
 }

@@ -21,11 +21,14 @@
 //! assert_eq!(coarse_data.trajectories[0].x[3].len(), 3 * 20);
 //! ```
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use deform_integrator::scene::ConstraintSpec;
+use deform_assembly::MaterialField;
+use deform_fs::npy;
+use deform_integrator::scene::{ConstraintSpec, MeshSource};
 use deform_integrator::{Scene, SceneError};
 use deform_mesh::embed::Embedding;
+use deform_mesh::io::{MshFormat, MshVersion};
 use deform_mesh::select::Selector;
 use serde::{Deserialize, Serialize};
 
@@ -133,6 +136,62 @@ pub fn coarsen(
         constrained,
     };
     Ok((Dataset { meta, trajectories }, report))
+}
+
+/// Saves a learned model as a scene a user keeps and runs (`cargo xtask simulate`):
+/// `dir/NAME.ron` is `scene` with its coefficient field in `dir/NAME.coefficients.npy`
+/// (shape (tets, terms), see [`Scene::coefficients`]); a mesh read from a file is copied to
+/// `dir/NAME.msh` (binary, so coordinates survive bit for bit), a generated one stays a
+/// generator. Returns the scene file's path.
+///
+/// # Errors
+/// [`LearnError`] when the scene does not build, the field has the wrong length or a
+/// file cannot be written.
+pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<PathBuf, LearnError> {
+    let origin = dir.join(format!("{}.ron", scene.name));
+    let mut saved = scene.clone();
+    saved.coefficients = None;
+    let built = saved.build(&origin)?;
+    let MaterialField::Uniform(model) = built.integrator.assembly().materials() else {
+        unreachable!("a scene without coefficients has one material")
+    };
+    let (tets, terms) = (built.mesh.num_tets(), model.term_coefficients().len());
+    if coefficients.len() != tets * terms {
+        let reason = format!(
+            "{} coefficients for {tets} tets x {terms} terms",
+            coefficients.len()
+        );
+        return Err(LearnError::Scene(SceneError::Invalid {
+            path: origin,
+            field: "coefficients".into(),
+            reason,
+        }));
+    }
+    // Every write names its file.
+    let io = |path: &Path, e: &dyn std::fmt::Display| LearnError::Io {
+        path: path.to_owned(),
+        source: std::io::Error::other(e.to_string()),
+    };
+    std::fs::create_dir_all(dir).map_err(|e| io(dir, &e))?;
+    if let MeshSource::File(_) = &saved.mesh {
+        let name = format!("{}.msh", scene.name);
+        let format = MshFormat {
+            version: MshVersion::V4_1,
+            binary: true,
+        };
+        let path = dir.join(&name);
+        deform_mesh::io::write_msh(&path, &built.mesh, format).map_err(|e| io(&path, &e))?;
+        saved.mesh = MeshSource::File(name.into());
+    }
+    let field = format!("{}.coefficients.npy", scene.name);
+    let path = dir.join(&field);
+    npy::write(&path, &[tets, terms], coefficients).map_err(|e| io(&path, &e))?;
+    saved.coefficients = Some(field.into());
+    let text =
+        ron::ser::to_string_pretty(&saved, ron::ser::PrettyConfig::default().struct_names(true))
+            .map_err(|e| io(&origin, &e))?;
+    deform_fs::write_text(&origin, &text).map_err(|e| io(&origin, &e))?;
+    Ok(origin)
 }
 
 /// The located points whose interpolation weight lies entirely on vertices in `set`.

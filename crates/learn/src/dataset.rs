@@ -19,8 +19,8 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::npy::{self, NpyError};
 use crate::rng::Rng;
+use deform_fs::npy::{self, NpyError};
 
 /// Which part of the data a trajectory belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

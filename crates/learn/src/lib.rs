@@ -18,8 +18,9 @@ pub mod ensemble;
 mod error;
 pub mod experiment;
 pub mod fit;
-pub mod npy;
 pub mod output;
+/// `.npy` arrays (re-exported from `deform-fs`, where the integrator reads coefficient fields).
+pub use deform_fs::npy;
 pub mod policy;
 pub mod rng;
 pub mod rollout;

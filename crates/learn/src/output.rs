@@ -34,7 +34,7 @@ use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 use deform_assembly::{Grouping, Mass, MaterialField, ReducedMatrix, Tangent};
 use deform_integrator::{Integrator, OnStep, RunOptions, State, StepReport};
-use deform_materials::{MaterialError, Model, Parametric};
+use deform_materials::{MaterialError, Model};
 use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
 use sprs::CsMat;
@@ -444,35 +444,17 @@ impl Adjoint {
     }
 }
 
-/// The term coefficients of a material model, in the order of the assembly's parameter
-/// Jacobians: `[mu, lambda]` for a single model, each member's `w (mu, lambda)` for an
-/// ensemble.
+/// The term coefficients of a material model ([`Model::term_coefficients`]).
 pub fn term_coefficients(model: &Model) -> Vec<f64> {
-    match model {
-        Model::Ensemble(e) => e
-            .members()
-            .iter()
-            .flat_map(|(w, m)| m.params().into_iter().map(move |p| w * p))
-            .collect(),
-        m => m.params(),
-    }
+    model.term_coefficients()
 }
 
-/// `model` with term coefficients `c` (ensemble weights become 1).
+/// `model` with term coefficients `c` ([`Model::with_term_coefficients`]).
 ///
 /// # Errors
 /// [`MaterialError`] when `c` has the wrong length or an invalid pair.
 pub fn with_term_coefficients(model: &Model, c: &[f64]) -> Result<Model, MaterialError> {
-    let mut model = model.clone();
-    match &mut model {
-        Model::Ensemble(e) => {
-            let mut p = vec![1.0; e.members().len()];
-            p.extend_from_slice(c);
-            model.set_params(&p)?;
-        }
-        m => m.set_params(c)?,
-    }
-    Ok(model)
+    model.with_term_coefficients(c)
 }
 
 /// argmin sees `p_i = ln |c_i|` of the non-zero coefficients; signs and zeros are kept.

@@ -20,7 +20,7 @@ use deform_solvers::SolverSpec;
 use serde::{Deserialize, Serialize};
 
 use crate::dataset::DatasetError;
-use crate::npy;
+use deform_fs::npy;
 
 /// The features of a Newton iteration, in column order.
 pub const FEATURES: [&str; 9] = [

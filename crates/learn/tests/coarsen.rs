@@ -74,3 +74,61 @@ fn nested_beams_carry_the_fine_states_exactly_with_the_fine_constraints() {
     let (mapped, _) = coarsen(&data, &own, origin, Constraints::OwnSelectors).unwrap();
     assert_eq!(mapped.meta.scene.constraints, fine.constraints);
 }
+
+#[test]
+fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
+    use deform_assembly::MaterialField;
+    use deform_integrator::{NoObserver, RunOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let origin = Path::new("fine.ron");
+    let fine = Scene::parse(FINE, origin).unwrap();
+    // A mesh from a file (copied beside the saved scene) and a generated one (kept).
+    let msh = dir.path().join("coarse_input.msh");
+    let format = deform_mesh::io::MshFormat::default();
+    deform_mesh::io::write_msh(&msh, &BoxGrid::beam(1).build().unwrap(), format).unwrap();
+    for (name, mesh) in [
+        ("from_file", MeshSource::File(msh.clone())),
+        ("generated", MeshSource::Beam(1)),
+    ] {
+        let scene = Scene {
+            name: name.into(),
+            mesh,
+            ..fine.clone()
+        };
+        let mut sim = scene.build(origin).unwrap();
+        let model = scene.material.build().unwrap();
+        let mut rng = deform_learn::rng::Rng::new(9);
+        let tets = sim.mesh.num_tets();
+        let base = model.term_coefficients();
+        let c: Vec<f64> = (0..tets * base.len())
+            .map(|k| base[k % base.len()] * 10f64.powf(rng.range(-0.5, 0.5)))
+            .collect();
+        let models = c
+            .chunks(2)
+            .map(|c| model.with_term_coefficients(c).unwrap())
+            .collect();
+        let field = MaterialField::PerElement {
+            models,
+            index: (0..tets as u32).collect(),
+        };
+        sim.integrator.assembly_mut().set_materials(field).unwrap();
+        let path =
+            deform_learn::coarsen::save_model(&scene, &c, &dir.path().join("saved")).unwrap();
+        let loaded = Scene::load(&path).unwrap();
+        let mut back = loaded.build(&path).unwrap();
+        let options = RunOptions::steps(5);
+        sim.integrator
+            .run(&mut sim.state, &options, &mut NoObserver)
+            .into_result()
+            .unwrap();
+        back.integrator
+            .run(&mut back.state, &options, &mut NoObserver)
+            .into_result()
+            .unwrap();
+        assert_eq!(sim.state.x, back.state.x, "{name}");
+        assert_eq!(sim.state.v, back.state.v, "{name}");
+        // A field of the wrong size is refused naming the field.
+        let e = deform_learn::coarsen::save_model(&scene, &c[1..], dir.path()).unwrap_err();
+        assert!(e.to_string().contains("coefficients"), "{e}");
+    }
+}

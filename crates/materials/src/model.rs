@@ -46,6 +46,37 @@ macro_rules! dispatch {
 }
 
 impl Model {
+    /// The term coefficients, in the order of the assembly's parameter Jacobians:
+    /// `[mu, lambda]` for a single model, each member's effective `w (mu, lambda)` for an
+    /// ensemble (the energy is linear in them).
+    pub fn term_coefficients(&self) -> Vec<f64> {
+        match self {
+            Model::Ensemble(e) => e
+                .members
+                .iter()
+                .flat_map(|(w, m)| m.params().into_iter().map(move |p| w * p))
+                .collect(),
+            m => m.params(),
+        }
+    }
+
+    /// The model with term coefficients `c` (an ensemble's weights become 1).
+    ///
+    /// # Errors
+    /// [`MaterialError`] when `c` has the wrong length or holds an invalid pair.
+    pub fn with_term_coefficients(&self, c: &[f64]) -> Result<Model, MaterialError> {
+        let mut model = self.clone();
+        match &mut model {
+            Model::Ensemble(e) => {
+                let mut p = vec![1.0; e.members.len()];
+                p.extend_from_slice(c);
+                model.set_params(&p)?;
+            }
+            m => m.set_params(c)?,
+        }
+        Ok(model)
+    }
+
     /// The model as an isotropic energy of singular values, where it is one (every model
     /// but linear elasticity and the lagged-rotation corotated tangent).
     pub(crate) fn as_isotropic(&self) -> Option<&dyn Isotropic> {

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use deform_fs::write_atomic;
+use crate::write_atomic;
 use thiserror::Error;
 
 /// Why an `.npy` file could not be read or written.
