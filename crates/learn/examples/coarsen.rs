@@ -6,7 +6,7 @@
 //! runs, with its field as cell data in a `.vtu` for ParaView.
 //!
 //! ```sh
-//! cargo run --release -p deform-learn --example coarsen -- [FINE_N] [STEPS]
+//! cargo run --release -p deform-learn --example coarsen -- [FINE_N] [STEPS] [DT_FACTOR]
 //! ```
 
 use std::path::Path;
@@ -30,6 +30,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let fine_n: usize = args.next().map_or(Ok(4), |a| a.parse())?;
     let steps: usize = args.next().map_or(Ok(60), |a| a.parse())?;
+    let k: usize = args.next().map_or(Ok(1), |a| a.parse())?;
     let origin = Path::new("fine.ron");
     let mut fine = Scene::parse(FINE, origin)?;
     fine.mesh = MeshSource::Beam(fine_n);
@@ -46,13 +47,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let started = Instant::now();
     let data = generate(&fine, origin, &spec, |_, _| ())?;
     let fine_seconds = started.elapsed().as_secs_f64();
-    let coarse = Scene {
+    let mut coarse = Scene {
         mesh: MeshSource::Beam(fine_n / 2),
         ..fine.clone()
     };
+    coarse.integrator.dt *= k as f64;
     let (data, report) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
+    let mut data = data.subsample(k.max(1));
+    data.meta.scene.integrator.dt = coarse.integrator.dt;
     println!(
-        "fine beam n = {fine_n}: {} trajectories x {steps} steps in {fine_seconds:.1} s; coarse: {} tets ({}x fewer), {} outside",
+        "fine beam n = {fine_n}: {} trajectories x {steps} steps in {fine_seconds:.1} s; coarse: {} tets ({}x fewer), {} outside, {k}x the dt",
         spec.trajectories, report.tets, report.ratio, report.outside
     );
     let (train, test) = (data.split(Split::Train), data.split(Split::Test));
