@@ -132,3 +132,105 @@ fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
         assert!(e.to_string().contains("coefficients"), "{e}");
     }
 }
+
+#[test]
+fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
+    use deform_learn::dataset::{Split, Variations};
+    let dir = tempfile::tempdir().unwrap();
+    let origin = dir.path().join("fine.ron");
+    // The fine truth: E 20x higher for 7/16 <= x <= 11/16, an inclusion whose ends cut
+    // through coarse cells (1/8 wide).
+    let mut fine = Scene::parse(FINE, &origin).unwrap();
+    let mesh = BoxGrid::beam(4).build().unwrap();
+    let soft = fine.material.build().unwrap();
+    let stiff = soft
+        .term_coefficients()
+        .iter()
+        .map(|c| 20.0 * c)
+        .collect::<Vec<_>>();
+    let inside = |e: usize, mesh: &deform_mesh::TetMesh| {
+        let x: f64 = mesh.tets()[e]
+            .iter()
+            .map(|&v| mesh.rest_positions()[v].x)
+            .sum::<f64>()
+            / 4.0;
+        (7.0 / 16.0..=11.0 / 16.0).contains(&x)
+    };
+    let field: Vec<f64> = (0..mesh.num_tets())
+        .flat_map(|e| {
+            if inside(e, &mesh) {
+                stiff.clone()
+            } else {
+                soft.term_coefficients()
+            }
+        })
+        .collect();
+    deform_learn::npy::write(&dir.path().join("truth.npy"), &[mesh.num_tets(), 2], &field).unwrap();
+    fine.coefficients = Some(dir.path().join("truth.npy"));
+    let spec = DatasetSpec {
+        variations: Variations {
+            speed: 0.3,
+            spin: 1.0,
+            stretch: 0.0,
+            rest: false,
+        },
+        split: (0.67, 0.0),
+        ..DatasetSpec::new(3, 20, 5)
+    };
+    let data = generate(&fine, &origin, &spec, |_, _| ()).unwrap();
+    let coarse = Scene {
+        mesh: MeshSource::Beam(2),
+        coefficients: None,
+        ..fine.clone()
+    };
+    let (data, _) = coarsen(&data, &coarse, &origin, Constraints::FromFine).unwrap();
+    let mut sim = data.meta.scene.build(&origin).unwrap();
+    let tets = sim.mesh.num_tets();
+    let labels: Vec<u32> = (0..tets as u32).collect();
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 5,
+        max_iterations: 40,
+        ..Default::default()
+    };
+    let train = data.split(Split::Train);
+    let fit = deform_learn::fit_output_error_field(
+        &mut sim.integrator,
+        &train,
+        &labels,
+        None,
+        options,
+        |_, _| (),
+    )
+    .unwrap();
+    assert!(
+        fit.loss < 0.5 * fit.initial_loss,
+        "{} -> {}",
+        fit.initial_loss,
+        fit.loss
+    );
+    let mean_mu = |pick: &dyn Fn(usize) -> bool| {
+        let mus: Vec<f64> = (0..tets)
+            .filter(|&e| pick(e))
+            .map(|e| fit.coefficients[2 * e])
+            .collect();
+        mus.iter().sum::<f64>() / mus.len() as f64
+    };
+    let centroid = |e: usize| {
+        sim.mesh.tets()[e]
+            .iter()
+            .map(|&v| sim.mesh.rest_positions()[v].x)
+            .sum::<f64>()
+            / 4.0
+    };
+    let covering = mean_mu(&|e| (0.375..=0.75).contains(&centroid(e)));
+    let before = mean_mu(&|e| centroid(e) < 0.375);
+    eprintln!(
+        "mean mu: covering the inclusion {covering:.4e}, between clamp and inclusion {before:.4e}, truth {:.4e} / {:.4e}",
+        soft.term_coefficients()[0],
+        stiff[0]
+    );
+    assert!(
+        covering > 2.0 * before,
+        "covering {covering:e}, before {before:e}"
+    );
+}
