@@ -161,15 +161,15 @@ fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
                 .map_err(|_| format!("bad shape entry '{s}'"))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let count = shape
+    // Counted in bytes, so that a hostile shape overflows here rather than below.
+    let needed = shape
         .iter()
-        .try_fold(1usize, |a, &b| a.checked_mul(b))
+        .try_fold(8usize, |a, &b| a.checked_mul(b))
         .ok_or("shape overflows")?;
     let body = &bytes[end..];
-    if body.len() != 8 * count {
+    if body.len() != needed {
         return Err(format!(
-            "shape {shape:?} needs {} bytes of data, the file has {}",
-            8 * count,
+            "shape {shape:?} needs {needed} bytes of data, the file has {}",
             body.len()
         ));
     }
@@ -198,6 +198,14 @@ mod tests {
         write(&path, &[5], &data[..5]).unwrap();
         assert_eq!(read(&path).unwrap().shape, vec![5]);
         assert!(write(&path, &[3, 3], &data).is_err());
+        // Found by the fuzzer: a shape whose element count fits in usize but whose byte
+        // count does not (was an overflow panic).
+        let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (311,311,11,3111,8,, 33111,311,3, 3), }";
+        let mut hostile = b"\x93NUMPY\x01\x00".to_vec();
+        hostile.extend((header.len() as u16 + 1).to_le_bytes());
+        hostile.extend(header.as_bytes());
+        hostile.push(b'\n');
+        assert!(parse(&hostile).is_err());
         // Truncated data, wrong dtype, garbage.
         let mut cut = bytes.clone();
         cut.truncate(bytes.len() - 8);
