@@ -18,7 +18,8 @@ use deform_learn::coarsen::{Constraints, coarsen, save_model};
 use deform_learn::dataset::{DatasetSpec, Split, Variations, generate};
 use deform_learn::rollout::{mean_error, mean_rollout_errors};
 use deform_learn::{
-    OutputErrorOptions, Trajectory, fit_output_error, fit_output_error_field, term_coefficients,
+    Field, OutputErrorOptions, Regularisation, Trajectory, face_neighbours, field_of,
+    fit_output_error, fit_output_error_field, term_coefficients,
 };
 use deform_mesh::io::Vtu;
 
@@ -68,7 +69,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("untuned coarse: test mean RMS rollout error {untuned:.4e} m");
     let options = OutputErrorOptions {
         rollout: 10,
-        max_iterations: 80,
+        max_iterations: 50,
         ..Default::default()
     };
     let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
@@ -88,12 +89,44 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t.elapsed().as_secs_f64(),
         homogeneous / untuned
     );
-    let tets = sim.assembly().num_elements() as u32;
-    let labels: Vec<u32> = (0..tets).collect();
-    let start: Vec<f64> = fit.coefficients.repeat(tets as usize);
+    // The field's regularisation weight, chosen on the validation trajectories.
+    let homogeneous_model = sim.assembly().materials().clone();
+    let mesh = data.meta.scene.build(origin)?.mesh;
+    let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
+    let neighbours = face_neighbours(&mesh, &labels);
+    let validation = data.split(Split::Validation);
     let t = Instant::now();
-    let field =
-        fit_output_error_field(&mut sim, &train, &labels, Some(&start), options, |_, _| ())?;
+    let mut best: Option<(f64, f64, deform_learn::OutputErrorFit)> = None;
+    for weight in [0.0, 1e-3, 1e-2, 1e-1] {
+        sim.assembly_mut()
+            .set_materials(homogeneous_model.clone())?;
+        let spec = Field {
+            labels: labels.clone(),
+            initial: None,
+            regularisation: Regularisation {
+                towards: weight,
+                smooth: weight,
+                neighbours: neighbours.clone(),
+            },
+        };
+        let fit = fit_output_error_field(&mut sim, &train, &spec, options, |_, _| ())?;
+        let e = error(&mut sim, &validation)?;
+        println!(
+            "  regularisation {weight:e}: validation error {e:.4e} m, loss {:.3e}",
+            fit.loss
+        );
+        if best.as_ref().is_none_or(|b| e < b.1) {
+            best = Some((weight, e, fit));
+        }
+    }
+    let (weight, _, field) = best.expect("four weights tried");
+    let base = match &homogeneous_model {
+        deform_assembly::MaterialField::Uniform(m) => m.clone(),
+        _ => unreachable!("the homogeneous fit is uniform"),
+    };
+    sim.assembly_mut()
+        .set_materials(field_of(&base, Some(&labels), &field.coefficients)?)?;
+    println!("chosen regularisation weight {weight:e}");
     let per_element = error(&mut sim, &test)?;
     let mus: Vec<f64> = field.coefficients.iter().step_by(2).copied().collect();
     let (lo, hi) = mus
@@ -116,7 +149,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..data.meta.scene.clone()
     };
     let saved = save_model(&model, &field.coefficients, out)?;
-    let mesh = model.build(&saved)?.mesh;
     let lambdas: Vec<f64> = field
         .coefficients
         .iter()

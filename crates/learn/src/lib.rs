@@ -34,6 +34,7 @@ pub use ensemble::{EnsembleFit, FittedMember, Member, fit_ensemble, refine_ensem
 pub use error::LearnError;
 pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, fit_equation_error};
 pub use output::{
-    OutputError, OutputErrorFit, OutputErrorOptions, Termination, fit_output_error,
-    fit_output_error_field, term_coefficients, with_term_coefficients,
+    Field, OutputError, OutputErrorFit, OutputErrorOptions, Regularisation, Termination,
+    face_neighbours, field_of, fit_output_error, fit_output_error_field, term_coefficients,
+    with_term_coefficients,
 };

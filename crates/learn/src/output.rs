@@ -122,6 +122,8 @@ pub struct OutputError<'a> {
     base: Model,
     /// Which elements share coefficients (`None`: one set for the whole mesh).
     field: Option<Grouping>,
+    /// The field's regularisation, when any.
+    regularisation: Option<Regularisation>,
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
@@ -151,6 +153,7 @@ impl<'a> OutputError<'a> {
         Ok(Self {
             base: base.clone(),
             field: None,
+            regularisation: None,
             sim: RefCell::new(sim),
             trajectories: trajectories.to_vec(),
             options,
@@ -175,6 +178,12 @@ impl<'a> OutputError<'a> {
         Ok(self)
     }
 
+    /// Adds a regularisation of the field (see [`Regularisation`]) to the loss.
+    pub fn with_regularisation(mut self, r: Regularisation) -> Self {
+        self.regularisation = Some(r);
+        self
+    }
+
     /// Number of coefficients: terms times groups.
     pub fn num_coefficients(&self) -> usize {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
@@ -192,26 +201,9 @@ impl<'a> OutputError<'a> {
     /// # Errors
     /// [`FitError::Coefficients`] for a wrong length or an invalid pair.
     pub fn materials(&self, c: &[f64]) -> Result<MaterialField, FitError> {
-        let invalid = |reason: String| FitError::Coefficients {
-            coefficients: c.to_vec(),
-            reason,
-        };
-        if c.len() != self.num_coefficients() {
-            let n = self.num_coefficients();
-            return Err(invalid(format!("{} coefficients, expected {n}", c.len())));
-        }
-        let model =
-            |c: &[f64]| with_term_coefficients(&self.base, c).map_err(|e| invalid(e.to_string()));
         match &self.field {
-            None => Ok(MaterialField::Uniform(model(c)?)),
-            Some(g) => {
-                let terms = term_coefficients(&self.base).len().max(1);
-                let models = c.chunks(terms).map(model).collect::<Result<_, _>>()?;
-                Ok(MaterialField::PerElement {
-                    models,
-                    index: g.groups().to_vec(),
-                })
-            }
+            None => field_of(&self.base, None, c),
+            Some(g) => field_of(&self.base, Some(g.groups()), c),
         }
     }
 
@@ -279,15 +271,84 @@ impl<'a> OutputError<'a> {
         if den <= 0.0 {
             return Err(FitError::NoData);
         }
-        let loss = num / den;
+        let mut loss = num / den;
         for gj in &mut grad {
             *gj /= den;
+        }
+        if let Some(r) = &self.regularisation {
+            let terms = term_coefficients(&self.base);
+            loss += r.add(c, &terms, &mut grad);
         }
         *self.evaluations.borrow_mut() += 1;
         (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
         *self.cache.borrow_mut() = Some((c.to_vec(), loss, grad.clone()));
         Ok((loss, grad))
     }
+}
+
+/// A penalty on a coefficient field, in log-coefficients (the optimiser's own variables, so
+/// it is scale-free): `towards` times the mean over groups of `sum_k (ln c_gk - ln b_k)^2`,
+/// pulling every group towards the base material `b` (the homogeneous fit the field starts
+/// from), plus `smooth` times the mean over `neighbours` (pairs of groups sharing a face) of
+/// `sum_k (ln c_gk - ln c_hk)^2`. Both weights are chosen on validation data.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Regularisation {
+    /// Weight of the pull towards the base material.
+    pub towards: f64,
+    /// Weight of the differences across shared faces.
+    pub smooth: f64,
+    /// Pairs of neighbouring groups (see [`face_neighbours`]).
+    pub neighbours: Vec<[usize; 2]>,
+}
+
+impl Regularisation {
+    /// The penalty at `c` (terms per group `base.len()`); adds its gradient to `grad`.
+    fn add(&self, c: &[f64], base: &[f64], grad: &mut [f64]) -> f64 {
+        let terms = base.len().max(1);
+        let groups = c.len() / terms;
+        let log = |i: usize| c[i].abs().ln();
+        let mut penalty = 0.0;
+        if self.towards > 0.0 && groups > 0 {
+            let w = self.towards / groups as f64;
+            for (i, gi) in grad.iter_mut().enumerate() {
+                let d = log(i) - base[i % terms].abs().ln();
+                penalty += w * d * d;
+                *gi += 2.0 * w * d / c[i];
+            }
+        }
+        if self.smooth > 0.0 && !self.neighbours.is_empty() {
+            let w = self.smooth / self.neighbours.len() as f64;
+            for [g, h] in &self.neighbours {
+                for k in 0..terms {
+                    let (i, j) = (g * terms + k, h * terms + k);
+                    let d = log(i) - log(j);
+                    penalty += w * d * d;
+                    grad[i] += 2.0 * w * d / c[i];
+                    grad[j] -= 2.0 * w * d / c[j];
+                }
+            }
+        }
+        penalty
+    }
+}
+
+/// Pairs of groups (by position in increasing label) whose elements share a face, sorted and
+/// without repeats: the neighbours of a field's smoothness penalty.
+pub fn face_neighbours(mesh: &deform_mesh::TetMesh, labels: &[u32]) -> Vec<[usize; 2]> {
+    let mut distinct = labels.to_vec();
+    distinct.sort_unstable();
+    distinct.dedup();
+    let group = |e: usize| distinct.binary_search(&labels[e]).unwrap_or(0);
+    let mut pairs: Vec<[usize; 2]> = deform_mesh::topology::faces(mesh)
+        .interior
+        .iter()
+        .map(|&[a, b]| (group(a), group(b)))
+        .filter(|(g, h)| g != h)
+        .map(|(g, h)| [g.min(h), g.max(h)])
+        .collect();
+    pairs.sort_unstable();
+    pairs.dedup();
+    pairs
 }
 
 /// Forward: the rollout of `len` steps from the data state at `start` (that state first).
@@ -556,22 +617,78 @@ pub fn fit_output_error(
     minimise(&objective, initial)
 }
 
-/// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]): one set of
-/// term coefficients per label, starting from `initial` (the uniform material's coefficients
-/// in every group when `None`). The fitted field is left in `sim`.
+/// The material field over `base` with term coefficients `c`: uniform for `groups` `None`,
+/// else one model per group (`c` by group, then term) with `groups` the group of each
+/// element (`0..groups`).
+///
+/// # Errors
+/// [`FitError::Coefficients`] for a wrong length or an invalid pair.
+pub fn field_of(
+    base: &Model,
+    groups: Option<&[u32]>,
+    c: &[f64],
+) -> Result<MaterialField, FitError> {
+    let invalid = |reason: String| FitError::Coefficients {
+        coefficients: c.to_vec(),
+        reason,
+    };
+    let terms = base.term_coefficients().len().max(1);
+    let count = groups.map_or(1, |g| g.iter().max().map_or(0, |m| *m as usize + 1));
+    if c.len() != terms * count {
+        return Err(invalid(format!(
+            "{} coefficients, expected {}",
+            c.len(),
+            terms * count
+        )));
+    }
+    let model = |c: &[f64]| {
+        base.with_term_coefficients(c)
+            .map_err(|e| invalid(e.to_string()))
+    };
+    match groups {
+        None => Ok(MaterialField::Uniform(model(c)?)),
+        Some(g) => {
+            let models = c.chunks(terms).map(model).collect::<Result<_, _>>()?;
+            Ok(MaterialField::PerElement {
+                models,
+                index: g.to_vec(),
+            })
+        }
+    }
+}
+
+/// A coefficient field to fit: one set of term coefficients per label (one label per
+/// element: the element index for a per-element field, a region tag, a cluster).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Field {
+    /// The label of each element.
+    pub labels: Vec<u32>,
+    /// Where the fit starts (by increasing label, then term); `None`: the integrator's
+    /// uniform material in every group.
+    pub initial: Option<Vec<f64>>,
+    /// The penalty on the field.
+    pub regularisation: Regularisation,
+}
+
+/// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]). The fitted
+/// field is left in `sim`.
 ///
 /// # Errors
 /// [`FitError`] when the labels, the data or the first evaluation fail.
 pub fn fit_output_error_field(
     sim: &mut Integrator,
     trajectories: &[&Trajectory],
-    labels: &[u32],
-    initial: Option<&[f64]>,
+    field: &Field,
     options: OutputErrorOptions,
     progress: impl FnMut(usize, f64),
 ) -> Result<OutputErrorFit, FitError> {
-    let objective = OutputError::new(sim, trajectories, options, progress)?.with_field(labels)?;
-    let start = initial.map_or_else(|| objective.uniform_start(), <[f64]>::to_vec);
+    let objective = OutputError::new(sim, trajectories, options, progress)?
+        .with_field(&field.labels)?
+        .with_regularisation(field.regularisation.clone());
+    let start = field
+        .initial
+        .clone()
+        .unwrap_or_else(|| objective.uniform_start());
     minimise(&objective, &start)
 }
 

@@ -193,11 +193,14 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
         ..Default::default()
     };
     let train = data.split(Split::Train);
+    let field = deform_learn::Field {
+        labels,
+        ..Default::default()
+    };
     let fit = deform_learn::fit_output_error_field(
         &mut sim.integrator,
         &train,
-        &labels,
-        None,
+        &field,
         options,
         |_, _| (),
     )

@@ -957,3 +957,63 @@ fn output_error_gradient_of_coefficient_fields_equals_finite_differences() {
         sim.assembly_mut().set_materials(truth).unwrap();
     }
 }
+
+#[test]
+fn a_regularised_field_gradient_equals_finite_differences() {
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 1, 3);
+    let built = s.build(Path::new("test")).unwrap();
+    let (mesh, mut sim) = (built.mesh, built.integrator);
+    let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
+    let neighbours = deform_learn::face_neighbours(&mesh, &labels);
+    assert_eq!(
+        neighbours.len(),
+        deform_mesh::topology::faces(&mesh).interior.len()
+    );
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 3,
+        ..Default::default()
+    };
+    let regularisation = deform_learn::Regularisation {
+        towards: 0.3,
+        smooth: 0.2,
+        neighbours,
+    };
+    let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_field(&labels)
+        .unwrap()
+        .with_regularisation(regularisation);
+    let mut rng = deform_learn::rng::Rng::new(8);
+    let c: Vec<f64> = objective
+        .uniform_start()
+        .iter()
+        .map(|c| c * rng.range(0.5, 2.0))
+        .collect();
+    let (_, grad) = objective.evaluate(&c).unwrap();
+    for j in [0, 3, 17, c.len() - 2] {
+        let h = 1e-5 * c[j];
+        let (mut cp, mut cm) = (c.clone(), c.clone());
+        cp[j] += h;
+        cm[j] -= h;
+        let fd =
+            (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0) / (2.0 * h);
+        assert!(
+            (grad[j] - fd).abs() <= 1e-4 * fd.abs(),
+            "coefficient {j}: {} vs {fd}",
+            grad[j]
+        );
+    }
+    // At the base material everywhere the penalty and its gradient vanish.
+    let start = objective.uniform_start();
+    let (plain, _) = objective.evaluate(&start).unwrap();
+    drop(objective);
+    let uniform = deform_assembly::MaterialField::Uniform(s.material.build().unwrap());
+    sim.assembly_mut().set_materials(uniform).unwrap();
+    let unregularised = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_field(&labels)
+        .unwrap();
+    assert_eq!(unregularised.evaluate(&start).unwrap().0, plain);
+}
