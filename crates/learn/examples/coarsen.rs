@@ -35,32 +35,53 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let origin = Path::new("fine.ron");
     let mut fine = Scene::parse(FINE, origin)?;
     fine.mesh = MeshSource::Beam(fine_n);
-    let spec = DatasetSpec {
-        variations: Variations {
-            speed: 0.5,
-            spin: 1.0,
-            stretch: 0.05,
-            rest: false,
-        },
-        split: (0.5, 0.17),
+    // Training and validation motions: releases with random velocity fields. Test motions
+    // of another kind: pull-and-release (the body stretched or squeezed, then let go).
+    let moving = Variations {
+        speed: 0.5,
+        spin: 1.0,
+        stretch: 0.0,
+        rest: false,
+    };
+    let pulled = Variations {
+        speed: 0.0,
+        spin: 0.0,
+        stretch: 0.1,
+        rest: false,
+    };
+    let train_spec = DatasetSpec {
+        variations: moving,
+        split: (0.67, 0.33),
         ..DatasetSpec::new(6, steps, 3)
     };
+    let test_spec = DatasetSpec {
+        variations: pulled,
+        split: (0.0, 0.0),
+        ..DatasetSpec::new(3, steps, 4)
+    };
+    let data = generate(&fine, origin, &train_spec, |_, _| ())?;
     let started = Instant::now();
-    let data = generate(&fine, origin, &spec, |_, _| ())?;
-    let fine_seconds = started.elapsed().as_secs_f64();
+    let test_data = generate(&fine, origin, &test_spec, |_, _| ())?;
+    let simulated = 3.0 * steps as f64 * fine.integrator.dt;
+    let fine_cost = started.elapsed().as_secs_f64() / simulated;
     let mut coarse = Scene {
         mesh: MeshSource::Beam(fine_n / 2),
         ..fine.clone()
     };
     coarse.integrator.dt *= k as f64;
-    let (data, report) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
-    let mut data = data.subsample(k.max(1));
-    data.meta.scene.integrator.dt = coarse.integrator.dt;
+    let map = |d| -> Result<_, deform_learn::LearnError> {
+        let (d, report) = coarsen(d, &coarse, origin, Constraints::FromFine)?;
+        let mut d = d.subsample(k.max(1));
+        d.meta.scene.integrator.dt = coarse.integrator.dt;
+        Ok((d, report))
+    };
+    let (data, report) = map(&data)?;
+    let (test_data, _) = map(&test_data)?;
     println!(
-        "fine beam n = {fine_n}: {} trajectories x {steps} steps in {fine_seconds:.1} s; coarse: {} tets ({}x fewer), {} outside, {k}x the dt",
-        spec.trajectories, report.tets, report.ratio, report.outside
+        "fine beam n = {fine_n} ({fine_cost:.3} s per simulated second); coarse: {} tets ({}x fewer), {} outside, {k}x the dt; {} train/validation trajectories (releases with velocity), {} test (pull-and-release) x {steps} fine steps",
+        report.tets, report.ratio, report.outside, train_spec.trajectories, test_spec.trajectories
     );
-    let (train, test) = (data.split(Split::Train), data.split(Split::Test));
+    let (train, test) = (data.split(Split::Train), test_data.split(Split::Test));
     let mut sim = data.meta.scene.build(origin)?.integrator;
     let error = |sim: &mut deform_integrator::Integrator, set: &[&Trajectory]| {
         mean_rollout_errors(sim, set).map(|e| mean_error(&e))
@@ -141,6 +162,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t.elapsed().as_secs_f64(),
         per_element / untuned,
         per_element / homogeneous
+    );
+    let started = Instant::now();
+    error(&mut sim, &test)?;
+    let coarse_cost = started.elapsed().as_secs_f64() / simulated;
+    println!(
+        "cost per simulated second: coarse {coarse_cost:.4} s, fine {fine_cost:.3} s: {:.3}x",
+        coarse_cost / fine_cost
     );
     // The learned model as a scene to keep, and its field for ParaView.
     let out = Path::new("target/deform/coarsen");
