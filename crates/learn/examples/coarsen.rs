@@ -12,20 +12,68 @@
 use std::path::Path;
 use std::time::Instant;
 
-use deform_integrator::Scene;
+use deform_assembly::MaterialField;
 use deform_integrator::scene::MeshSource;
+use deform_integrator::{Integrator, Scene};
 use deform_learn::coarsen::{Constraints, coarsen, save_model};
 use deform_learn::dataset::{DatasetSpec, Split, Variations, generate};
 use deform_learn::rollout::{mean_error, mean_rollout_errors};
 use deform_learn::{
-    Field, OutputErrorOptions, Regularisation, Trajectory, face_neighbours, field_of,
-    fit_output_error, fit_output_error_field, term_coefficients,
+    Field, OutputErrorFit, OutputErrorOptions, Regularisation, Trajectory, face_neighbours,
+    field_of, fit_output_error, fit_output_error_field, term_coefficients,
 };
+use deform_mesh::TetMesh;
 use deform_mesh::io::Vtu;
 
 const FINE: &str = r#"Scene(name: "fine", mesh: Beam(4), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
     density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
     integrator: (dt: 0.01, newton: (rel: 1e-10, abs: 1e-12)), steps: 1)"#;
+
+/// Mean rollout error over `set`.
+fn error(sim: &mut Integrator, set: &[&Trajectory]) -> Result<f64, deform_learn::LearnError> {
+    mean_rollout_errors(sim, set).map(|e| mean_error(&e))
+}
+
+/// Fits a per-element field for each regularisation weight, from the homogeneous fit in
+/// `sim`, keeps the one with the least validation error and leaves it in `sim`.
+fn choose_field(
+    sim: &mut Integrator,
+    mesh: &TetMesh,
+    labels: &[u32],
+    (train, validation): (&[&Trajectory], &[&Trajectory]),
+    options: OutputErrorOptions,
+) -> Result<(f64, OutputErrorFit), Box<dyn std::error::Error>> {
+    let homogeneous = sim.assembly().materials().clone();
+    let MaterialField::Uniform(base) = &homogeneous else {
+        unreachable!("the homogeneous fit is uniform")
+    };
+    let neighbours = face_neighbours(mesh, labels);
+    let mut best: Option<(f64, f64, OutputErrorFit)> = None;
+    for weight in [0.0, 1e-3, 1e-2, 1e-1] {
+        sim.assembly_mut().set_materials(homogeneous.clone())?;
+        let regularisation = Regularisation {
+            towards: weight,
+            smooth: weight,
+            neighbours: neighbours.clone(),
+        };
+        let spec = Field {
+            labels: labels.to_vec(),
+            initial: None,
+            regularisation,
+        };
+        let fit = fit_output_error_field(sim, train, &spec, options, |_, _| ())?;
+        let e = error(sim, validation)?;
+        let loss = fit.loss;
+        println!("  regularisation {weight:e}: validation error {e:.4e} m, loss {loss:.3e}");
+        if best.as_ref().is_none_or(|b| e < b.1) {
+            best = Some((weight, e, fit));
+        }
+    }
+    let (weight, _, field) = best.expect("four weights tried");
+    sim.assembly_mut()
+        .set_materials(field_of(base, Some(labels), &field.coefficients)?)?;
+    Ok((weight, field))
+}
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
@@ -83,9 +131,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     let (train, test) = (data.split(Split::Train), test_data.split(Split::Test));
     let mut sim = data.meta.scene.build(origin)?.integrator;
-    let error = |sim: &mut deform_integrator::Integrator, set: &[&Trajectory]| {
-        mean_rollout_errors(sim, set).map(|e| mean_error(&e))
-    };
     let untuned = error(&mut sim, &test)?;
     println!("untuned coarse: test mean RMS rollout error {untuned:.4e} m");
     let options = OutputErrorOptions {
@@ -110,43 +155,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         t.elapsed().as_secs_f64(),
         homogeneous / untuned
     );
-    // The field's regularisation weight, chosen on the validation trajectories.
-    let homogeneous_model = sim.assembly().materials().clone();
     let mesh = data.meta.scene.build(origin)?.mesh;
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
-    let neighbours = face_neighbours(&mesh, &labels);
     let validation = data.split(Split::Validation);
     let t = Instant::now();
-    let mut best: Option<(f64, f64, deform_learn::OutputErrorFit)> = None;
-    for weight in [0.0, 1e-3, 1e-2, 1e-1] {
-        sim.assembly_mut()
-            .set_materials(homogeneous_model.clone())?;
-        let spec = Field {
-            labels: labels.clone(),
-            initial: None,
-            regularisation: Regularisation {
-                towards: weight,
-                smooth: weight,
-                neighbours: neighbours.clone(),
-            },
-        };
-        let fit = fit_output_error_field(&mut sim, &train, &spec, options, |_, _| ())?;
-        let e = error(&mut sim, &validation)?;
-        println!(
-            "  regularisation {weight:e}: validation error {e:.4e} m, loss {:.3e}",
-            fit.loss
-        );
-        if best.as_ref().is_none_or(|b| e < b.1) {
-            best = Some((weight, e, fit));
-        }
-    }
-    let (weight, _, field) = best.expect("four weights tried");
-    let base = match &homogeneous_model {
-        deform_assembly::MaterialField::Uniform(m) => m.clone(),
-        _ => unreachable!("the homogeneous fit is uniform"),
-    };
-    sim.assembly_mut()
-        .set_materials(field_of(&base, Some(&labels), &field.coefficients)?)?;
+    let (weight, field) = choose_field(&mut sim, &mesh, &labels, (&train, &validation), options)?;
     println!("chosen regularisation weight {weight:e}");
     let per_element = error(&mut sim, &test)?;
     let mus: Vec<f64> = field.coefficients.iter().step_by(2).copied().collect();
