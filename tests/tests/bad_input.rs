@@ -301,6 +301,14 @@ fn corpus() -> Vec<Case> {
             names: &["bad.ron", "task.parameters"],
         },
         Case {
+            what: "experiment: Jacobi omega 5",
+            input: Experiment(experiment(
+                "SelectSolver(candidates: [Direct()])",
+                "TuneSolver(solver: Jacobi(omega: 5.0))",
+            )),
+            names: &["bad.ron", "omega"],
+        },
+        Case {
             what: "experiment: missing scene",
             input: Experiment(experiment("\"scene.ron\"", "\"nowhere.ron\"")),
             names: &["nowhere.ron"],
