@@ -6,6 +6,9 @@
 
 Writes:
   assets/meshes/beam.msh             gmsh, MSH 4.1 ASCII: the 1 x 0.25 x 0.25 m cantilever, unstructured
+  assets/meshes/beam_{fine,coarse}.msh
+                                     gmsh, MSH 4.1 binary: the same cantilever at two resolutions
+                                     (mesh sizes 0.04 and 0.125), for coarse-from-fine data
   assets/meshes/bracket.msh          gmsh, MSH 2.2 binary: an L bracket with a bolt hole, two regions
   assets/meshes/torus.msh            gmsh, MSH 4.1 binary: a torus (R 0.2, r 0.06) centred at z = 0.3
   assets/meshes/block.node/.ele      TetGen 1.5 from a PLC of a notched block (1-based, region attribute)
@@ -56,6 +59,21 @@ def beam():
     save(path, 4.1, False)
     gmsh.model.remove()
     summary(path)
+
+
+def beam_pair():
+    """One shape at two resolutions (coarse-from-fine data): the cantilever box, unstructured."""
+    for name, size in [("beam_fine", 0.04), ("beam_coarse", 0.125)]:
+        gmsh.model.add(name)
+        gmsh.model.occ.addBox(0, 0, 0, 1, 0.25, 0.25)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [1], 1, name="beam")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.model.mesh.generate(3)
+        path = os.path.join(ASSETS, f"{name}.msh")
+        save(path, 4.1, True)
+        gmsh.model.remove()
+        summary(path)
 
 
 def bracket():
@@ -161,7 +179,7 @@ if __name__ == "__main__":
     only = sys.argv[1:]  # e.g. `torus` to make one mesh; all when empty
     gmsh.initialize()
     gmsh.option.setNumber("General.Terminal", 0)
-    for make in [beam, bracket, torus, two_boxes]:
+    for make in [beam, beam_pair, bracket, torus, two_boxes]:
         if not only or make.__name__ in only:
             make()
     gmsh.finalize()

@@ -237,3 +237,38 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
         "covering {covering:e}, before {before:e}"
     );
 }
+
+#[test]
+fn gmsh_meshes_of_one_shape_coarsen_with_the_clamp_mapped() {
+    let assets = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/meshes");
+    let origin = Path::new("fine.ron");
+    let mut fine = Scene::parse(FINE, origin).unwrap();
+    fine.mesh = MeshSource::File(assets.join("beam_fine.msh"));
+    let data = generate(&fine, origin, &DatasetSpec::new(1, 2, 3), |_, _| ()).unwrap();
+    let coarse = Scene {
+        mesh: MeshSource::File(assets.join("beam_coarse.msh")),
+        ..fine.clone()
+    };
+    let (mapped, report) = coarsen(&data, &coarse, origin, Constraints::FromFine).unwrap();
+    assert!(report.ratio > 12.0, "{}", report.ratio);
+    assert!(report.max_distance < 1e-12);
+    // Unstructured meshes share no vertices, yet the clamped face maps onto the coarse one.
+    let coarse_mesh = coarse.build(origin).unwrap().mesh;
+    let plane = Selector::Plane {
+        point: [0.0; 3],
+        normal: [-1.0, 0.0, 0.0],
+    };
+    let own = plane.select(&coarse_mesh).unwrap();
+    let Selector::Indices(mapped_set) = &mapped.meta.scene.constraints[0].select else {
+        panic!("index set")
+    };
+    assert_eq!(mapped_set, &own);
+    // The clamped coarse vertices stay where the fine clamp holds them.
+    let last = mapped.trajectories[0].x.last().unwrap();
+    for &v in &own {
+        let p = coarse_mesh.rest_positions()[v];
+        for d in 0..3 {
+            assert!((last[3 * v + d] - p[d]).abs() < 1e-12);
+        }
+    }
+}

@@ -72,8 +72,10 @@ fn gmsh_files_in_all_four_variants_read_identically() {
 #[test]
 fn bundled_meshes_read_with_expected_counts_and_volumes() {
     // (file, vertices, tets, volume from meshio, regions)
-    let cases: [(&str, usize, usize, f64, Vec<u32>); 3] = [
+    let cases: [(&str, usize, usize, f64, Vec<u32>); 5] = [
         ("beam.msh", 558, 1854, 0.0625, vec![1]),
+        ("beam_fine.msh", 1299, 5083, 0.0625, vec![1]),
+        ("beam_coarse.msh", 169, 412, 0.0625, vec![1]),
         ("bracket.msh", 588, 1700, 0.00626298309606, vec![1, 2]),
         ("block.node", 445, 1365, 0.1875, vec![5]),
     ];

@@ -374,3 +374,36 @@ fn nested_grids_embed_exactly_and_outside_points_go_to_the_nearest_element() {
     // The outside point carries the value at its closest point, (1.0, 0.1, 0.1).
     assert!((at[3] - (2.0 - 0.1)).abs() < 1e-12, "{}", at[3]);
 }
+
+#[test]
+fn gmsh_meshes_of_one_shape_at_two_resolutions_embed() {
+    use deform_mesh::embed::Embedding;
+    let read = |name: &str| {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../assets/meshes")
+            .join(name);
+        deform_mesh::io::read(&path, &MeshOptions::default()).unwrap()
+    };
+    let (fine, coarse) = (read("beam_fine.msh"), read("beam_coarse.msh"));
+    assert!(fine.num_tets() >= 8 * coarse.num_tets());
+    let e = Embedding::locate(&fine, coarse.rest_positions());
+    // The same box: every coarse vertex lies in (or on) the fine mesh, to rounding.
+    assert!(
+        e.max_distance < 1e-12,
+        "{} outside, up to {}",
+        e.outside.len(),
+        e.max_distance
+    );
+    let linear: Vec<f64> = fine
+        .rest_positions()
+        .iter()
+        .flat_map(|p| [p.x - 2.0 * p.z, 0.5 * p.y, p.x * 3.0 + p.y])
+        .collect();
+    let at = e.interpolate(&fine, &linear);
+    for (i, p) in coarse.rest_positions().iter().enumerate() {
+        let want = [p.x - 2.0 * p.z, 0.5 * p.y, p.x * 3.0 + p.y];
+        for d in 0..3 {
+            assert!((at[3 * i + d] - want[d]).abs() < 1e-12);
+        }
+    }
+}
