@@ -42,6 +42,7 @@ fn choose_field(
     labels: &[u32],
     (train, validation): (&[&Trajectory], &[&Trajectory]),
     options: OutputErrorOptions,
+    damping: bool,
 ) -> Result<(f64, OutputErrorFit), Box<dyn std::error::Error>> {
     let homogeneous = sim.assembly().materials().clone();
     let MaterialField::Uniform(base) = &homogeneous else {
@@ -56,10 +57,17 @@ fn choose_field(
             smooth: weight,
             neighbours: neighbours.clone(),
         };
+        if damping {
+            // Positive starts: the optimiser moves logarithms.
+            let mut o = sim.options().clone();
+            (o.alpha, o.gamma) = (0.01, 1e-4);
+            sim.set_options(o)?;
+        }
         let spec = Field {
             labels: labels.to_vec(),
             initial: None,
             regularisation,
+            damping,
         };
         let fit = fit_output_error_field(sim, train, &spec, options, |_, _| ())?;
         let e = error(sim, validation)?;
@@ -69,7 +77,15 @@ fn choose_field(
             best = Some((weight, e, fit));
         }
     }
-    let (weight, _, field) = best.expect("four weights tried");
+    let (weight, _, mut field) = best.expect("four weights tried");
+    if damping {
+        let gamma = field.coefficients.pop().expect("damping fitted");
+        let alpha = field.coefficients.pop().expect("damping fitted");
+        let mut o = sim.options().clone();
+        (o.alpha, o.gamma) = (alpha, gamma);
+        sim.set_options(o)?;
+        println!("  fitted Rayleigh alpha {alpha:.4}, gamma {gamma:.3e}");
+    }
     sim.assembly_mut()
         .set_materials(field_of(base, Some(labels), &field.coefficients)?)?;
     Ok((weight, field))
@@ -159,7 +175,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
     let validation = data.split(Split::Validation);
     let t = Instant::now();
-    let (weight, field) = choose_field(&mut sim, &mesh, &labels, (&train, &validation), options)?;
+    let (weight, field) = choose_field(
+        &mut sim,
+        &mesh,
+        &labels,
+        (&train, &validation),
+        options,
+        k > 1,
+    )?;
     println!("chosen regularisation weight {weight:e}");
     let per_element = error(&mut sim, &test)?;
     let mus: Vec<f64> = field.coefficients.iter().step_by(2).copied().collect();
@@ -185,10 +208,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     // The learned model as a scene to keep, and its field for ParaView.
     let out = Path::new("target/deform/coarsen");
-    let model = Scene {
+    let mut model = Scene {
         name: "coarse_beam".into(),
         ..data.meta.scene.clone()
     };
+    (model.integrator.alpha, model.integrator.gamma) = (sim.options().alpha, sim.options().gamma);
     let saved = save_model(&model, &field.coefficients, out)?;
     let lambdas: Vec<f64> = field
         .coefficients

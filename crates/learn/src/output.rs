@@ -124,6 +124,8 @@ pub struct OutputError<'a> {
     field: Option<Grouping>,
     /// The field's regularisation, when any.
     regularisation: Option<Regularisation>,
+    /// Rayleigh `alpha` and `gamma` are the last two coefficients.
+    damping: bool,
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
@@ -154,6 +156,7 @@ impl<'a> OutputError<'a> {
             base: base.clone(),
             field: None,
             regularisation: None,
+            damping: false,
             sim: RefCell::new(sim),
             trajectories: trajectories.to_vec(),
             options,
@@ -184,16 +187,36 @@ impl<'a> OutputError<'a> {
         self
     }
 
-    /// Number of coefficients: terms times groups.
-    pub fn num_coefficients(&self) -> usize {
+    /// Also fits Rayleigh damping: the coefficients end with `alpha, gamma`, which a
+    /// coarser step needs (its numerical damping is not a stiffness). Through the same
+    /// adjoint: `dr/dalpha = dt M v`, `dr/dgamma = dt K v` at each step's end. Start them
+    /// positive to fit them (the optimiser works in logarithms: a zero stays zero).
+    pub fn with_damping(mut self) -> Self {
+        self.damping = true;
+        self
+    }
+
+    /// Number of material coefficients: terms times groups.
+    fn num_material(&self) -> usize {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
         term_coefficients(&self.base).len() * groups
     }
 
-    /// The base material's coefficients in every group: where a field fit starts.
+    /// Number of coefficients: terms times groups, and 2 with damping.
+    pub fn num_coefficients(&self) -> usize {
+        self.num_material() + if self.damping { 2 } else { 0 }
+    }
+
+    /// The base material's coefficients in every group (and the integrator's damping): where
+    /// a field fit starts.
     pub fn uniform_start(&self) -> Vec<f64> {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
-        term_coefficients(&self.base).repeat(groups)
+        let mut c = term_coefficients(&self.base).repeat(groups);
+        if self.damping {
+            let o = self.sim.borrow();
+            c.extend([o.options().alpha, o.options().gamma]);
+        }
+        c
     }
 
     /// The material field of coefficients `c`.
@@ -201,6 +224,13 @@ impl<'a> OutputError<'a> {
     /// # Errors
     /// [`FitError::Coefficients`] for a wrong length or an invalid pair.
     pub fn materials(&self, c: &[f64]) -> Result<MaterialField, FitError> {
+        // With damping, its two coefficients come last.
+        let m = self.num_material();
+        let c = if self.damping {
+            &c[..m.min(c.len())]
+        } else {
+            c
+        };
         match &self.field {
             None => field_of(&self.base, None, c),
             Some(g) => field_of(&self.base, Some(g.groups()), c),
@@ -222,14 +252,30 @@ impl<'a> OutputError<'a> {
                 evaluations: self.options.max_evaluations,
             });
         }
+        let m = self.num_material();
         let materials = self.materials(c)?;
         let mut sim = self.sim.borrow_mut();
         sim.assembly_mut().set_materials(materials)?;
+        if self.damping {
+            let Some(&[alpha, gamma]) = c.get(m..) else {
+                return Err(FitError::Coefficients {
+                    coefficients: c.to_vec(),
+                    reason: format!("expected {} coefficients", m + 2),
+                });
+            };
+            let mut options = sim.options().clone();
+            (options.alpha, options.gamma) = (alpha, gamma);
+            sim.set_options(options)
+                .map_err(|e| FitError::Coefficients {
+                    coefficients: c.to_vec(),
+                    reason: e.to_string(),
+                })?;
+        }
         let grouping = match &self.field {
             Some(g) => g.clone(),
             None => Grouping::global(sim.assembly()),
         };
-        let mut work = Adjoint::new(&sim, grouping)?;
+        let mut work = Adjoint::new(&sim, grouping, self.damping)?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
         let mut grad = vec![0.0; c.len()];
@@ -277,7 +323,7 @@ impl<'a> OutputError<'a> {
         }
         if let Some(r) = &self.regularisation {
             let terms = term_coefficients(&self.base);
-            loss += r.add(c, &terms, &mut grad);
+            loss += r.add(&c[..m], &terms, &mut grad[..m]);
         }
         *self.evaluations.borrow_mut() += 1;
         (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
@@ -397,10 +443,12 @@ struct Adjoint {
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
+    /// The gradient ends with `alpha, gamma`.
+    damping: bool,
 }
 
 impl Adjoint {
-    fn new(sim: &Integrator, grouping: Grouping) -> Result<Self, FitError> {
+    fn new(sim: &Integrator, grouping: Grouping, damping: bool) -> Result<Self, FitError> {
         let a = sim.assembly().stiffness_matrix();
         Ok(Self {
             kmat: sim.assembly().stiffness_matrix(),
@@ -408,6 +456,7 @@ impl Adjoint {
             a,
             mass: sim.mass().clone(),
             grouping,
+            damping,
         })
     }
 
@@ -477,6 +526,19 @@ impl Adjoint {
             };
             for ((gj, f), kv) in grad.iter_mut().zip(&jf).zip(&jk) {
                 *gj += dt * (f - gamma * kv);
+            }
+            if self.damping {
+                // dL/dalpha = -dt lambda^T M v, dL/dgamma = -dt lambda^T K v (K as above).
+                let mut mv = vec![0.0; n];
+                sim.assembly()
+                    .mass_apply(&self.mass, &next.v, &mut mv)
+                    .map_err(fail)?;
+                let mut kv = vec![0.0; n];
+                deform_solvers::LinearOperator::apply(&self.kmat, &next.v, &mut kv);
+                let dot = |a: &[f64]| lambda.iter().zip(a).map(|(l, x)| l * x).sum::<f64>();
+                let last = grad.len() - 2;
+                grad[last] -= dt * dot(&mv);
+                grad[last + 1] -= dt * dot(&kv);
             }
             if k == 0 {
                 break;
@@ -668,6 +730,9 @@ pub struct Field {
     pub initial: Option<Vec<f64>>,
     /// The penalty on the field.
     pub regularisation: Regularisation,
+    /// Also fit Rayleigh `alpha, gamma` (the last two coefficients; see
+    /// [`OutputError::with_damping`]).
+    pub damping: bool,
 }
 
 /// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]). The fitted
@@ -685,6 +750,11 @@ pub fn fit_output_error_field(
     let objective = OutputError::new(sim, trajectories, options, progress)?
         .with_field(&field.labels)?
         .with_regularisation(field.regularisation.clone());
+    let objective = if field.damping {
+        objective.with_damping()
+    } else {
+        objective
+    };
     let start = field
         .initial
         .clone()

@@ -1017,3 +1017,50 @@ fn a_regularised_field_gradient_equals_finite_differences() {
         .unwrap();
     assert_eq!(unregularised.evaluate(&start).unwrap().0, plain);
 }
+
+#[test]
+fn the_damping_gradient_equals_finite_differences() {
+    // Rayleigh alpha and gamma fitted through the same adjoint, with a two-group field. With
+    // gamma > 0 the gradient neglects the O(dt^2 gamma) term of the Newton matrix (see the
+    // module docs): 2e-3 relative here.
+    let s = scene("alpha: 0.3, gamma: 2e-4", "Beam(1)");
+    let data = make(&s, 1, 4);
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let labels: Vec<u32> = (0..sim.assembly().num_elements() as u32)
+        .map(|e| e % 2)
+        .collect();
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 4,
+        ..Default::default()
+    };
+    let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_field(&labels)
+        .unwrap()
+        .with_damping();
+    assert_eq!(objective.num_coefficients(), 2 * 2 + 2);
+    let start = objective.uniform_start();
+    assert_eq!(&start[4..], &[0.3, 2e-4]);
+    // Away from the truth in every coefficient.
+    let c: Vec<f64> = start
+        .iter()
+        .zip([0.7, 1.3, 1.2, 0.8, 2.0, 0.5])
+        .map(|(a, b)| a * b)
+        .collect();
+    let (_, grad) = objective.evaluate(&c).unwrap();
+    for j in 0..c.len() {
+        let h = 1e-5 * c[j];
+        let (mut cp, mut cm) = (c.clone(), c.clone());
+        cp[j] += h;
+        cm[j] -= h;
+        let fd =
+            (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0) / (2.0 * h);
+        eprintln!("coefficient {j}: {:.6e} vs {fd:.6e}", grad[j]);
+        assert!(
+            (grad[j] - fd).abs() <= 2e-3 * fd.abs(),
+            "coefficient {j}: {} vs {fd}",
+            grad[j]
+        );
+    }
+}
