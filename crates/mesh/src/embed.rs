@@ -177,8 +177,17 @@ impl Grid {
         let (lo, hi) = mesh.bounding_box();
         // About one element per cell: the mean element's edge.
         let volume: f64 = mesh.volumes().iter().sum();
-        let cell = (volume / mesh.num_tets() as f64).cbrt().max(1e-300) * 1.5;
-        let dims = [0, 1, 2].map(|d| (((hi[d] - lo[d]) / cell).ceil() as usize).clamp(1, 1 << 10));
+        let mut cell = (volume / mesh.num_tets() as f64).cbrt().max(1e-300) * 1.5;
+        let dims_for = |cell: f64| {
+            [0, 1, 2].map(|d| (((hi[d] - lo[d]) / cell).ceil() as usize).clamp(1, 1 << 10))
+        };
+        // A thin shell in a large box would ask for far more cells than elements: coarsen the
+        // grid until there are at most eight cells per element.
+        let mut dims = dims_for(cell);
+        while dims.iter().product::<usize>() > 8 * mesh.num_tets() {
+            cell *= 1.25;
+            dims = dims_for(cell);
+        }
         let mut cells = vec![Vec::new(); dims[0] * dims[1] * dims[2]];
         let mut grid = Grid {
             lo,

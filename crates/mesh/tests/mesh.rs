@@ -407,3 +407,31 @@ fn gmsh_meshes_of_one_shape_at_two_resolutions_embed() {
         }
     }
 }
+
+#[test]
+fn a_sparse_mesh_gets_a_bounded_grid_and_still_locates_points() {
+    use deform_mesh::embed::Embedding;
+    // Two unit cubes 100 m apart: the bounding box is a million times their volume.
+    let cube = BoxGrid::beam(1).build().unwrap();
+    let far = Vector3::repeat(100.0);
+    let n = cube.num_vertices();
+    let rest: Vec<Vector3<f64>> = cube
+        .rest_positions()
+        .iter()
+        .copied()
+        .chain(cube.rest_positions().iter().map(|p| p + far))
+        .collect();
+    let tets: Vec<[usize; 4]> = cube
+        .tets()
+        .iter()
+        .copied()
+        .chain(cube.tets().iter().map(|t| t.map(|v| v + n)))
+        .collect();
+    let mesh = TetMesh::try_new(rest, tets).unwrap();
+    let inside = far + Vector3::new(0.5, 0.1, 0.1);
+    let e = Embedding::locate(&mesh, &[inside, Vector3::new(50.0, 50.0, 50.0)]);
+    assert!(e.element[0] >= cube.num_tets());
+    assert_eq!(e.outside, vec![1]);
+    let at = e.interpolate(&mesh, &mesh.rest_positions_flat());
+    assert!((Vector3::new(at[0], at[1], at[2]) - inside).norm() < 1e-12);
+}
