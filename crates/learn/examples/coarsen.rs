@@ -91,6 +91,40 @@ fn choose_field(
     Ok((weight, field))
 }
 
+/// A Lame pair per region (eight slabs along the beam) from the homogeneous fit in `sim`,
+/// which is put back afterwards; returns the test error.
+fn fit_regions(
+    sim: &mut Integrator,
+    mesh: &TetMesh,
+    (train, test): (&[&Trajectory], &[&Trajectory]),
+    options: OutputErrorOptions,
+) -> Result<f64, Box<dyn std::error::Error>> {
+    let homogeneous_model = sim.assembly().materials().clone();
+    let slab = |e: usize| {
+        let x: f64 = mesh.tets()[e]
+            .iter()
+            .map(|&v| mesh.rest_positions()[v].x)
+            .sum();
+        ((x / 4.0 * 8.0) as u32).min(7)
+    };
+    let regions = Field {
+        labels: (0..mesh.num_tets()).map(slab).collect(),
+        ..Default::default()
+    };
+    let t = Instant::now();
+    let fit = fit_output_error_field(sim, train, &regions, options, |_, _| ())?;
+    let per_region = error(sim, test)?;
+    println!(
+        "per-region fit (8 slabs): loss {:.3e} -> {:.3e} in {} evaluations, {:.1} s; test error {per_region:.4e} m",
+        fit.initial_loss,
+        fit.loss,
+        fit.evaluations,
+        t.elapsed().as_secs_f64()
+    );
+    sim.assembly_mut().set_materials(homogeneous_model)?;
+    Ok(per_region)
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     let fine_n: usize = args.next().map_or(Ok(4), |a| a.parse())?;
@@ -172,32 +206,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         homogeneous / untuned
     );
     let mesh = data.meta.scene.build(origin)?.mesh;
-    // A Lame pair per region: eight slabs along the beam, from the homogeneous fit.
-    let homogeneous_model = sim.assembly().materials().clone();
-    let slab = |e: usize| {
-        let x: f64 = mesh.tets()[e]
-            .iter()
-            .map(|&v| mesh.rest_positions()[v].x)
-            .sum();
-        ((x / 4.0 * 8.0) as u32).min(7)
-    };
-    let regions = Field {
-        labels: (0..mesh.num_tets()).map(slab).collect(),
-        ..Default::default()
-    };
-    let t = Instant::now();
-    let fit = fit_output_error_field(&mut sim, &train, &regions, options, |_, _| ())?;
-    let per_region = error(&mut sim, &test)?;
+    let per_region = fit_regions(&mut sim, &mesh, (&train, &test), options)?;
     println!(
-        "per-region fit (8 slabs): loss {:.3e} -> {:.3e} in {} evaluations, {:.1} s; test error {per_region:.4e} m ({:.3}x untuned, {:.3}x homogeneous)",
-        fit.initial_loss,
-        fit.loss,
-        fit.evaluations,
-        t.elapsed().as_secs_f64(),
+        "  ({:.3}x untuned, {:.3}x homogeneous)",
         per_region / untuned,
         per_region / homogeneous
     );
-    sim.assembly_mut().set_materials(homogeneous_model)?;
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
     let validation = data.split(Split::Validation);
     let t = Instant::now();
