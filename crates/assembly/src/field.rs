@@ -23,6 +23,37 @@ pub enum MaterialField {
 }
 
 impl MaterialField {
+    /// `base` with term coefficients per group (see `Model::with_term_coefficients`):
+    /// group `g` takes `c[g * terms..(g + 1) * terms]`, element `e` group `index[e]`.
+    ///
+    /// # Errors
+    /// [`AssemblyError::MaterialField`] for a wrong length or an invalid set, naming the
+    /// group.
+    pub fn from_term_coefficients(
+        base: &Model,
+        index: Vec<u32>,
+        c: &[f64],
+    ) -> Result<Self, AssemblyError> {
+        let terms = base.term_coefficients().len().max(1);
+        let groups = index.iter().max().map_or(0, |m| *m as usize + 1);
+        if c.len() != terms * groups {
+            let expected = terms * groups;
+            return Err(AssemblyError::MaterialField(format!(
+                "{} coefficients, expected {expected}",
+                c.len()
+            )));
+        }
+        let models = c
+            .chunks(terms)
+            .enumerate()
+            .map(|(g, c)| {
+                base.with_term_coefficients(c)
+                    .map_err(|e| AssemblyError::MaterialField(format!("group {g}: {e}")))
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(MaterialField::PerElement { models, index })
+    }
+
     /// A model per mesh region (the region tags of the mesh file).
     ///
     /// # Errors

@@ -606,3 +606,23 @@ fn term_vector_jacobian_products_equal_the_jacobians_applied_from_the_left() {
     }
     assert!(Grouping::from_labels(&asm, &[1, 2]).is_err());
 }
+
+#[test]
+fn a_field_from_term_coefficients_has_one_model_per_group_and_names_a_bad_one() {
+    let base = model("NeoHookean(Lame(mu: 3e4, lambda: 5e4))");
+    let field =
+        MaterialField::from_term_coefficients(&base, vec![1, 0, 1], &[1e4, 2e4, 3e4, 4e4]).unwrap();
+    let MaterialField::PerElement { models, index } = &field else {
+        panic!("per element")
+    };
+    assert_eq!(index, &[1, 0, 1]);
+    assert_eq!(models[1].term_coefficients(), vec![3e4, 4e4]);
+    let short = MaterialField::from_term_coefficients(&base, vec![0, 1], &[1e4, 2e4]).unwrap_err();
+    assert!(
+        short.to_string().contains("2 coefficients, expected 4"),
+        "{short}"
+    );
+    let bad = MaterialField::from_term_coefficients(&base, vec![0, 1], &[1e4, 2e4, -1e4, 2e4])
+        .unwrap_err();
+    assert!(bad.to_string().contains("group 1"), "{bad}");
+}

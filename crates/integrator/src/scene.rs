@@ -158,18 +158,10 @@ fn coefficient_field(model: &Model, file: &Path, tets: usize) -> Result<Material
             file.display()
         ));
     }
-    let models = a
-        .data
-        .chunks(terms.max(1))
-        .enumerate()
-        .map(|(e, c)| {
-            model
-                .with_term_coefficients(c)
-                .map_err(|err| format!("{}: element {e}: {err}", file.display()))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    // One group per element.
     let index = (0..tets as u32).collect();
-    Ok(MaterialField::PerElement { models, index })
+    MaterialField::from_term_coefficients(model, index, &a.data)
+        .map_err(|e| format!("{} (one group per element): {e}", file.display()))
 }
 
 /// Refuses a simulation of `vertices` and `tets` that cannot fit in memory.
@@ -304,29 +296,41 @@ impl Scene {
         }
     }
 
+    /// Validates the scene and builds its mesh only (read or generated, refused when the
+    /// simulation cannot fit in memory): what needs the mesh without an integrator.
+    ///
+    /// # Errors
+    /// [`SceneError::Invalid`] naming the field.
+    pub fn build_mesh(&self, origin: &Path) -> Result<TetMesh, SceneError> {
+        self.validate(origin)?;
+        let invalid = |e: &dyn std::fmt::Display| SceneError::Invalid {
+            path: origin.to_owned(),
+            field: "mesh".to_owned(),
+            reason: e.to_string(),
+        };
+        let mesh = match &self.mesh {
+            MeshSource::File(file) => {
+                deform_mesh::io::read(file, &MeshOptions::default()).map_err(|e| invalid(&e))?
+            }
+            MeshSource::Generate(grid) => grid.build().map_err(|e| invalid(&e))?,
+            MeshSource::Beam(n) => BoxGrid::beam(*n).build().map_err(|e| invalid(&e))?,
+        };
+        // A file's size is known only now; generated meshes were measured by `validate`.
+        fits(origin, mesh.num_vertices(), mesh.num_tets())?;
+        Ok(mesh)
+    }
+
     /// Builds the mesh, integrator and initial state. `origin` names the scene in errors.
     ///
     /// # Errors
     /// [`SceneError::Invalid`] naming the field.
     pub fn build(&self, origin: &Path) -> Result<Built, SceneError> {
-        self.validate(origin)?;
+        let mesh = self.build_mesh(origin)?;
         let invalid = |field: &str, reason: String| SceneError::Invalid {
             path: origin.to_owned(),
             field: field.to_owned(),
             reason,
         };
-        let mesh = match &self.mesh {
-            MeshSource::File(file) => deform_mesh::io::read(file, &MeshOptions::default())
-                .map_err(|e| invalid("mesh", e.to_string()))?,
-            MeshSource::Generate(grid) => {
-                grid.build().map_err(|e| invalid("mesh", e.to_string()))?
-            }
-            MeshSource::Beam(n) => BoxGrid::beam(*n)
-                .build()
-                .map_err(|e| invalid("mesh", e.to_string()))?,
-        };
-        // A file's size is known only now; generated meshes were measured by `validate`.
-        fits(origin, mesh.num_vertices(), mesh.num_tets())?;
         let model = self
             .material
             .build()

@@ -23,7 +23,6 @@
 
 use std::path::{Path, PathBuf};
 
-use deform_assembly::MaterialField;
 use deform_fs::npy;
 use deform_integrator::scene::{ConstraintSpec, MeshSource};
 use deform_integrator::{Scene, SceneError};
@@ -78,9 +77,9 @@ pub fn coarsen(
     constraints: Constraints,
 ) -> Result<(Dataset, CoarsenReport), LearnError> {
     let fine_scene = &fine.meta.scene;
-    let fine_mesh = fine_scene.build(origin)?.mesh;
+    let fine_mesh = fine_scene.build_mesh(origin)?;
     let mut coarse = coarse.clone();
-    let coarse_mesh = coarse.build(origin)?.mesh;
+    let coarse_mesh = coarse.build_mesh(origin)?;
     let embedding = Embedding::locate(&fine_mesh, coarse_mesh.rest_positions());
     if constraints == Constraints::FromFine {
         let mut mapped = Vec::new();
@@ -104,7 +103,6 @@ pub fn coarsen(
         }
         coarse.constraints = mapped;
     }
-    let coarse_mesh = coarse.build(origin)?.mesh;
     let constrained = coarse
         .constraints
         .iter()
@@ -151,11 +149,9 @@ pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<Pat
     let origin = dir.join(format!("{}.ron", scene.name));
     let mut saved = scene.clone();
     saved.coefficients = None;
-    let built = saved.build(&origin)?;
-    let MaterialField::Uniform(model) = built.integrator.assembly().materials() else {
-        unreachable!("a scene without coefficients has one material")
-    };
-    let (tets, terms) = (built.mesh.num_tets(), model.term_coefficients().len());
+    let mesh = saved.build_mesh(&origin)?;
+    let model = saved.material.build()?;
+    let (tets, terms) = (mesh.num_tets(), model.term_coefficients().len());
     if coefficients.len() != tets * terms {
         let reason = format!(
             "{} coefficients for {tets} tets x {terms} terms",
@@ -180,7 +176,7 @@ pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<Pat
             binary: true,
         };
         let path = dir.join(&name);
-        deform_mesh::io::write_msh(&path, &built.mesh, format).map_err(|e| io(&path, &e))?;
+        deform_mesh::io::write_msh(&path, &mesh, format).map_err(|e| io(&path, &e))?;
         saved.mesh = MeshSource::File(name.into());
     }
     let field = format!("{}.coefficients.npy", scene.name);

@@ -694,28 +694,13 @@ pub fn field_of(
         coefficients: c.to_vec(),
         reason,
     };
-    let terms = base.term_coefficients().len().max(1);
-    let count = groups.map_or(1, |g| g.iter().max().map_or(0, |m| *m as usize + 1));
-    if c.len() != terms * count {
-        return Err(invalid(format!(
-            "{} coefficients, expected {}",
-            c.len(),
-            terms * count
-        )));
-    }
-    let model = |c: &[f64]| {
-        base.with_term_coefficients(c)
-            .map_err(|e| invalid(e.to_string()))
-    };
     match groups {
-        None => Ok(MaterialField::Uniform(model(c)?)),
-        Some(g) => {
-            let models = c.chunks(terms).map(model).collect::<Result<_, _>>()?;
-            Ok(MaterialField::PerElement {
-                models,
-                index: g.to_vec(),
-            })
-        }
+        None => base
+            .with_term_coefficients(c)
+            .map(MaterialField::Uniform)
+            .map_err(|e| invalid(e.to_string())),
+        Some(g) => MaterialField::from_term_coefficients(base, g.to_vec(), c)
+            .map_err(|e| invalid(e.to_string())),
     }
 }
 
