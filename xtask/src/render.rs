@@ -5,6 +5,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use anyhow::Result;
+use deform_learn::experiment::coarsen::{CoarseModel, CoarsenReport};
 use deform_learn::experiment::fit_material::FitMaterialReport;
 use deform_learn::experiment::select_model::{ROUNDING_LEVEL, SelectModelReport};
 use deform_learn::experiment::select_solver::{CaseReport, Key, SelectSolverReport};
@@ -40,6 +41,7 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
         TaskReport::SelectSolver(r) => select_solver(r, &mut md)?,
         TaskReport::TuneBackwardEuler(r) => story(r, &mut md)?,
         TaskReport::TuneSolver(r) => tune_solver(r, &mut md)?,
+        TaskReport::Coarsen(r) => coarsen(r, &mut md)?,
     }
     for p in report.plots() {
         plot(&out.join(&p.stem), &p)?;
@@ -330,5 +332,67 @@ fn tune_solver(r: &TuneSolverReport, md: &mut String) -> Result<()> {
         configured.error,
         r.work_ratio()
     )?;
+    Ok(())
+}
+
+fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
+    let m = &r.mapping;
+    writeln!(
+        md,
+        "The fine model's trajectories are carried onto a coarse mesh of {} vertices and {} tets ({:.1}x fewer; {} coarse vertices outside the fine mesh, at most {:.2e} m away). Held-out motions: {:.2} s simulated in all, by the fine model (the truth). Cost = wall time per simulated second of those motions.\n",
+        m.vertices, m.tets, m.ratio, m.outside, m.max_distance, r.test_seconds
+    )?;
+    for c in &r.cases {
+        let tried: Vec<String> = c
+            .regularisation
+            .iter()
+            .map(|(w, e)| format!("{w:e}: {e:.3e} m"))
+            .collect();
+        writeln!(
+            md,
+            "## Coarse step {}x (dt = {} s)\n\nPer-element regularisation weights tried (validation error): {}; chosen {:e}.\n",
+            c.dt_factor,
+            c.dt,
+            tried.join(", "),
+            c.chosen
+        )?;
+        md.push_str("| model | mean RMS error (m) | final RMS error (m) | error / untuned | cost (s/s) | cost / fine | alpha | gamma | coefficients | loss | fit time (s) |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+        for row in &c.rows {
+            let vs_untuned = c
+                .error_ratio(row.model, CoarseModel::Untuned)
+                .unwrap_or(f64::NAN);
+            let vs_fine = c
+                .cost_ratio(row.model, CoarseModel::Fine)
+                .unwrap_or(f64::NAN);
+            let (alpha, gamma) = row.damping;
+            let fit = row.fit.as_ref().map_or("| - | - | -".to_owned(), |f| {
+                format!(
+                    "| {} | {:.3e} -> {:.3e} | {:.1}",
+                    f.coefficients, f.losses.0, f.losses.1, f.seconds
+                )
+            });
+            writeln!(
+                md,
+                "| {} | {:.4e} | {:.4e} | {vs_untuned:.3} | {:.4} | {vs_fine:.3} | {alpha:.4} | {gamma:.3e} {fit} |",
+                row.model.name(),
+                row.mean_error(),
+                row.final_error(),
+                row.cost
+            )?;
+        }
+        if !c.files.is_empty() {
+            let files: Vec<String> = c
+                .files
+                .iter()
+                .map(|f| format!("`{}`", f.display()))
+                .collect();
+            writeln!(
+                md,
+                "\nThe per-element model: {} (`cargo xtask simulate` runs the scene; ParaView opens the field).",
+                files.join(", ")
+            )?;
+        }
+        md.push('\n');
+    }
     Ok(())
 }

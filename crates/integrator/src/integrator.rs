@@ -91,7 +91,12 @@ pub struct IntegratorOptions {
     pub dt: f64,
     /// Rayleigh mass damping `alpha` (1/s).
     pub alpha: f64,
-    /// Rayleigh stiffness damping `gamma` (s).
+    /// Rayleigh stiffness damping `gamma` (s). It may be negative, down to (not including)
+    /// `-dt / 2`: Backward Euler's own numerical dissipation takes a low mode of frequency
+    /// `omega` down by `1 / (1 + dt (dt + gamma) omega^2)` per step, so a coarse step can give
+    /// some of it back (a model stepping `k` times coarser than its data dissipates like them at
+    /// `gamma = -(k - 1) dt / k`); below `-dt / 2` the highest modes grow. A negative gamma is a
+    /// fraction of the step: halved substeps scale it ([`IntegratorOptions::stiffness_damping`]).
     pub gamma: f64,
     /// Gravity (m/s^2).
     pub gravity: [f64; 3],
@@ -122,6 +127,17 @@ impl Default for IntegratorOptions {
 }
 
 impl IntegratorOptions {
+    /// Rayleigh stiffness damping at a (sub)step of `h`: `gamma`, or a negative `gamma`
+    /// scaled by `h / dt` (it corrects the step's own dissipation, see
+    /// [`IntegratorOptions::gamma`]).
+    pub fn stiffness_damping(&self, h: f64) -> f64 {
+        if self.gamma < 0.0 {
+            self.gamma * h / self.dt
+        } else {
+            self.gamma
+        }
+    }
+
     /// Checks every value; the error names the field.
     ///
     /// # Errors
@@ -135,8 +151,13 @@ impl IntegratorOptions {
         if !(self.alpha.is_finite() && self.alpha >= 0.0) {
             return bad("alpha", format!("{} must be finite and >= 0", self.alpha));
         }
-        if !(self.gamma.is_finite() && self.gamma >= 0.0) {
-            return bad("gamma", format!("{} must be finite and >= 0", self.gamma));
+        if !(self.gamma.is_finite() && self.gamma > -0.5 * self.dt) {
+            let reason = format!(
+                "{} must be finite and > -dt / 2 = {}",
+                self.gamma,
+                -0.5 * self.dt
+            );
+            return bad("gamma", reason);
         }
         if !self.gravity.iter().all(|g| g.is_finite()) {
             return bad("gravity", "must be finite".into());
@@ -760,8 +781,9 @@ impl Integrator {
         match mode {
             Mode::Dynamic { dt } => {
                 let o = &self.options;
+                let gamma = o.stiffness_damping(dt);
                 self.asm
-                    .damping_forces(o.alpha, o.gamma, &self.mass, &self.k, u, &mut w.fd)?;
+                    .damping_forces(o.alpha, gamma, &self.mass, &self.k, u, &mut w.fd)?;
                 for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
                     *d = a - b;
                 }
@@ -803,7 +825,7 @@ impl Integrator {
     fn newton_matrix(&mut self, mode: Mode) -> Result<(f64, f64), AssemblyError> {
         let o = &self.options;
         let (c_m, c_k) = match mode {
-            Mode::Dynamic { dt } => (1.0 + dt * o.alpha, dt * o.gamma + dt * dt),
+            Mode::Dynamic { dt } => (1.0 + dt * o.alpha, dt * o.stiffness_damping(dt) + dt * dt),
             Mode::Static => (0.0, 1.0),
         };
         self.asm
@@ -967,7 +989,7 @@ impl Integrator {
                 self.asm
                     .damping_forces(
                         self.options.alpha,
-                        self.options.gamma,
+                        self.options.stiffness_damping(dt),
                         &self.mass,
                         &self.k,
                         u,

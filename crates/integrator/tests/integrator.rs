@@ -996,3 +996,54 @@ fn a_hopeless_step_fails_after_max_retries_solves_and_big_retry_counts_are_refus
         })
     ));
 }
+
+#[test]
+fn a_negative_gamma_gives_back_some_of_a_coarse_steps_dissipation_and_stays_stable() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes/cantilever.ron");
+    let mut scene = deform_integrator::Scene::load(&path).unwrap();
+    scene.integrator.dt = 0.04;
+    scene.integrator.alpha = 0.0;
+    scene.integrator.newton.rel = 1e-9;
+    // At gamma = -dt / 2 the highest modes stop decaying: refused, naming the field.
+    scene.integrator.gamma = -0.02;
+    let err = scene
+        .build(&path)
+        .err()
+        .expect("gamma = -dt / 2 is refused");
+    assert!(err.to_string().contains("gamma"), "{err}");
+    // The swing's energy is what lies above the static equilibrium's.
+    let mut at_rest = scene.clone();
+    at_rest.integrator.gamma = 0.0;
+    at_rest.initial.equilibrium = true;
+    let mut eq = at_rest.build(&path).unwrap();
+    let equilibrium = total_energy(&mut eq.integrator, &eq.state);
+    let mut energies = Vec::new();
+    for gamma in [0.0, -0.018] {
+        scene.integrator.gamma = gamma;
+        let mut built = scene.build(&path).unwrap();
+        // Substeps keep the fraction of the step.
+        assert_eq!(
+            built.integrator.options().stiffness_damping(0.02),
+            gamma / 2.0
+        );
+        let initial = total_energy(&mut built.integrator, &built.state);
+        let mut e = initial;
+        for step in 0..15 {
+            built.integrator.step(&mut built.state).unwrap();
+            e = total_energy(&mut built.integrator, &built.state);
+            assert!(
+                e <= initial + 1e-9 * initial.abs(),
+                "gamma {gamma}, step {step}: {e} > {initial}"
+            );
+        }
+        // Released at rest under gravity, it sags and swings: energy goes, from the start.
+        assert!(e < initial);
+        energies.push((e - equilibrium) / (initial - equilibrium));
+    }
+    // More of the swing is left with the negative gamma.
+    assert!(
+        energies[1] > 1.2 * energies[0],
+        "swing energy left {energies:?}"
+    );
+}

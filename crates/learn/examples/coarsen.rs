@@ -60,7 +60,7 @@ fn choose_field(
         if damping {
             // Positive starts: the optimiser moves logarithms.
             let mut o = sim.options().clone();
-            (o.alpha, o.gamma) = (0.01, 1e-4);
+            (o.alpha, o.gamma) = (1e-3, 0.0);
             sim.set_options(o)?;
         }
         let spec = Field {
@@ -253,7 +253,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..data.meta.scene.clone()
     };
     (model.integrator.alpha, model.integrator.gamma) = (sim.options().alpha, sim.options().gamma);
-    let saved = save_model(&model, &field.coefficients, out)?;
+    let saved = save_model(&model, &field.coefficients, out)?.remove(0);
     let lambdas: Vec<f64> = field
         .coefficients
         .iter()

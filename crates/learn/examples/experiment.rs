@@ -59,6 +59,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             println!("tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x");
         }
         TaskReport::TuneSolver(r) => println!("tuned / configured work: {:.3}", r.work_ratio()),
+        TaskReport::Coarsen(r) => println!("{}", r.headline()),
     }
     Ok(())
 }

@@ -48,7 +48,7 @@ pub enum Constraints {
 
 /// What the mapping did.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CoarsenReport {
+pub struct Mapping {
     /// Coarse vertices.
     pub vertices: usize,
     /// Coarse tets.
@@ -75,7 +75,7 @@ pub fn coarsen(
     coarse: &Scene,
     origin: &Path,
     constraints: Constraints,
-) -> Result<(Dataset, CoarsenReport), LearnError> {
+) -> Result<(Dataset, Mapping), LearnError> {
     let fine_scene = &fine.meta.scene;
     let fine_mesh = fine_scene.build_mesh(origin)?;
     let mut coarse = coarse.clone();
@@ -125,7 +125,7 @@ pub fn coarsen(
     let mut meta = fine.meta.clone();
     meta.scene = coarse;
     meta.vertices = coarse_mesh.num_vertices();
-    let report = CoarsenReport {
+    let report = Mapping {
         vertices: coarse_mesh.num_vertices(),
         tets: coarse_mesh.num_tets(),
         ratio: fine_mesh.num_tets() as f64 / coarse_mesh.num_tets() as f64,
@@ -140,12 +140,16 @@ pub fn coarsen(
 /// `dir/NAME.ron` is `scene` with its coefficient field in `dir/NAME.coefficients.npy`
 /// (shape (tets, terms), see [`Scene::coefficients`]); a mesh read from a file is copied to
 /// `dir/NAME.msh` (binary, so coordinates survive bit for bit), a generated one stays a
-/// generator. Returns the scene file's path.
+/// generator. Returns the files written, the scene file first.
 ///
 /// # Errors
 /// [`LearnError`] when the scene does not build, the field has the wrong length or a
 /// file cannot be written.
-pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<PathBuf, LearnError> {
+pub fn save_model(
+    scene: &Scene,
+    coefficients: &[f64],
+    dir: &Path,
+) -> Result<Vec<PathBuf>, LearnError> {
     let origin = dir.join(format!("{}.ron", scene.name));
     let mut saved = scene.clone();
     saved.coefficients = None;
@@ -169,6 +173,7 @@ pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<Pat
         source: std::io::Error::other(e.to_string()),
     };
     std::fs::create_dir_all(dir).map_err(|e| io(dir, &e))?;
+    let mut written = vec![origin.clone()];
     if let MeshSource::File(_) = &saved.mesh {
         let name = format!("{}.msh", scene.name);
         let format = MshFormat {
@@ -177,17 +182,19 @@ pub fn save_model(scene: &Scene, coefficients: &[f64], dir: &Path) -> Result<Pat
         };
         let path = dir.join(&name);
         deform_mesh::io::write_msh(&path, &mesh, format).map_err(|e| io(&path, &e))?;
+        written.push(path);
         saved.mesh = MeshSource::File(name.into());
     }
     let field = format!("{}.coefficients.npy", scene.name);
     let path = dir.join(&field);
     npy::write(&path, &[tets, terms], coefficients).map_err(|e| io(&path, &e))?;
+    written.push(path);
     saved.coefficients = Some(field.into());
     let text =
         ron::ser::to_string_pretty(&saved, ron::ser::PrettyConfig::default().struct_names(true))
             .map_err(|e| io(&origin, &e))?;
     deform_fs::write_text(&origin, &text).map_err(|e| io(&origin, &e))?;
-    Ok(origin)
+    Ok(written)
 }
 
 /// The located points whose interpolation weight lies entirely on vertices in `set`.

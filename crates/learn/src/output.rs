@@ -189,8 +189,10 @@ impl<'a> OutputError<'a> {
 
     /// Also fits Rayleigh damping: the coefficients end with `alpha, gamma`, which a
     /// coarser step needs (its numerical damping is not a stiffness). Through the same
-    /// adjoint: `dr/dalpha = dt M v`, `dr/dgamma = dt K v` at each step's end. Start them
-    /// positive to fit them (the optimiser works in logarithms: a zero stays zero).
+    /// adjoint: `dr/dalpha = dt M v`, `dr/dgamma = dt K v` at each step's end. Alpha is
+    /// fitted when it starts positive (the optimiser works in logarithms: a zero stays
+    /// zero); gamma stays above `-dt / 2` (a coarse step's negative gamma gives back some of
+    /// its numerical dissipation).
     pub fn with_damping(mut self) -> Self {
         self.damping = true;
         self
@@ -200,6 +202,18 @@ impl<'a> OutputError<'a> {
     fn num_material(&self) -> usize {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
         term_coefficients(&self.base).len() * groups
+    }
+
+    /// The bound each coefficient keeps its side of: 0 (a term coefficient keeps its sign,
+    /// alpha stays positive), and `-dt / 2` for gamma (see [`IntegratorOptions::gamma`]).
+    ///
+    /// [`IntegratorOptions::gamma`]: deform_integrator::IntegratorOptions::gamma
+    fn bounds(&self) -> Vec<f64> {
+        let mut lower = vec![0.0; self.num_coefficients()];
+        if self.damping {
+            *lower.last_mut().expect("damping has two") = -0.5 * self.sim.borrow().options().dt;
+        }
+        lower
     }
 
     /// Number of coefficients: terms times groups, and 2 with damping.
@@ -580,29 +594,48 @@ pub fn with_term_coefficients(model: &Model, c: &[f64]) -> Result<Model, Materia
     model.with_term_coefficients(c)
 }
 
-/// argmin sees `p_i = ln |c_i|` of the non-zero coefficients; signs and zeros are kept.
+/// argmin sees `p_i = ln |c_i - l_i|` of the coefficients off their bound `l_i` (zero for
+/// the material's, `-dt / 2` for Rayleigh gamma): every trial point keeps its side of the
+/// bound, and a coefficient that starts on it stays there.
 struct LogProblem<'p, 'a> {
     objective: &'p OutputError<'a>,
-    /// The starting coefficients (their signs and zeros).
+    /// The starting coefficients (their sides of the bounds).
     start: Vec<f64>,
+    /// The bounds.
+    lower: Vec<f64>,
 }
 
 impl LogProblem<'_, '_> {
+    fn new<'p, 'a>(objective: &'p OutputError<'a>, start: &[f64]) -> LogProblem<'p, 'a> {
+        LogProblem {
+            objective,
+            start: start.to_vec(),
+            lower: objective.bounds(),
+        }
+    }
+
     fn active(&self) -> impl Iterator<Item = usize> + '_ {
-        (0..self.start.len()).filter(|&i| self.start[i] != 0.0)
+        (0..self.start.len()).filter(|&i| self.start[i] != self.lower[i])
     }
 
     fn coefficients(&self, p: &[f64]) -> Vec<f64> {
-        let mut c = self.start.clone();
-        for (i, v) in self.active().zip(p) {
-            c[i] = self.start[i].signum() * v.exp();
-        }
-        c
+        from_log(&self.start, &self.lower, p)
     }
 
     fn parameters(&self) -> Vec<f64> {
-        self.active().map(|i| self.start[i].abs().ln()).collect()
+        let off = |i: usize| (self.start[i] - self.lower[i]).abs().ln();
+        self.active().map(off).collect()
     }
+}
+
+/// The coefficients at log-parameters `p` (see [`LogProblem`]).
+fn from_log(start: &[f64], lower: &[f64], p: &[f64]) -> Vec<f64> {
+    let mut c = start.to_vec();
+    let active = (0..c.len()).filter(|&i| start[i] != lower[i]);
+    for (i, v) in active.zip(p) {
+        c[i] = lower[i] + (start[i] - lower[i]).signum() * v.exp();
+    }
+    c
 }
 
 impl CostFunction for LogProblem<'_, '_> {
@@ -621,14 +654,19 @@ impl Gradient for LogProblem<'_, '_> {
     fn gradient(&self, p: &Vec<f64>) -> Result<Vec<f64>, ArgminError> {
         let c = self.coefficients(p);
         let (_, g) = self.objective.evaluate(&c)?;
-        Ok(self.active().map(|i| g[i] * c[i]).collect())
+        Ok(self
+            .active()
+            .map(|i| g[i] * (c[i] - self.lower[i]))
+            .collect())
     }
 }
 
 /// Records every iteration (argmin wants a `'static` observer, hence the shared vector).
 struct Recorder {
     records: Arc<Mutex<Vec<FitIteration>>>,
+    /// Those of the [`LogProblem`].
     start: Vec<f64>,
+    lower: Vec<f64>,
 }
 
 impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
@@ -639,14 +677,7 @@ impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
     ) -> Result<(), ArgminError> {
         let coefficients = state
             .get_param()
-            .map(|p| {
-                let mut c = self.start.clone();
-                let active = (0..c.len()).filter(|&i| self.start[i] != 0.0);
-                for (i, v) in active.zip(p) {
-                    c[i] = self.start[i].signum() * v.exp();
-                }
-                c
-            })
+            .map(|p| from_log(&self.start, &self.lower, p))
             .unwrap_or_default();
         self.records
             .lock()
@@ -708,7 +739,8 @@ pub fn field_of(
 /// element: the element index for a per-element field, a region tag, a cluster).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Field {
-    /// The label of each element.
+    /// The label of each element; empty: one set for the whole mesh (the material stays
+    /// uniform).
     pub labels: Vec<u32>,
     /// Where the fit starts (by increasing label, then term); `None`: the integrator's
     /// uniform material in every group.
@@ -732,9 +764,13 @@ pub fn fit_output_error_field(
     options: OutputErrorOptions,
     progress: impl FnMut(usize, f64),
 ) -> Result<OutputErrorFit, FitError> {
-    let objective = OutputError::new(sim, trajectories, options, progress)?
-        .with_field(&field.labels)?
-        .with_regularisation(field.regularisation.clone());
+    let objective = OutputError::new(sim, trajectories, options, progress)?;
+    let objective = if field.labels.is_empty() {
+        objective
+    } else {
+        objective.with_field(&field.labels)?
+    };
+    let objective = objective.with_regularisation(field.regularisation.clone());
     let objective = if field.damping {
         objective.with_damping()
     } else {
@@ -759,20 +795,16 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
         .with_tolerance_grad(options.tolerance)
         .and_then(|s| s.with_tolerance_cost(0.0))
         .map_err(|e| FitError::Optimiser(e.to_string()))?;
-    let problem = LogProblem {
-        objective,
-        start: initial.to_vec(),
-    };
+    let problem = LogProblem::new(objective, initial);
     let start = problem.parameters();
+    let recorder = Recorder {
+        records: records.clone(),
+        start: problem.start.clone(),
+        lower: problem.lower.clone(),
+    };
     let result = Executor::new(problem, solver)
         .configure(|s| s.param(start).max_iters(options.max_iterations))
-        .add_observer(
-            Recorder {
-                records: records.clone(),
-                start: initial.to_vec(),
-            },
-            ObserverMode::Always,
-        )
+        .add_observer(recorder, ObserverMode::Always)
         .run();
     let evaluations = *objective.evaluations.borrow();
     let best_record = || {
@@ -789,11 +821,8 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
     let (coefficients, loss, termination) = match result {
         Ok(res) if res.state().get_best_param().is_some() => {
             let state = res.state();
-            let best = LogProblem {
-                objective,
-                start: initial.to_vec(),
-            }
-            .coefficients(state.get_best_param().expect("checked above"));
+            let best = LogProblem::new(objective, initial)
+                .coefficients(state.get_best_param().expect("checked above"));
             let termination = match state.get_termination_reason() {
                 Some(TerminationReason::MaxItersReached) => Termination::MaxIterations,
                 Some(TerminationReason::SolverConverged | TerminationReason::TargetCostReached)

@@ -112,8 +112,9 @@ fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
             index: (0..tets as u32).collect(),
         };
         sim.integrator.assembly_mut().set_materials(field).unwrap();
-        let path =
-            deform_learn::coarsen::save_model(&scene, &c, &dir.path().join("saved")).unwrap();
+        let path = deform_learn::coarsen::save_model(&scene, &c, &dir.path().join("saved"))
+            .unwrap()[0]
+            .clone();
         let loaded = Scene::load(&path).unwrap();
         let mut back = loaded.build(&path).unwrap();
         let options = RunOptions::steps(5);

@@ -236,6 +236,7 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
     let path = dir.path().join("bad.ron");
     let solver = r#"SelectSolver(candidates: [Direct()])"#;
     let story = r#"TuneBackwardEuler(output_error: (), candidates: [Direct()])"#;
+    let coarsen = r#"Coarsen(mesh: Beam(1), test: (trajectories: 1, steps: 8, seed: 2), regions: 2, output_error: ())"#.to_owned();
     let cases = [
         (
             "trajectories: 3, steps: 3, seed: 1",
@@ -307,12 +308,48 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
             "SelectModel(members: [])".into(),
             "task.members",
         ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "dt_factors: [0]"),
+            "task.dt_factors",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "dt_factors: [5]"),
+            "task.dt_factors",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "regions: 0"),
+            "task.regions",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "regularisation: [-1.0]"),
+            "task.regularisation",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("steps: 8, seed: 2", "steps: 0, seed: 2"),
+            "task.test",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1, subsample: 2",
+            coarsen.clone(),
+            "dataset.subsample",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1, split: (0.9, 0.0)",
+            coarsen.clone(),
+            "dataset.split",
+        ),
     ];
     for (dataset, task, field) in cases {
         let text = format!(
             r#"Experiment(name: "x", scene: "s.ron", dataset: ({dataset}, split: (0.34, 0.33)), task: {task})"#
         )
-        .replace(", split: (0.6, 0.2), split: (0.34, 0.33)", ", split: (0.6, 0.2)");
+        .replace(", split: (0.6, 0.2), split: (0.34, 0.33)", ", split: (0.6, 0.2)")
+        .replace(", split: (0.9, 0.0), split: (0.34, 0.33)", ", split: (0.9, 0.0)");
         std::fs::write(&path, &text).unwrap();
         match Experiment::load(&path) {
             Err(deform_learn::LearnError::Config {
@@ -360,4 +397,69 @@ fn a_rerun_replaces_the_previous_runs_files_and_keeps_the_users() {
     for f in &second.files {
         assert!(out.join(f).exists(), "{}", f.display());
     }
+}
+
+#[test]
+fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
+    use deform_learn::experiment::coarsen::CoarseModel;
+    let dir = tempfile::tempdir().unwrap();
+    let e = Experiment::load(&data("coarsen.ron")).unwrap();
+    let report = run(&e, Some(dir.path()), &mut NoProgress).unwrap();
+    let TaskReport::Coarsen(r) = &report.task else {
+        panic!("task")
+    };
+    assert_eq!((r.mapping.ratio, r.mapping.outside), (8.0, 0));
+    assert_eq!(r.cases.len(), 2);
+    for c in &r.cases {
+        let models: Vec<CoarseModel> = c.rows.iter().map(|row| row.model).collect();
+        use CoarseModel::*;
+        assert_eq!(models, [Fine, Untuned, Homogeneous, PerRegion, PerElement]);
+        // The test motions: 8 fine steps, so 8 / k coarse steps and the initial state.
+        assert!(
+            c.rows
+                .iter()
+                .all(|row| row.errors.len() == 8 / c.dt_factor + 1)
+        );
+        assert!(c.rows[0].errors.iter().all(|&e| e == 0.0));
+        assert!(c.rows[1].mean_error() > 0.0);
+        // Every field starts from the homogeneous fit, where its penalty vanishes, so its
+        // loss starts at the homogeneous fit's final loss and only goes down.
+        let homogeneous = c.row(Homogeneous).unwrap().fit.as_ref().unwrap();
+        assert!(homogeneous.losses.1 < homogeneous.losses.0);
+        for model in [PerRegion, PerElement] {
+            let fit = c.row(model).unwrap().fit.as_ref().unwrap();
+            let (start, end) = fit.losses;
+            assert!(
+                (start - homogeneous.losses.1).abs() <= 1e-9 * start,
+                "{model:?}"
+            );
+            assert!(end <= start, "{model:?}");
+        }
+        // 24 coarse tets x (mu, lambda), and alpha, gamma.
+        let per_element = c.row(PerElement).unwrap();
+        assert_eq!(per_element.fit.as_ref().unwrap().coefficients, 50);
+        assert!(per_element.damping.1 > -0.5 * c.dt);
+        assert_eq!(c.regularisation.len(), 2);
+        // The model is a scene to keep: it loads, with the fitted damping and its field.
+        let saved = deform_integrator::Scene::load(&dir.path().join(&c.files[0])).unwrap();
+        assert_eq!(
+            (saved.integrator.alpha, saved.integrator.gamma),
+            per_element.damping
+        );
+        assert_eq!(saved.integrator.dt, c.dt);
+        let built = saved.build(&dir.path().join(&c.files[0])).unwrap();
+        assert!(matches!(
+            built.integrator.assembly().materials(),
+            deform_assembly::MaterialField::PerElement { .. }
+        ));
+        for f in &c.files {
+            assert!(
+                report.files.contains(f) && dir.path().join(f).is_file(),
+                "{f:?}"
+            );
+        }
+    }
+    let names: Vec<String> = report.plots().into_iter().map(|p| p.stem).collect();
+    assert_eq!(names, ["rollout_error_1x_dt", "rollout_error_2x_dt"]);
+    assert!(dir.path().join("models.csv").is_file());
 }

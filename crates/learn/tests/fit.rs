@@ -1042,25 +1042,31 @@ fn the_damping_gradient_equals_finite_differences() {
     assert_eq!(objective.num_coefficients(), 2 * 2 + 2);
     let start = objective.uniform_start();
     assert_eq!(&start[4..], &[0.3, 2e-4]);
-    // Away from the truth in every coefficient.
-    let c: Vec<f64> = start
+    // Away from the truth in every coefficient; then with a negative gamma (a coarse step's
+    // correction of its own dissipation, above -dt / 2).
+    let away: Vec<f64> = start
         .iter()
         .zip([0.7, 1.3, 1.2, 0.8, 2.0, 0.5])
         .map(|(a, b)| a * b)
         .collect();
-    let (_, grad) = objective.evaluate(&c).unwrap();
-    for j in 0..c.len() {
-        let h = 1e-5 * c[j];
-        let (mut cp, mut cm) = (c.clone(), c.clone());
-        cp[j] += h;
-        cm[j] -= h;
-        let fd =
-            (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0) / (2.0 * h);
-        eprintln!("coefficient {j}: {:.6e} vs {fd:.6e}", grad[j]);
-        assert!(
-            (grad[j] - fd).abs() <= 2e-3 * fd.abs(),
-            "coefficient {j}: {} vs {fd}",
-            grad[j]
-        );
+    let mut negative = away.clone();
+    negative[5] = -2e-4;
+    for c in [away, negative] {
+        let (_, grad) = objective.evaluate(&c).unwrap();
+        for j in 0..c.len() {
+            let h = 1e-5 * c[j].abs();
+            let (mut cp, mut cm) = (c.clone(), c.clone());
+            cp[j] += h;
+            cm[j] -= h;
+            let fd = (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0)
+                / (2.0 * h);
+            eprintln!("coefficient {j}: {:.6e} vs {fd:.6e}", grad[j]);
+            assert!(
+                (grad[j] - fd).abs() <= 2e-3 * fd.abs(),
+                "gamma {}, coefficient {j}: {} vs {fd}",
+                c[5],
+                grad[j]
+            );
+        }
     }
 }

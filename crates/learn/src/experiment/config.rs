@@ -105,6 +105,36 @@ pub enum Task {
         #[serde(default = "twenty")]
         max_iterations: u64,
     },
+    /// Coarse models that learn from fine ones: the dataset (the base model's trajectories)
+    /// is carried onto `mesh` at each of `dt_factors` times the base's step, where an
+    /// untuned coarse model (the base's material and damping), a homogeneous fit, a fit per
+    /// region and a fit per element are compared on the held-out motions `test` (simulated
+    /// by the base model: the truth), with their cost per simulated second.
+    Coarsen {
+        /// The coarse mesh: a generator or a file (relative to the experiment file).
+        mesh: deform_integrator::scene::MeshSource,
+        /// The held-out motions (all of its trajectories are test; its split is ignored):
+        /// best of another kind than the dataset's.
+        test: DatasetSpec,
+        /// Coarse time steps as multiples of the base's: one case each.
+        #[serde(default = "one_factor")]
+        dt_factors: Vec<usize>,
+        /// Regions of the per-region fit: slabs of equal length along the rest shape's
+        /// longest axis.
+        #[serde(default = "eight")]
+        regions: u32,
+        /// Weights of the per-element field's regularisation (towards the homogeneous fit
+        /// and across shared faces alike) tried; the one with the least validation error is
+        /// kept.
+        #[serde(default = "weights")]
+        regularisation: Vec<f64>,
+        /// Fit Rayleigh alpha and gamma with every field (a coarser step's numerical
+        /// dissipation is not a stiffness; gamma may go negative down to `-dt / 2`).
+        #[serde(default = "yes")]
+        damping: bool,
+        /// Options of every output-error fit.
+        output_error: OutputErrorOptions,
+    },
     /// Solver optimisation: tune an iterative solver's relative tolerance for least work
     /// with the trajectory within `accuracy` of the direct solver's.
     TuneSolver {
@@ -127,6 +157,22 @@ pub enum Task {
 
 fn one() -> usize {
     1
+}
+
+fn one_factor() -> Vec<usize> {
+    vec![1]
+}
+
+fn eight() -> u32 {
+    8
+}
+
+fn weights() -> Vec<f64> {
+    vec![0.0, 1e-3, 1e-2]
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn relative_tolerance() -> Vec<crate::tuning::SolverParameter> {
@@ -257,6 +303,14 @@ impl Experiment {
                 }
             }
         }
+        if let Task::Coarsen {
+            mesh: deform_integrator::scene::MeshSource::File(file),
+            ..
+        } = &mut e.task
+            && file.is_relative()
+        {
+            *file = dir.join(&*file);
+        }
         Ok(e)
     }
 
@@ -356,6 +410,48 @@ impl Experiment {
                 positive("task.factor_weight", *factor_weight)?;
                 positive("task.accuracy", *accuracy)?;
             }
+            Task::Coarsen {
+                test,
+                dt_factors,
+                regions,
+                regularisation,
+                output_error,
+                ..
+            } => {
+                if test.trajectories == 0 || test.steps == 0 {
+                    return Err((
+                        "task.test",
+                        "needs at least one step of one trajectory".into(),
+                    ));
+                }
+                if dt_factors.is_empty() || dt_factors.contains(&0) {
+                    return Err((
+                        "task.dt_factors",
+                        format!("{dt_factors:?}: needs factors >= 1"),
+                    ));
+                }
+                if let Some(k) = dt_factors
+                    .iter()
+                    .find(|&&k| 2 * k > self.dataset.steps.min(test.steps))
+                {
+                    return Err((
+                        "task.dt_factors",
+                        format!("{k} leaves less than two coarse steps"),
+                    ));
+                }
+                if *regions == 0 {
+                    return Err(("task.regions", "must be at least 1".into()));
+                }
+                if regularisation.is_empty()
+                    || !regularisation.iter().all(|w| w.is_finite() && *w >= 0.0)
+                {
+                    return Err((
+                        "task.regularisation",
+                        format!("{regularisation:?}: needs weights >= 0"),
+                    ));
+                }
+                output("task.output_error", output_error)?;
+            }
             Task::TuneSolver {
                 solver,
                 parameters,
@@ -395,14 +491,35 @@ impl Experiment {
             ));
         }
         let (a, b) = d.split;
-        if !(a > 0.0 && b >= 0.0 && a + b < 1.0) {
+        // Every task but solver tuning and coarsening reports on the test trajectories.
+        let needs_test = !matches!(self.task, Task::TuneSolver { .. } | Task::Coarsen { .. });
+        let room = if needs_test {
+            a + b < 1.0
+        } else {
+            a + b <= 1.0
+        };
+        if !(a > 0.0 && b >= 0.0 && room) {
             return Err((
                 "dataset.split",
                 format!("({a}, {b}) must leave room for a test split"),
             ));
         }
-        // Every task but solver tuning reports on the test trajectories.
-        let needs_test = !matches!(self.task, Task::TuneSolver { .. });
+        if let Task::Coarsen { .. } = self.task {
+            // Its test motions are its own; it chooses weights on validation trajectories.
+            if d.subsample != 1 {
+                return Err((
+                    "dataset.subsample",
+                    "must be 1: coarsening has dt_factors".into(),
+                ));
+            }
+            let (_, validation, _) = crate::dataset::split_counts(d.trajectories, d.split);
+            if validation == 0 {
+                return Err((
+                    "dataset.split",
+                    format!("({a}, {b}) leaves no validation trajectory"),
+                ));
+            }
+        }
         if needs_test && crate::dataset::split_counts(d.trajectories, d.split).2 == 0 {
             return Err((
                 "dataset.split",

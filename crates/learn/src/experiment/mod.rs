@@ -7,7 +7,8 @@
 //! [`select_model`](select_model::run) (ensembles), [`select_solver`](select_solver::run)
 //! (a learned solver policy against fixed solvers and schedules, [`crate::compare`]),
 //! [`tune_solver`](tune_solver::run) (a solver's parameters) and
-//! [`tune_backward_euler`](story::run) (all of them on one coarse model, the demo's story).
+//! [`tune_backward_euler`](story::run) (all of them on one coarse model) and
+//! [`coarsen`](coarsen::run) (a coarse mesh and step fitted to a fine model, field by field).
 //!
 //! ```no_run
 //! use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
@@ -20,6 +21,7 @@
 //! # Ok::<(), deform_learn::LearnError>(())
 //! ```
 
+pub mod coarsen;
 mod config;
 pub mod fit_material;
 mod report;
@@ -228,6 +230,7 @@ pub fn run(
             TaskReport::TuneBackwardEuler(story::run(cx, observer, &mut files)?)
         }
         Task::TuneSolver { .. } => TaskReport::TuneSolver(tune_solver::run(cx)?),
+        Task::Coarsen { .. } => TaskReport::Coarsen(coarsen::run(cx, observer, &mut files)?),
     };
     let mut report = ExperimentReport {
         name: experiment.name.clone(),

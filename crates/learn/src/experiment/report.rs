@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
+use super::coarsen::{CoarseModel, CoarsenReport};
 use super::fit_material::FitMaterialReport;
 use super::select_model::SelectModelReport;
 use super::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
@@ -125,6 +126,8 @@ pub enum TaskReport {
     TuneBackwardEuler(StoryReport),
     /// Solver optimisation.
     TuneSolver(TuneSolverReport),
+    /// Coarse models fitted to a fine one.
+    Coarsen(CoarsenReport),
 }
 
 impl ExperimentReport {
@@ -160,6 +163,23 @@ impl ExperimentReport {
                 ])]
             }
             TaskReport::TuneSolver(_) => Vec::new(),
+            TaskReport::Coarsen(r) => r
+                .cases
+                .iter()
+                .map(|c| {
+                    let rows = c.rows.iter().filter(|row| row.model != CoarseModel::Fine);
+                    let series = rows.map(|row| Series::new(row.model.name(), row.errors.clone()));
+                    Plot::new(
+                        format!("rollout_error_{}x_dt", c.dt_factor),
+                        format!(
+                            "held-out RMS position error against the fine model, coarse step {}x",
+                            c.dt_factor
+                        ),
+                        ["coarse step", "m"],
+                    )
+                    .with(series.collect())
+                })
+                .collect(),
         }
     }
 
@@ -210,6 +230,7 @@ impl ExperimentReport {
                 r.tuned_values(),
                 r.work_ratio()
             ),
+            TaskReport::Coarsen(r) => r.headline(),
         }
     }
 }

@@ -1,0 +1,497 @@
+//! Coarse models that learn from fine ones: the base (fine) model's trajectories are carried
+//! onto a coarse mesh of the same body ([`crate::coarsen`]), at the base's step and at
+//! multiples of it, and the coarse model is fitted to them by output error with the adjoint:
+//! one homogeneous Lame pair, a pair per region, a pair per element (its regularisation
+//! weight chosen on the validation trajectories), each with Rayleigh damping when asked. All
+//! are compared on held-out motions of another kind, simulated by the fine model: the truth.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use deform_assembly::MaterialField;
+use deform_integrator::{Integrator, IntegratorOptions, Scene};
+use deform_mesh::TetMesh;
+use deform_mesh::io::Vtu;
+use serde::{Deserialize, Serialize};
+
+use super::{Context, ExperimentObserver, Stage, Task};
+use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
+use crate::dataset::{Dataset, Split, Trajectory, generate};
+use crate::error::LearnError;
+use crate::output::{
+    Field, OutputErrorOptions, Regularisation, face_neighbours, fit_output_error_field,
+};
+use crate::rollout::{mean_error, mean_rollout_errors};
+
+/// Which model a row of the table is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CoarseModel {
+    /// The base model on its own mesh and step: the truth.
+    Fine,
+    /// The coarse mesh with the base's material and damping.
+    Untuned,
+    /// One Lame pair (and damping) for the whole coarse mesh.
+    Homogeneous,
+    /// A Lame pair per region.
+    PerRegion,
+    /// A Lame pair per coarse element.
+    PerElement,
+}
+
+impl CoarseModel {
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            CoarseModel::Fine => "fine (truth)",
+            CoarseModel::Untuned => "untuned coarse",
+            CoarseModel::Homogeneous => "homogeneous fit",
+            CoarseModel::PerRegion => "per-region fit",
+            CoarseModel::PerElement => "per-element fit",
+        }
+    }
+}
+
+/// What a fit took.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitSummary {
+    /// Coefficients fitted (term coefficients and damping).
+    pub coefficients: usize,
+    /// Loss at the start and at the end.
+    pub losses: (f64, f64),
+    /// Loss evaluations (each one forward and one adjoint pass over the training data).
+    pub evaluations: usize,
+    /// Wall time, seconds (all regularisation weights tried, for the per-element fit).
+    pub seconds: f64,
+}
+
+/// One model measured on the held-out motions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarseRow {
+    /// Which.
+    pub model: CoarseModel,
+    /// Mean test RMS position error at each coarse state (m); zeros for the fine model.
+    pub errors: Vec<f64>,
+    /// Wall time per simulated second of the test motions (s / s).
+    pub cost: f64,
+    /// Rayleigh alpha and gamma.
+    pub damping: (f64, f64),
+    /// The fit, for fitted models.
+    pub fit: Option<FitSummary>,
+}
+
+impl CoarseRow {
+    /// Mean over the predicted states of the test RMS error (m).
+    pub fn mean_error(&self) -> f64 {
+        mean_error(&self.errors)
+    }
+
+    /// The test RMS error at the last state (m).
+    pub fn final_error(&self) -> f64 {
+        self.errors.last().copied().unwrap_or(0.0)
+    }
+}
+
+/// The coarse mesh at one time step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarsenCase {
+    /// The coarse step over the base's.
+    pub dt_factor: usize,
+    /// The coarse step (s).
+    pub dt: f64,
+    /// Fine, untuned, homogeneous, per-region and per-element, in that order.
+    pub rows: Vec<CoarseRow>,
+    /// Validation error (m) of the per-element field at each regularisation weight tried.
+    pub regularisation: Vec<(f64, f64)>,
+    /// The chosen weight.
+    pub chosen: f64,
+    /// The per-element model's scene and its field for ParaView (relative to the results
+    /// folder), when files are written.
+    pub files: Vec<PathBuf>,
+}
+
+impl CoarsenCase {
+    /// The row of `model`.
+    pub fn row(&self, model: CoarseModel) -> Option<&CoarseRow> {
+        self.rows.iter().find(|r| r.model == model)
+    }
+
+    /// `a`'s mean test error over `b`'s.
+    pub fn error_ratio(&self, a: CoarseModel, b: CoarseModel) -> Option<f64> {
+        Some(self.row(a)?.mean_error() / self.row(b)?.mean_error())
+    }
+
+    /// `a`'s cost over `b`'s.
+    pub fn cost_ratio(&self, a: CoarseModel, b: CoarseModel) -> Option<f64> {
+        Some(self.row(a)?.cost / self.row(b)?.cost)
+    }
+}
+
+/// What the coarse models learnt.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoarsenReport {
+    /// How the coarse mesh sits in the fine one.
+    pub mapping: Mapping,
+    /// Simulated time of the held-out motions (s, all of them).
+    pub test_seconds: f64,
+    /// One per coarse step.
+    pub cases: Vec<CoarsenCase>,
+}
+
+impl CoarsenReport {
+    /// The summary line of the last case.
+    pub fn headline(&self) -> String {
+        let Some(c) = self.cases.last() else {
+            return String::new();
+        };
+        use CoarseModel::*;
+        let r = |a, b| c.error_ratio(a, b).unwrap_or(f64::NAN);
+        format!(
+            "{:.0}x fewer tets, {}x the step: {:.3}x cheaper than fine, per-element error {:.3}x untuned, {:.3}x homogeneous",
+            self.mapping.ratio,
+            c.dt_factor,
+            1.0 / c.cost_ratio(PerElement, Fine).unwrap_or(f64::NAN),
+            r(PerElement, Untuned),
+            r(PerElement, Homogeneous)
+        )
+    }
+}
+
+/// The task's settings, borrowed from [`Task::Coarsen`].
+struct Settings<'a> {
+    regions: u32,
+    regularisation: &'a [f64],
+    damping: bool,
+    options: OutputErrorOptions,
+}
+
+/// Runs [`Task::Coarsen`]: the held-out motions first (their wall time is the fine model's
+/// cost), then one case per coarse step.
+///
+/// # Errors
+/// [`LearnError`] naming the scene, trajectory or step.
+pub fn run(
+    cx: Context<'_>,
+    observer: &mut dyn ExperimentObserver,
+    files: &mut Vec<PathBuf>,
+) -> Result<CoarsenReport, LearnError> {
+    let Task::Coarsen {
+        mesh,
+        test,
+        dt_factors,
+        regions,
+        regularisation,
+        damping,
+        output_error,
+    } = &cx.experiment.task
+    else {
+        unreachable!("dispatched on the task")
+    };
+    let origin = cx.origin();
+    observer.start(Stage::Dataset, (test.trajectories * test.steps) as u64);
+    let started = Instant::now();
+    let test_data = generate(&cx.base, origin, test, |_, _| observer.advance(1))?;
+    let test_seconds = (test.trajectories * test.steps) as f64 * cx.base.integrator.dt;
+    let fine_cost = started.elapsed().as_secs_f64() / test_seconds;
+    observer.finish();
+    let coarse = Scene {
+        name: "coarse".into(),
+        mesh: mesh.clone(),
+        ..cx.base.clone()
+    };
+    let settings = Settings {
+        regions: *regions,
+        regularisation,
+        damping: *damping,
+        options: *output_error,
+    };
+    let mut cases = Vec::new();
+    let mut mapping = None;
+    for &k in dt_factors {
+        let mut scene = coarse.clone();
+        scene.integrator.dt *= k as f64;
+        let map = |d: &Dataset| -> Result<(Dataset, Mapping), LearnError> {
+            let (d, mapping) = coarsen(d, &scene, origin, Constraints::FromFine)?;
+            let mut d = d.subsample(k);
+            d.meta.scene.integrator.dt = scene.integrator.dt;
+            Ok((d, mapping))
+        };
+        let (data, m) = map(&cx.data)?;
+        let (tests, _) = map(&test_data)?;
+        mapping = Some(m);
+        let (mut case, fitted) = run_case(&data, &tests, &settings, origin, observer)?;
+        case.dt_factor = k;
+        case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
+        if let Some(out) = cx.out {
+            case.files = save_case(&data.meta.scene, &case, &fitted, origin, out)?;
+            files.extend(case.files.iter().cloned());
+        }
+        cases.push(case);
+    }
+    Ok(CoarsenReport {
+        mapping: mapping.expect("validated: at least one dt factor"),
+        test_seconds,
+        cases,
+    })
+}
+
+/// The truth's row: no error, the cost of simulating the held-out motions.
+fn fine_row(case: &CoarsenCase, cost: f64, base: &Scene) -> CoarseRow {
+    let untuned = case.row(CoarseModel::Untuned).expect("measured first");
+    CoarseRow {
+        model: CoarseModel::Fine,
+        errors: vec![0.0; untuned.errors.len()],
+        cost,
+        damping: (base.integrator.alpha, base.integrator.gamma),
+        fit: None,
+    }
+}
+
+/// The per-element model of a case, kept to save it.
+struct Fitted {
+    /// Term coefficients by element, then term.
+    coefficients: Vec<f64>,
+    /// Its damping.
+    options: IntegratorOptions,
+}
+
+/// The untuned, homogeneous, per-region and per-element rows on the coarse data, and the
+/// per-element model.
+fn run_case(
+    data: &Dataset,
+    tests: &Dataset,
+    settings: &Settings<'_>,
+    origin: &Path,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(CoarsenCase, Fitted), LearnError> {
+    let built = data.meta.scene.build(origin)?;
+    let (mesh, mut sim) = (built.mesh, built.integrator);
+    let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
+    let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
+    let mut rows = vec![measure(&mut sim, &test, CoarseModel::Untuned, None)?];
+    if settings.damping && sim.options().alpha == 0.0 {
+        // The optimiser moves logarithms: a zero alpha would stay zero.
+        let mut o = sim.options().clone();
+        o.alpha = 1e-3;
+        sim.set_options(o)?;
+    }
+    let field = |labels: Vec<u32>, regularisation| Field {
+        labels,
+        initial: None,
+        regularisation,
+        damping: settings.damping,
+    };
+    let whole = field(Vec::new(), Regularisation::default());
+    let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
+    rows.push(measure(
+        &mut sim,
+        &test,
+        CoarseModel::Homogeneous,
+        Some(summary),
+    )?);
+    let homogeneous = (sim.assembly().materials().clone(), sim.options().clone());
+    let reset = |sim: &mut Integrator| -> Result<(), LearnError> {
+        set_materials(sim, homogeneous.0.clone())?;
+        Ok(sim.set_options(homogeneous.1.clone())?)
+    };
+    let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
+    let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
+    rows.push(measure(
+        &mut sim,
+        &test,
+        CoarseModel::PerRegion,
+        Some(summary),
+    )?);
+    // Per element: each weight from the homogeneous fit; the best on validation is kept.
+    let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
+    let neighbours = face_neighbours(&mesh, &labels);
+    let mut tried = Vec::new();
+    let mut best: Option<(f64, Vec<f64>, FitSummary)> = None;
+    let (mut evaluations, mut seconds) = (0, 0.0);
+    for &w in settings.regularisation {
+        reset(&mut sim)?;
+        let r = Regularisation {
+            towards: w,
+            smooth: w,
+            neighbours: neighbours.clone(),
+        };
+        let (c, summary) = fit(
+            &mut sim,
+            &train,
+            &field(labels.clone(), r),
+            settings,
+            observer,
+        )?;
+        let e = mean_error(&mean_rollout_errors(&mut sim, &validation)?);
+        tried.push((w, e));
+        (evaluations, seconds) = (evaluations + summary.evaluations, seconds + summary.seconds);
+        if best.as_ref().is_none_or(|b| e < b.0) {
+            best = Some((e, c, summary));
+        }
+    }
+    let (_, c, mut summary) = best.expect("validated: at least one weight");
+    (summary.evaluations, summary.seconds) = (evaluations, seconds);
+    // Put the chosen field back (the last weight's is in `sim`).
+    reset(&mut sim)?;
+    let mut o = sim.options().clone();
+    let terms = c.len() - if settings.damping { 2 } else { 0 };
+    if settings.damping {
+        (o.alpha, o.gamma) = (c[terms], c[terms + 1]);
+    }
+    sim.set_options(o)?;
+    let MaterialField::Uniform(base) = &homogeneous.0 else {
+        unreachable!("the homogeneous fit is uniform")
+    };
+    let coefficients = c[..terms].to_vec();
+    let materials = crate::output::field_of(base, Some(&labels), &coefficients)?;
+    set_materials(&mut sim, materials)?;
+    rows.push(measure(
+        &mut sim,
+        &test,
+        CoarseModel::PerElement,
+        Some(summary),
+    )?);
+    let chosen = tried
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(0.0, |t| t.0);
+    let case = CoarsenCase {
+        dt_factor: 1,
+        dt: sim.options().dt,
+        rows,
+        regularisation: tried,
+        chosen,
+        files: Vec::new(),
+    };
+    let options = sim.options().clone();
+    Ok((
+        case,
+        Fitted {
+            coefficients,
+            options,
+        },
+    ))
+}
+
+fn set_materials(sim: &mut Integrator, materials: MaterialField) -> Result<(), LearnError> {
+    let result = sim.assembly_mut().set_materials(materials);
+    Ok(result.map_err(crate::fit::FitError::from)?)
+}
+
+/// Fits `field` on `train` from the model in `sim`, which keeps the result; the fitted
+/// coefficients and what the fit took.
+fn fit(
+    sim: &mut Integrator,
+    train: &[&Trajectory],
+    field: &Field,
+    settings: &Settings<'_>,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(Vec<f64>, FitSummary), LearnError> {
+    observer.start(Stage::Fit, settings.options.max_evaluations as u64);
+    let started = Instant::now();
+    let fit = fit_output_error_field(sim, train, field, settings.options, |k, loss| {
+        observer.advance(1);
+        observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
+    })?;
+    observer.finish();
+    let summary = FitSummary {
+        coefficients: fit.coefficients.len(),
+        losses: (fit.initial_loss, fit.loss),
+        evaluations: fit.evaluations,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    Ok((fit.coefficients, summary))
+}
+
+/// `sim`'s model on the held-out motions: errors and wall time per simulated second.
+fn measure(
+    sim: &mut Integrator,
+    test: &[&Trajectory],
+    model: CoarseModel,
+    fit: Option<FitSummary>,
+) -> Result<CoarseRow, LearnError> {
+    let started = Instant::now();
+    let errors = mean_rollout_errors(sim, test)?;
+    let steps: usize = test.iter().map(|t| t.steps()).sum();
+    let cost = started.elapsed().as_secs_f64() / (steps as f64 * sim.options().dt);
+    let damping = (sim.options().alpha, sim.options().gamma);
+    Ok(CoarseRow {
+        model,
+        errors,
+        cost,
+        damping,
+        fit,
+    })
+}
+
+/// Labels of `regions` slabs of equal length along the rest shape's longest axis, by each
+/// element's centroid.
+fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
+    let p = mesh.rest_positions();
+    let (lo, hi) = p
+        .iter()
+        .fold((p[0], p[0]), |(lo, hi), q| (lo.inf(q), hi.sup(q)));
+    let extent = hi - lo;
+    let axis = extent.imax();
+    let centroid = |t: &[usize; 4]| t.iter().map(|&v| p[v][axis]).sum::<f64>() / 4.0;
+    let slab = |t: &[usize; 4]| {
+        let s = (centroid(t) - lo[axis]) / extent[axis].max(f64::MIN_POSITIVE);
+        ((s * regions as f64) as u32).min(regions - 1)
+    };
+    mesh.tets().iter().map(slab).collect()
+}
+
+/// Names of the term coefficients of a model with `terms` of them: Lame pairs (`mu`,
+/// `lambda`, numbered per ensemble member) or `c0, c1, ...`.
+fn term_names(terms: usize) -> Vec<String> {
+    match terms {
+        2 => vec!["mu".into(), "lambda".into()],
+        t if t % 2 == 0 => (0..t)
+            .map(|j| format!("{}_{}", ["mu", "lambda"][j % 2], j / 2))
+            .collect(),
+        t => (0..t).map(|j| format!("c{j}")).collect(),
+    }
+}
+
+/// Saves the per-element model as a scene (`coarse_Kx_dt.ron`, its field beside it) and
+/// the field as cell data for ParaView (`coarse_Kx_dt_field.vtu`); returns the files,
+/// relative to `out`.
+fn save_case(
+    scene: &Scene,
+    case: &CoarsenCase,
+    fitted: &Fitted,
+    origin: &Path,
+    out: &Path,
+) -> Result<Vec<PathBuf>, LearnError> {
+    let name = format!("coarse_{}x_dt", case.dt_factor);
+    let mut model = Scene {
+        name: name.clone(),
+        ..scene.clone()
+    };
+    (model.integrator.alpha, model.integrator.gamma) = (fitted.options.alpha, fitted.options.gamma);
+    let written = save_model(&model, &fitted.coefficients, out)?;
+    let mesh = scene.build_mesh(origin)?;
+    let terms = fitted.coefficients.len() / mesh.num_tets().max(1);
+    let column = |j: usize| -> Vec<f64> {
+        let c = fitted.coefficients.iter().skip(j).step_by(terms.max(1));
+        c.copied().collect()
+    };
+    let columns: Vec<(String, Vec<f64>)> = term_names(terms)
+        .into_iter()
+        .enumerate()
+        .map(|(j, n)| (n, column(j)))
+        .collect();
+    let mut vtu = Vtu::new(&mesh);
+    for (n, values) in &columns {
+        vtu = vtu.cell_scalars(n, values);
+    }
+    let vtu_name = format!("{name}_field.vtu");
+    let path = out.join(&vtu_name);
+    vtu.write(&path).map_err(|e| LearnError::Io {
+        path: path.clone(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    let relative = |p: &PathBuf| p.strip_prefix(out).unwrap_or(p).to_path_buf();
+    let mut files: Vec<PathBuf> = written.iter().map(relative).collect();
+    files.push(vtu_name.into());
+    Ok(files)
+}
