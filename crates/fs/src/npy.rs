@@ -1,6 +1,9 @@
-//! NumPy `.npy` arrays of `f64` (little-endian, C order): the array format of datasets, so
-//! `numpy.load` reads them directly. Writes are atomic; reads check every header field and
-//! the data length and name the file in errors.
+//! NumPy `.npy` arrays: the array format of datasets, so `numpy.load` reads them directly.
+//! Writes are `f64` (little-endian, C order) and atomic. Reads take what numpy users have:
+//! float32/64 and signed or unsigned 8- to 64-bit integers (vertex ids and tets are integer
+//! arrays), either byte order, C or Fortran order, as `f64` values in C order (an integer
+//! beyond 2^53, which `f64` cannot hold exactly, is refused); they check every header field
+//! and the data length and name the file in errors.
 
 use std::path::{Path, PathBuf};
 
@@ -139,16 +142,12 @@ fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
             .trim_start();
         Ok(rest)
     };
-    let descr = field("descr")?;
-    if !(descr.starts_with("'<f8'") || descr.starts_with("'float64'")) {
-        let shown: String = descr.chars().take(12).collect();
-        return Err(format!(
-            "dtype {shown}... is not little-endian float64 ('<f8')"
-        ));
-    }
-    if !field("fortran_order")?.starts_with("False") {
-        return Err("Fortran-ordered arrays are not supported (save with C order)".into());
-    }
+    let dtype = Dtype::parse(field("descr")?)?;
+    let fortran = match field("fortran_order")? {
+        f if f.starts_with("False") => false,
+        f if f.starts_with("True") => true,
+        _ => return Err("'fortran_order' is neither True nor False".into()),
+    };
     let shape_text = field("shape")?;
     let close = shape_text.find(')').ok_or("shape is not a tuple")?;
     let inner = shape_text.strip_prefix('(').ok_or("shape is not a tuple")?;
@@ -164,7 +163,7 @@ fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
     // Counted in bytes, so that a hostile shape overflows here rather than below.
     let needed = shape
         .iter()
-        .try_fold(8usize, |a, &b| a.checked_mul(b))
+        .try_fold(dtype.size, |a, &b| a.checked_mul(b))
         .ok_or("shape overflows")?;
     let body = &bytes[end..];
     if body.len() != needed {
@@ -173,11 +172,139 @@ fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
             body.len()
         ));
     }
-    let data = body
-        .chunks_exact(8)
-        .map(|c| f64::from_le_bytes(c.try_into().expect("chunks of 8")))
-        .collect();
+    let values = body
+        .chunks_exact(dtype.size)
+        .map(|c| dtype.decode(c))
+        .collect::<Result<Vec<f64>, String>>()?;
+    let data = if fortran && shape.len() > 1 {
+        c_order(&shape, &values)
+    } else {
+        values
+    };
     Ok(Array { shape, data })
+}
+
+/// The element type of an `.npy` array deform reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Dtype {
+    kind: char,
+    size: usize,
+    big_endian: bool,
+}
+
+impl Dtype {
+    /// From the header's `descr` value (`'<f8'`, `'>i4'`, `'|u1'`, ...).
+    fn parse(descr: &str) -> Result<Self, String> {
+        let shown: String = descr.chars().take(12).collect();
+        let unsupported =
+            || format!("dtype {shown}... is not a float32/64 or 8- to 64-bit integer array");
+        let text = descr
+            .strip_prefix('\'')
+            .and_then(|d| d.split('\'').next())
+            .ok_or_else(unsupported)?;
+        let mut chars = text.chars();
+        let order = chars.next().ok_or_else(unsupported)?;
+        let kind = chars.next().ok_or_else(unsupported)?;
+        let size: usize = chars.as_str().parse().map_err(|_| unsupported())?;
+        let big_endian = match order {
+            '>' => true,
+            '<' | '|' => false,
+            '=' => cfg!(target_endian = "big"),
+            _ => return Err(unsupported()),
+        };
+        match (kind, size) {
+            ('f', 4 | 8) | ('i' | 'u', 1 | 2 | 4 | 8) => Ok(Self {
+                kind,
+                size,
+                big_endian,
+            }),
+            _ => Err(unsupported()),
+        }
+    }
+
+    /// One value.
+    fn decode(self, c: &[u8]) -> Result<f64, String> {
+        let mut b = [0u8; 8];
+        if self.big_endian {
+            // Right-aligned big-endian bytes, reversed: little-endian in the low bytes.
+            for (i, &x) in c.iter().rev().enumerate() {
+                b[i] = x;
+            }
+        } else {
+            b[..self.size].copy_from_slice(c);
+        }
+        let exact = |v: f64, i: i128| {
+            if i.unsigned_abs() <= 1 << 53 {
+                Ok(v)
+            } else {
+                Err(format!(
+                    "integer {i} is beyond 2^53: not exact as a float64"
+                ))
+            }
+        };
+        let bits = u64::from_le_bytes(b);
+        Ok(match (self.kind, self.size) {
+            ('f', 8) => f64::from_bits(bits),
+            ('f', _) => f32::from_bits(bits as u32) as f64,
+            ('u', _) => exact(bits as f64, bits as i128)?,
+            // Sign-extend from the value's width.
+            (_, size) => {
+                let shift = 64 - 8 * size as u32;
+                let i = ((bits << shift) as i64) >> shift;
+                exact(i as f64, i as i128)?
+            }
+        })
+    }
+}
+
+/// Fortran-ordered `values` of `shape` (the first index varies fastest) in C order.
+fn c_order(shape: &[usize], values: &[f64]) -> Vec<f64> {
+    let mut strides = vec![1usize; shape.len()];
+    for d in 1..shape.len() {
+        strides[d] = strides[d - 1] * shape[d - 1];
+    }
+    let mut index = vec![0usize; shape.len()];
+    let mut out = Vec::with_capacity(values.len());
+    for _ in 0..values.len() {
+        out.push(
+            values[index
+                .iter()
+                .zip(&strides)
+                .map(|(i, s)| i * s)
+                .sum::<usize>()],
+        );
+        // The next C-order multi-index: the last index fastest.
+        for d in (0..shape.len()).rev() {
+            index[d] += 1;
+            if index[d] < shape[d] {
+                break;
+            }
+            index[d] = 0;
+        }
+    }
+    out
+}
+
+impl Array {
+    /// The values as indices (vertex ids, tet corners): each must be a non-negative integer.
+    ///
+    /// # Errors
+    /// The first value that is not, with its position.
+    pub fn indices(&self) -> Result<Vec<usize>, String> {
+        self.data
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                if v >= 0.0 && v.fract() == 0.0 && v <= (1u64 << 53) as f64 {
+                    Ok(v as usize)
+                } else {
+                    Err(format!(
+                        "value {k} ({v}) is not a non-negative integer index"
+                    ))
+                }
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -210,10 +337,10 @@ mod tests {
         let mut cut = bytes.clone();
         cut.truncate(bytes.len() - 8);
         assert!(parse(&cut).unwrap_err().reason.contains("bytes of data"));
-        let mut ints = bytes.clone();
-        let at = ints.windows(3).position(|w| w == b"<f8").unwrap();
-        ints[at + 1] = b'i';
-        assert!(parse(&ints).unwrap_err().reason.contains("float64"));
+        let mut complex = bytes.clone();
+        let at = complex.windows(3).position(|w| w == b"<f8").unwrap();
+        complex[at + 1] = b'c';
+        assert!(parse(&complex).unwrap_err().reason.contains("float32/64"));
         assert!(parse(b"hello").is_err());
         let e = read(&dir.path().join("missing.npy"))
             .unwrap_err()

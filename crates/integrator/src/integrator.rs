@@ -661,8 +661,9 @@ impl Integrator {
             }
             report.final_residual = rn;
             report.energy = energy;
-            if self.converged(iteration, rn, &report) {
-                report.converged = true;
+            let converged = self.converged(iteration, rn, &report);
+            if converged || self.at_rounding_floor(iteration, rn, &report) {
+                (report.converged, report.rounding_floor) = (true, !converged);
                 let v = match mode {
                     Mode::Dynamic { .. } => u,
                     Mode::Static => vec![0.0; x.len()],
@@ -818,6 +819,19 @@ impl Integrator {
             .map_or(f64::INFINITY, |it| it.update);
         rn <= n.abs.max(n.rel * report.initial_residual) && (iteration > 0 || rn <= n.abs)
             || (iteration > 0 && last_update <= n.update)
+    }
+
+    /// Stage 2, when the tolerance is out of reach: well past the start (`rn <= 1e-8 r_0`),
+    /// two full Newton iterations that did not halve the residual mean it is at its rounding
+    /// floor, where Newton converges quadratically otherwise; more iterations would only
+    /// end at the cap.
+    fn at_rounding_floor(&self, iteration: usize, rn: f64, report: &StepReport) -> bool {
+        let its = &report.iterations;
+        iteration >= 2
+            && its.len() >= 2
+            && rn <= 1e-8 * report.initial_residual
+            && rn >= 0.5 * its[its.len() - 2].residual
+            && its[its.len() - 2..].iter().all(|it| it.step_length == 1.0)
     }
 
     /// Stage 3: the Newton matrix `c_m M + c_k K` on the free DOFs, refilled in place;

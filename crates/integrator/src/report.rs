@@ -129,6 +129,10 @@ pub struct StepReport {
     pub initial_residual: f64,
     /// Whether Newton converged.
     pub converged: bool,
+    /// It converged at the residual's rounding floor, above the tolerance asked for (which
+    /// was out of reach in floating point).
+    #[serde(default)]
+    pub rounding_floor: bool,
     /// How many times dt was halved.
     pub retries: usize,
     /// Elastic energy at the end.

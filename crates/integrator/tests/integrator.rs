@@ -1047,3 +1047,28 @@ fn a_negative_gamma_gives_back_some_of_a_coarse_steps_dissipation_and_stays_stab
         "swing energy left {energies:?}"
     );
 }
+
+#[test]
+fn newton_stops_at_the_rounding_floor_when_the_tolerance_is_out_of_reach() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes/cantilever.ron");
+    let mut scene = deform_integrator::Scene::load(&path).unwrap();
+    // No residual reaches 1e-30 relative, nor 1e-300 absolute.
+    (scene.integrator.newton.rel, scene.integrator.newton.abs) = (1e-30, 1e-300);
+    scene.integrator.max_retries = 0;
+    let mut built = scene.build(&path).unwrap();
+    for _ in 0..3 {
+        let report = built.integrator.step(&mut built.state).unwrap();
+        assert!(report.converged && report.rounding_floor && report.retries == 0);
+        assert!(report.newton_iterations() < scene.integrator.newton.max_iterations);
+        assert!(
+            report.final_residual <= 1e-10 * report.initial_residual,
+            "{report:?}"
+        );
+    }
+    // A reachable tolerance is met as before, not at the floor.
+    scene.integrator.newton.rel = 1e-8;
+    let mut built = scene.build(&path).unwrap();
+    let report = built.integrator.step(&mut built.state).unwrap();
+    assert!(report.converged && !report.rounding_floor);
+}

@@ -57,6 +57,17 @@ pub struct EquationErrorFit {
     pub equations: usize,
 }
 
+impl FitError {
+    /// Whether simulating the model failed (a step, a retried step, an adjoint solve):
+    /// what a trial point of an optimiser may do, and be backed off from.
+    pub fn is_failed_simulation(&self) -> bool {
+        matches!(
+            self,
+            FitError::Step { .. } | FitError::Retried { .. } | FitError::Solve { .. }
+        )
+    }
+}
+
 /// Why a fit failed.
 #[derive(Debug, Error)]
 #[non_exhaustive]
@@ -112,6 +123,20 @@ pub enum FitError {
         step: usize,
         /// Why.
         source: Box<deform_integrator::StepError>,
+    },
+    /// A step of a rollout converged only in halved substeps: it is not the Backward-Euler
+    /// step of `dt` the data and the adjoint assume, so the fit refuses it (at a trial point
+    /// of the optimiser this counts as a failed simulation, which it backs off from).
+    #[error(
+        "trajectory {trajectory}, step {step}: converged only after {retries} halvings of dt, not the scheme being fitted"
+    )]
+    Retried {
+        /// Trajectory index.
+        trajectory: usize,
+        /// The step.
+        step: usize,
+        /// Halvings of dt.
+        retries: usize,
     },
     /// A step of the direct-solver reference simulation failed.
     #[error("reference simulation, step {step}: {source}")]

@@ -110,6 +110,10 @@ pub struct OutputErrorFit {
     pub evaluations: usize,
     /// Why it stopped.
     pub termination: Termination,
+    /// Trial points the optimiser backed off from because they could not be simulated (a
+    /// step failed or needed halved substeps).
+    #[serde(default)]
+    pub failed_trials: usize,
 }
 
 /// Coefficients with their loss and gradient.
@@ -131,6 +135,8 @@ pub struct OutputError<'a> {
     solver: RefCell<Cholesky>,
     cache: RefCell<Option<Evaluation>>,
     evaluations: RefCell<usize>,
+    /// Trial points of the optimiser that could not be simulated.
+    failed_trials: RefCell<usize>,
     progress: RefCell<Box<dyn FnMut(usize, f64) + 'a>>,
 }
 
@@ -163,6 +169,7 @@ impl<'a> OutputError<'a> {
             solver: RefCell::new(Cholesky::new(Ordering::Auto, Indefinite::Ldlt)),
             cache: RefCell::new(None),
             evaluations: RefCell::new(0),
+            failed_trials: RefCell::new(0),
             progress: RefCell::new(Box::new(progress)),
         })
     }
@@ -426,16 +433,29 @@ fn forward(
         t: start as f64 * dt,
     }];
     let mut s = states[0].clone();
+    let mut retried = None;
     let summary = sim.run(
         &mut s,
         &RunOptions::steps(len),
-        &mut OnStep(|_: &StepReport, state: &State| states.push(state.clone())),
+        &mut OnStep(|r: &StepReport, state: &State| {
+            if r.retries > 0 && retried.is_none() {
+                retried = Some((states.len() - 1, r.retries));
+            }
+            states.push(state.clone());
+        }),
     );
     summary.into_result().map_err(|e| FitError::Step {
         trajectory,
         step: start + e.step,
         source: e.source,
     })?;
+    if let Some((k, retries)) = retried {
+        return Err(FitError::Retried {
+            trajectory,
+            step: start + k,
+            retries,
+        });
+    }
     Ok(states)
 }
 
@@ -603,7 +623,14 @@ struct LogProblem<'p, 'a> {
     start: Vec<f64>,
     /// The bounds.
     lower: Vec<f64>,
+    /// The last loss and gradient (in `p`) of a point that simulated, which a trial point
+    /// that does not simulate falls back on.
+    last_good: RefCell<Option<(f64, Vec<f64>)>>,
 }
+
+/// The loss a trial point that cannot be simulated gets, over the last good loss: far
+/// above, so the line search brackets and backs off (an infinite loss would stop it).
+const FAILED_TRIAL_FACTOR: f64 = 1e6;
 
 impl LogProblem<'_, '_> {
     fn new<'p, 'a>(objective: &'p OutputError<'a>, start: &[f64]) -> LogProblem<'p, 'a> {
@@ -611,6 +638,31 @@ impl LogProblem<'_, '_> {
             objective,
             start: start.to_vec(),
             lower: objective.bounds(),
+            last_good: RefCell::new(None),
+        }
+    }
+
+    /// Loss and gradient in `p`; at a point that cannot be simulated, a loss far above the
+    /// last good one with its gradient (pointing back towards it).
+    fn evaluate(&self, p: &[f64]) -> Result<(f64, Vec<f64>), FitError> {
+        let c = self.coefficients(p);
+        match self.objective.evaluate(&c) {
+            Ok((loss, g)) => {
+                let g: Vec<f64> = self
+                    .active()
+                    .map(|i| g[i] * (c[i] - self.lower[i]))
+                    .collect();
+                *self.last_good.borrow_mut() = Some((loss, g.clone()));
+                Ok((loss, g))
+            }
+            Err(e) if e.is_failed_simulation() => {
+                let Some((loss, g)) = self.last_good.borrow().clone() else {
+                    return Err(e);
+                };
+                *self.objective.failed_trials.borrow_mut() += 1;
+                Ok((FAILED_TRIAL_FACTOR * loss.abs().max(f64::MIN_POSITIVE), g))
+            }
+            Err(e) => Err(e),
         }
     }
 
@@ -643,7 +695,7 @@ impl CostFunction for LogProblem<'_, '_> {
     type Output = f64;
 
     fn cost(&self, p: &Vec<f64>) -> Result<f64, ArgminError> {
-        Ok(self.objective.evaluate(&self.coefficients(p))?.0)
+        Ok(self.evaluate(p)?.0)
     }
 }
 
@@ -652,12 +704,7 @@ impl Gradient for LogProblem<'_, '_> {
     type Gradient = Vec<f64>;
 
     fn gradient(&self, p: &Vec<f64>) -> Result<Vec<f64>, ArgminError> {
-        let c = self.coefficients(p);
-        let (_, g) = self.objective.evaluate(&c)?;
-        Ok(self
-            .active()
-            .map(|i| g[i] * (c[i] - self.lower[i]))
-            .collect())
+        Ok(self.evaluate(p)?.1)
     }
 }
 
@@ -854,5 +901,74 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
         iterations,
         evaluations,
         termination,
+        failed_trials: *objective.failed_trials.borrow(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use super::*;
+    use crate::dataset::{DatasetSpec, Split, generate};
+
+    /// A trial point the integrator cannot simulate costs far more than the last good one
+    /// and carries its gradient, so the line search backs off instead of the fit stopping.
+    #[test]
+    fn a_trial_point_that_does_not_simulate_is_backed_off_from() {
+        let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+            integrator: (dt: 0.01, max_retries: 0, newton: (rel: 1e-10, abs: 1e-12)), steps: 3)"#;
+        let origin = Path::new("t.ron");
+        let scene = deform_integrator::Scene::parse(text, origin).unwrap();
+        let data = generate(&scene, origin, &DatasetSpec::new(3, 3, 5), |_, _| ()).unwrap();
+        let mut sim = scene.build(origin).unwrap().integrator;
+        // Few Newton iterations: a far stiffer model does not converge in them.
+        let mut o = sim.options().clone();
+        o.newton.max_iterations = 5;
+        sim.set_options(o).unwrap();
+        let train = data.split(Split::Train);
+        let options = OutputErrorOptions {
+            rollout: 3,
+            ..Default::default()
+        };
+        let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
+        let start = objective.uniform_start();
+        let problem = LogProblem::new(&objective, &start);
+        let p0 = problem.parameters();
+        // Before anything simulated there is nothing to fall back on: the error itself.
+        let far: Vec<f64> = p0.iter().map(|p| p + 30.0).collect();
+        let error = problem.evaluate(&far).unwrap_err();
+        assert!(error.is_failed_simulation(), "{error}");
+        let (loss, grad) = problem.evaluate(&p0).unwrap();
+        let (penalty, fallback) = problem.evaluate(&far).unwrap();
+        assert_eq!(penalty, FAILED_TRIAL_FACTOR * loss.max(f64::MIN_POSITIVE));
+        assert_eq!(fallback, grad);
+        assert_eq!(*objective.failed_trials.borrow(), 1);
+    }
+
+    /// A rollout step that converged only in halved substeps is not the step being fitted
+    /// (nor the one the adjoint differentiates): refused, naming it.
+    #[test]
+    fn a_retried_step_is_refused() {
+        let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+            integrator: (dt: 0.01, newton: (rel: 1e-10, abs: 1e-12)), steps: 3)"#;
+        let origin = Path::new("t.ron");
+        let scene = deform_integrator::Scene::parse(text, origin).unwrap();
+        let data = generate(&scene, origin, &DatasetSpec::new(3, 3, 5), |_, _| ()).unwrap();
+        let mut sim = scene.build(origin).unwrap().integrator;
+        let mut o = sim.options().clone();
+        (o.newton.max_iterations, o.max_retries) = (2, 8);
+        sim.set_options(o).unwrap();
+        let train = data.split(Split::Train);
+        let objective =
+            OutputError::new(&mut sim, &train, OutputErrorOptions::default(), |_, _| {}).unwrap();
+        let error = objective.evaluate(&objective.uniform_start()).unwrap_err();
+        assert!(
+            matches!(error, FitError::Retried { trajectory: 0, step: 0, retries } if retries > 0),
+            "{error}"
+        );
+        assert!(error.is_failed_simulation());
+    }
 }

@@ -5,6 +5,7 @@
 //! weight chosen on the validation trajectories), each with Rayleigh damping when asked. All
 //! are compared on held-out motions of another kind, simulated by the fine model: the truth.
 
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -14,7 +15,7 @@ use deform_mesh::TetMesh;
 use deform_mesh::io::Vtu;
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Stage, Task};
+use super::{Context, ExperimentObserver, Series, Stage, Task};
 use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
 use crate::dataset::{Dataset, Split, Trajectory, generate};
 use crate::error::LearnError;
@@ -153,6 +154,47 @@ impl CoarsenReport {
             r(PerElement, Untuned),
             r(PerElement, Homogeneous)
         )
+    }
+}
+
+impl CoarsenReport {
+    /// `models.csv` (every row of every case) and `rollout_error_Kx_dt.csv` (the error
+    /// series of case `K`).
+    pub fn csv_files(&self) -> Vec<(String, String)> {
+        let mut files = Vec::new();
+        let mut csv = String::from(
+            "dt_factor,model,mean_error,final_error,cost,alpha,gamma,coefficients,loss_before,loss_after,evaluations,fit_seconds\n",
+        );
+        for c in &self.cases {
+            for row in &c.rows {
+                let fit = row.fit.as_ref().map_or(",,,,".to_owned(), |f| {
+                    let (l0, l1) = f.losses;
+                    format!(
+                        "{},{l0:e},{l1:e},{},{}",
+                        f.coefficients, f.evaluations, f.seconds
+                    )
+                });
+                let (alpha, gamma) = row.damping;
+                let _ = writeln!(
+                    csv,
+                    "{},\"{}\",{:e},{:e},{:e},{alpha:e},{gamma:e},{fit}",
+                    c.dt_factor,
+                    row.model.name(),
+                    row.mean_error(),
+                    row.final_error(),
+                    row.cost
+                );
+            }
+            let series: Vec<Series> = c
+                .rows
+                .iter()
+                .map(|row| Series::new(row.model.name(), row.errors.clone()))
+                .collect();
+            let name = format!("rollout_error_{}x_dt.csv", c.dt_factor);
+            files.push((name, super::tables::series_csv("coarse_step", &series)));
+        }
+        files.push(("models.csv".to_owned(), csv));
+        files
     }
 }
 

@@ -410,46 +410,8 @@ impl Experiment {
                 positive("task.factor_weight", *factor_weight)?;
                 positive("task.accuracy", *accuracy)?;
             }
-            Task::Coarsen {
-                test,
-                dt_factors,
-                regions,
-                regularisation,
-                output_error,
-                ..
-            } => {
-                if test.trajectories == 0 || test.steps == 0 {
-                    return Err((
-                        "task.test",
-                        "needs at least one step of one trajectory".into(),
-                    ));
-                }
-                if dt_factors.is_empty() || dt_factors.contains(&0) {
-                    return Err((
-                        "task.dt_factors",
-                        format!("{dt_factors:?}: needs factors >= 1"),
-                    ));
-                }
-                if let Some(k) = dt_factors
-                    .iter()
-                    .find(|&&k| 2 * k > self.dataset.steps.min(test.steps))
-                {
-                    return Err((
-                        "task.dt_factors",
-                        format!("{k} leaves less than two coarse steps"),
-                    ));
-                }
-                if *regions == 0 {
-                    return Err(("task.regions", "must be at least 1".into()));
-                }
-                if regularisation.is_empty()
-                    || !regularisation.iter().all(|w| w.is_finite() && *w >= 0.0)
-                {
-                    return Err((
-                        "task.regularisation",
-                        format!("{regularisation:?}: needs weights >= 0"),
-                    ));
-                }
+            Task::Coarsen { output_error, .. } => {
+                self.validate_coarsen()?;
                 output("task.output_error", output_error)?;
             }
             Task::TuneSolver {
@@ -469,6 +431,51 @@ impl Experiment {
                 positive("task.factor_weight", *factor_weight)?;
                 positive("task.accuracy", *accuracy)?;
             }
+        }
+        Ok(())
+    }
+
+    /// [`Task::Coarsen`]'s values.
+    fn validate_coarsen(&self) -> Result<(), (&'static str, String)> {
+        let Task::Coarsen {
+            test,
+            dt_factors,
+            regions,
+            regularisation,
+            ..
+        } = &self.task
+        else {
+            return Ok(());
+        };
+        if test.trajectories == 0 || test.steps == 0 {
+            return Err((
+                "task.test",
+                "needs at least one step of one trajectory".into(),
+            ));
+        }
+        if dt_factors.is_empty() || dt_factors.contains(&0) {
+            return Err((
+                "task.dt_factors",
+                format!("{dt_factors:?}: needs factors >= 1"),
+            ));
+        }
+        if let Some(k) = dt_factors
+            .iter()
+            .find(|&&k| 2 * k > self.dataset.steps.min(test.steps))
+        {
+            return Err((
+                "task.dt_factors",
+                format!("{k} leaves less than two coarse steps"),
+            ));
+        }
+        if *regions == 0 {
+            return Err(("task.regions", "must be at least 1".into()));
+        }
+        if regularisation.is_empty() || !regularisation.iter().all(|w| w.is_finite() && *w >= 0.0) {
+            return Err((
+                "task.regularisation",
+                format!("{regularisation:?}: needs weights >= 0"),
+            ));
         }
         Ok(())
     }

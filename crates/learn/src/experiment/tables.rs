@@ -128,49 +128,14 @@ impl ExperimentReport {
                 }
                 add("tuning.csv", text);
             }
-            TaskReport::Coarsen(r) => {
-                let mut csv = String::from(
-                    "dt_factor,model,mean_error,final_error,cost,alpha,gamma,coefficients,loss_before,loss_after,evaluations,fit_seconds\n",
-                );
-                for c in &r.cases {
-                    for row in &c.rows {
-                        let fit = row.fit.as_ref().map_or(",,,,".to_owned(), |f| {
-                            let (l0, l1) = f.losses;
-                            format!(
-                                "{},{l0:e},{l1:e},{},{}",
-                                f.coefficients, f.evaluations, f.seconds
-                            )
-                        });
-                        let (alpha, gamma) = row.damping;
-                        let _ = writeln!(
-                            csv,
-                            "{},\"{}\",{:e},{:e},{:e},{alpha:e},{gamma:e},{fit}",
-                            c.dt_factor,
-                            row.model.name(),
-                            row.mean_error(),
-                            row.final_error(),
-                            row.cost
-                        );
-                    }
-                    let series: Vec<Series> = c
-                        .rows
-                        .iter()
-                        .map(|row| Series::new(row.model.name(), row.errors.clone()))
-                        .collect();
-                    add(
-                        &format!("rollout_error_{}x_dt.csv", c.dt_factor),
-                        series_csv("coarse_step", &series),
-                    );
-                }
-                add("models.csv", csv);
-            }
+            TaskReport::Coarsen(r) => files.extend(r.csv_files()),
         }
         files
     }
 }
 
 /// Series side by side, one row per index.
-fn series_csv(first: &str, series: &[Series]) -> String {
+pub(super) fn series_csv(first: &str, series: &[Series]) -> String {
     let mut csv = first.to_owned();
     for s in series {
         csv += &format!(",{}", s.name);
