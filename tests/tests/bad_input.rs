@@ -399,9 +399,13 @@ fn feed(input: Input, dir: &Path) -> Result<(), String> {
         }
         Input::Npy(bytes) => {
             let path = write("x.npy", &bytes);
-            deform_learn::dataset::import_trajectory(&path, None, 0.01)
-                .map(drop)
-                .map_err(|e| e.to_string())
+            deform_learn::dataset::import_trajectory(
+                &path,
+                deform_learn::dataset::Velocities::Derived,
+                0.01,
+            )
+            .map(drop)
+            .map_err(|e| e.to_string())
         }
     }
 }

@@ -511,16 +511,28 @@ fn finite(path: &Path, data: &[f64], frame: usize) -> Result<(), DatasetError> {
     }
 }
 
+/// The velocities of an imported trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Velocities<'a> {
+    /// Every step's, an `.npy` of the positions' shape.
+    File(&'a Path),
+    /// Only the initial velocity `v0`, an `.npy` of shape (vertices, 3); the others follow
+    /// from Backward Euler's own relation `v^n+1 = (x^n+1 - x^n) / dt`, and the first frame,
+    /// the one state known exactly, is kept.
+    Initial(&'a Path),
+    /// None: every velocity from that relation; the first frame has none and is dropped, so
+    /// the trajectory starts at step 1.
+    Derived,
+}
+
 /// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
-/// 3), optional velocities. Without velocities they follow from Backward Euler's own relation
-/// `v^n+1 = (x^n+1 - x^n) / dt`; the first frame has no velocity then and is dropped, so the
-/// trajectory starts at step 1 (`steps - 1` pairs).
+/// 3) (any float or integer dtype numpy writes), with the velocities `velocities` says.
 ///
 /// # Errors
 /// [`DatasetError`] naming the file.
 pub fn import_trajectory(
     positions: &Path,
-    velocities: Option<&Path>,
+    velocities: Velocities<'_>,
     dt: f64,
 ) -> Result<Trajectory, DatasetError> {
     let a = npy::read(positions)?;
@@ -539,29 +551,36 @@ pub fn import_trajectory(
     let frame = 3 * a.shape[1];
     finite(positions, &a.data, frame)?;
     let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
-    let v = match velocities {
-        Some(path) => {
-            let b = npy::read(path)?;
-            if b.shape != a.shape {
-                return Err(DatasetError::Inconsistent(format!(
-                    "{}: shape {:?} differs from the positions' {:?}",
-                    path.display(),
-                    b.shape,
-                    a.shape
-                )));
-            }
-            finite(path, &b.data, frame)?;
-            b.data.chunks(frame).map(<[f64]>::to_vec).collect()
+    let read = |path: &Path, shape: &[usize]| -> Result<Vec<f64>, DatasetError> {
+        let b = npy::read(path)?;
+        if b.shape != shape {
+            return Err(DatasetError::Inconsistent(format!(
+                "{}: shape {:?}, expected {shape:?} (as the positions {})",
+                path.display(),
+                b.shape,
+                positions.display()
+            )));
         }
-        None => {
-            let v: Vec<Vec<f64>> = (1..x.len())
-                .map(|n| {
-                    x[n].iter()
-                        .zip(&x[n - 1])
-                        .map(|(a, b)| (a - b) / dt)
-                        .collect()
-                })
-                .collect();
+        finite(path, &b.data, frame)?;
+        Ok(b.data)
+    };
+    let derived = |n: usize| -> Vec<f64> {
+        let (a, b) = (&x[n], &x[n - 1]);
+        a.iter().zip(b).map(|(a, b)| (a - b) / dt).collect()
+    };
+    let v = match velocities {
+        Velocities::File(path) => {
+            let data = read(path, &a.shape)?;
+            data.chunks(frame).map(<[f64]>::to_vec).collect()
+        }
+        Velocities::Initial(path) => {
+            let v0 = read(path, &a.shape[1..])?;
+            std::iter::once(v0)
+                .chain((1..x.len()).map(derived))
+                .collect()
+        }
+        Velocities::Derived => {
+            let v = (1..x.len()).map(derived).collect();
             return Ok(Trajectory {
                 x: x[1..].to_vec(),
                 v,

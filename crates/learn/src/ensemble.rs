@@ -83,9 +83,11 @@ pub struct FittedMember {
 }
 
 impl FittedMember {
-    /// Whether the member carries a valid pair (and so appears in [`EnsembleFit::spec`]).
+    /// Whether the member carries energy with a valid pair (and so appears in
+    /// [`EnsembleFit::spec`]): a member with `mu = 0` and `lambda > 0` carries volume only,
+    /// and is kept.
     pub fn kept(&self) -> bool {
-        self.mu > 0.0 && self.mu + 2.0 * self.lambda / 3.0 > 0.0
+        Lame::try_member(self.mu, self.lambda).is_ok()
     }
 }
 
@@ -231,18 +233,12 @@ fn energy_shares(
     Ok(())
 }
 
-/// A member with its effective Lame pair, or `None` when it carries nothing. The pair may
-/// have `lambda = 0` (then `Lame::try_new` is given a tiny positive bulk part if needed).
+/// A member with its effective Lame pair (as an ensemble of one, so a volume-only pair is
+/// valid), or `None` when the pair is not a member's ([`Lame::try_member`]).
 fn model_of(member: Member, mu: f64, lambda: f64) -> Option<Model> {
-    if mu <= 0.0 && lambda <= 0.0 {
-        return None;
-    }
-    let lame = Lame::try_new(mu.max(1e-12), lambda).ok()?;
-    member
-        .spec(Moduli::Lame {
-            mu: lame.mu,
-            lambda: lame.lambda,
-        })
-        .build()
-        .ok()
+    let spec = MaterialSpec::Ensemble(vec![EnsembleMember {
+        weight: 1.0,
+        model: member.spec(Moduli::Lame { mu, lambda }),
+    }]);
+    spec.build().ok()
 }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use deform_integrator::Scene;
 use deform_learn::DatasetSpec;
-use deform_learn::dataset::{self, generate, import_trajectory};
+use deform_learn::dataset::{self, Velocities, generate, import_trajectory};
 use deform_learn::fit::lame_of;
 use deform_learn::{
     Dataset, EquationErrorOptions, Noise, Split, Variations, fit_equation_error, npy,
@@ -179,7 +179,7 @@ fn imported_positions_give_the_same_fit() {
     let t = &data.trajectories[0];
     let path = dir.path().join("positions.npy");
     npy::write(&path, &[t.x.len(), data.meta.vertices, 3], &t.x.concat()).unwrap();
-    let imported = import_trajectory(&path, None, 0.01).unwrap();
+    let imported = import_trajectory(&path, Velocities::Derived, 0.01).unwrap();
     // Backward Euler's own relation: v^n+1 = (x^n+1 - x^n) / dt, so the velocities return;
     // the first frame (no velocity) is dropped.
     assert_eq!(imported.steps(), t.steps() - 1);
@@ -203,7 +203,17 @@ fn imported_positions_give_the_same_fit() {
         relative(e, 1e5) < 1e-3 && relative(nu, 0.4) < 1e-3,
         "E {e}, nu {nu}"
     );
-    assert!(import_trajectory(&dir.path().join("nope.npy"), None, 0.01).is_err());
+    assert!(import_trajectory(&dir.path().join("nope.npy"), Velocities::Derived, 0.01).is_err());
+    // With the known initial velocity the first frame, the one exact state, is kept.
+    let v0 = dir.path().join("v0.npy");
+    npy::write(&v0, &[data.meta.vertices, 3], &t.v[0]).unwrap();
+    let with_v0 = import_trajectory(&path, Velocities::Initial(&v0), 0.01).unwrap();
+    assert_eq!(with_v0.steps(), t.steps());
+    assert_eq!((&with_v0.x[0], &with_v0.v[0]), (&t.x[0], &t.v[0]));
+    assert_eq!(&with_v0.v[1..], &imported.v[..]);
+    npy::write(&v0, &[data.meta.vertices - 1, 3], &t.v[0][3..]).unwrap();
+    let e = import_trajectory(&path, Velocities::Initial(&v0), 0.01).unwrap_err();
+    assert!(e.to_string().contains("v0.npy"), "{e}");
     let _ = dataset::state_at(t, 0, 0.01);
 }
 
@@ -866,13 +876,17 @@ fn imports_and_loads_refuse_empty_and_non_finite_arrays() {
     let p = dir.path().join("x.npy");
     // (3, 0, 3): no vertex (was a panic).
     npy::write(&p, &[3, 0, 3], &[]).unwrap();
-    let e = import_trajectory(&p, None, 0.01).unwrap_err().to_string();
+    let e = import_trajectory(&p, Velocities::Derived, 0.01)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("x.npy") && e.contains("vertices"), "{e}");
     // A NaN position names the step and vertex.
     let mut data = vec![0.0; 3 * 2 * 3];
     data[3 * 2 + 4] = f64::NAN; // step 1, vertex 1
     npy::write(&p, &[3, 2, 3], &data).unwrap();
-    let e = import_trajectory(&p, None, 0.01).unwrap_err().to_string();
+    let e = import_trajectory(&p, Velocities::Derived, 0.01)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("step 1, vertex 1"), "{e}");
     // A dataset whose metadata says zero vertices (was a panic).
     let s = scene("", "Beam(1)");
@@ -1069,4 +1083,64 @@ fn the_damping_gradient_equals_finite_differences() {
             );
         }
     }
+}
+
+#[test]
+fn a_volume_only_member_is_kept_through_stage_two() {
+    // Fixed corotated is corotated's shear term plus stable Neo-Hookean's volume term: on
+    // its data, stage 1 over those two gives the corotated member mu only and the stable
+    // Neo-Hookean member lambda only. That member carries energy and must stay in the
+    // ensemble stage 2 simulates (it was dropped for its mu = 0).
+    let mut s = scene("", "Beam(1)");
+    s.material = ron::from_str("FixedCorotated(Young(e: 1e5, nu: 0.3))").unwrap();
+    let variations = Variations {
+        speed: 2.0,
+        spin: 4.0,
+        stretch: 0.3,
+        rest: false,
+    };
+    let spec = DatasetSpec {
+        variations,
+        split: (0.6, 0.2),
+        ..DatasetSpec::new(5, 8, 3)
+    };
+    let data = generate(&s, Path::new("test"), &spec, |_, _| {}).unwrap();
+    let (train, test) = (data.split(Split::Train), data.split(Split::Test));
+    use deform_learn::Member;
+    let members = [Member::CorotatedLinear, Member::StableNeoHookean];
+    let fit = deform_learn::fit_ensemble(&s, Path::new("test"), &members, &train, &test).unwrap();
+    let [corotated, stable] = [&fit.members[0], &fit.members[1]];
+    let truth = deform_materials::Lame::from_young(1e5, 0.3).unwrap();
+    eprintln!("{:?}", fit.members);
+    assert!((corotated.mu - truth.mu).abs() < 1e-6 * truth.mu);
+    assert!(corotated.lambda.abs() < 1e-6 * truth.lambda);
+    assert!(stable.mu.abs() < 1e-6 * truth.mu);
+    assert!((stable.lambda - truth.lambda).abs() < 1e-6 * truth.lambda);
+    assert!(stable.kept() && stable.energy_share > 0.0);
+    let deform_materials::MaterialSpec::Ensemble(kept) = fit.spec().unwrap() else {
+        panic!("an ensemble")
+    };
+    assert_eq!(kept.len(), 2);
+    // Stage 2 from the exact stage 1 stays at (rounding-level) zero loss.
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 4,
+        max_iterations: 3,
+        ..Default::default()
+    };
+    let (refined, stage2) = deform_learn::refine_ensemble(
+        &fit,
+        &s,
+        Path::new("test"),
+        &train,
+        &test,
+        options,
+        |_, _| {},
+    )
+    .unwrap();
+    assert!(
+        stage2.initial_loss < 1e-18,
+        "loss {:e}",
+        stage2.initial_loss
+    );
+    assert_eq!(refined.members.len(), 2);
 }

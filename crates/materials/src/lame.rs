@@ -33,6 +33,19 @@ impl Lame {
         Ok(Self { mu, lambda })
     }
 
+    /// The Lame pair of an ensemble member, which may carry volume only: `mu >= 0` and
+    /// `3 lambda + 2 mu > 0` (so `mu = 0` needs `lambda > 0`). The ensemble as a whole still
+    /// has a positive shear modulus wherever another member carries one.
+    ///
+    /// # Errors
+    /// [`MaterialError::InvalidParameter`] naming `mu` or `lambda`.
+    pub fn try_member(mu: f64, lambda: f64) -> Result<Self, MaterialError> {
+        if mu == 0.0 && lambda.is_finite() && lambda > 0.0 {
+            return Ok(Self { mu, lambda });
+        }
+        Self::try_new(mu, lambda)
+    }
+
     /// From Young's modulus `E > 0` and Poisson's ratio `-1 < nu < 0.5`:
     /// `mu = E / (2 (1 + nu))`, `lambda = E nu / ((1 + nu)(1 - 2 nu))`.
     ///
@@ -103,6 +116,17 @@ impl Moduli {
         match *self {
             Moduli::Young { e, nu } => Lame::from_young(e, nu),
             Moduli::Lame { mu, lambda } => Lame::try_new(mu, lambda),
+        }
+    }
+
+    /// The validated Lame pair of an ensemble member ([`Lame::try_member`]).
+    ///
+    /// # Errors
+    /// [`MaterialError::InvalidParameter`] naming the field.
+    pub fn to_member_lame(&self) -> Result<Lame, MaterialError> {
+        match *self {
+            Moduli::Young { e, nu } => Lame::from_young(e, nu),
+            Moduli::Lame { mu, lambda } => Lame::try_member(mu, lambda),
         }
     }
 }

@@ -384,7 +384,7 @@ impl Parametric for Model {
                 let n = e.members.len();
                 let lames = (0..n)
                     .map(|m| {
-                        Lame::try_new(params[n + 2 * m], params[n + 2 * m + 1])
+                        Lame::try_member(params[n + 2 * m], params[n + 2 * m + 1])
                             .map_err(|err| prefix(err, &format!("members[{m}].")))
                     })
                     .collect::<Result<Vec<_>, _>>()?;

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::MaterialError;
-use crate::lame::Moduli;
+use crate::lame::{Lame, Moduli};
 use crate::model::{Ensemble, Model, prefix};
 use crate::models::{
     CorotatedLinear, FixedCorotated, LinearElastic, NeoHookean, StVenantKirchhoff, StableNeoHookean,
@@ -72,42 +72,56 @@ impl MaterialSpec {
         })
     }
 
-    /// Validates and builds the model.
+    /// Validates and builds the model. An ensemble member may carry volume only (`mu = 0`
+    /// with Lame moduli; see [`Lame::try_member`]).
     ///
     /// # Errors
     /// [`MaterialError`] naming the invalid field (`members[1].nu`, `weights[0]`, ...).
     pub fn build(&self) -> Result<Model, MaterialError> {
-        Ok(match self {
-            MaterialSpec::LinearElastic(m) => Model::Linear(LinearElastic { lame: m.to_lame()? }),
-            MaterialSpec::CorotatedLinear {
-                moduli,
-                lagged_rotation,
-            } => Model::Corotated(CorotatedLinear {
-                lame: moduli.to_lame()?,
-                lagged_rotation: *lagged_rotation,
-            }),
-            MaterialSpec::FixedCorotated(m) => {
-                Model::FixedCorotated(FixedCorotated { lame: m.to_lame()? })
-            }
-            MaterialSpec::StVenantKirchhoff(m) => {
-                Model::StVenantKirchhoff(StVenantKirchhoff { lame: m.to_lame()? })
-            }
-            MaterialSpec::NeoHookean(m) => Model::NeoHookean(NeoHookean { lame: m.to_lame()? }),
-            MaterialSpec::StableNeoHookean(m) => {
-                Model::StableNeoHookean(StableNeoHookean { lame: m.to_lame()? })
-            }
+        match self {
             MaterialSpec::Ensemble(members) => {
                 let built = members
                     .iter()
                     .enumerate()
                     .map(|(k, m)| {
                         m.model
-                            .build()
+                            .build_single(Moduli::to_member_lame)
                             .map(|model| (m.weight, model))
                             .map_err(|e| prefix(e, &format!("members[{k}].")))
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                Model::Ensemble(Ensemble::try_new(built)?)
+                Ok(Model::Ensemble(Ensemble::try_new(built)?))
+            }
+            single => single.build_single(Moduli::to_lame),
+        }
+    }
+
+    /// A single model with its moduli validated by `lame`.
+    fn build_single(
+        &self,
+        lame: fn(&Moduli) -> Result<Lame, MaterialError>,
+    ) -> Result<Model, MaterialError> {
+        Ok(match self {
+            MaterialSpec::LinearElastic(m) => Model::Linear(LinearElastic { lame: lame(m)? }),
+            MaterialSpec::CorotatedLinear {
+                moduli,
+                lagged_rotation,
+            } => Model::Corotated(CorotatedLinear {
+                lame: lame(moduli)?,
+                lagged_rotation: *lagged_rotation,
+            }),
+            MaterialSpec::FixedCorotated(m) => {
+                Model::FixedCorotated(FixedCorotated { lame: lame(m)? })
+            }
+            MaterialSpec::StVenantKirchhoff(m) => {
+                Model::StVenantKirchhoff(StVenantKirchhoff { lame: lame(m)? })
+            }
+            MaterialSpec::NeoHookean(m) => Model::NeoHookean(NeoHookean { lame: lame(m)? }),
+            MaterialSpec::StableNeoHookean(m) => {
+                Model::StableNeoHookean(StableNeoHookean { lame: lame(m)? })
+            }
+            MaterialSpec::Ensemble(_) => {
+                return Err(MaterialError::InvalidEnsemble("ensembles cannot be nested"));
             }
         })
     }
