@@ -51,6 +51,9 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
 }
 
 fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
+    if let Some(why) = &r.stage1_unusable {
+        writeln!(md, "The stage-1 estimate is unusable: {why}.\n")?;
+    }
     if let Some((prior, stage1)) = r.started_from_prior {
         writeln!(
             md,

@@ -57,6 +57,63 @@ pub struct EquationErrorFit {
     pub equations: usize,
 }
 
+/// Why a stage-1 estimate cannot be used as a model (and so cannot start stage 2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Unusable {
+    /// A group's Lame pair is no material: the non-negative least squares put a coefficient
+    /// on its bound (typically `mu = 0` when noise in the positions swamps the accelerations).
+    InvalidPair {
+        /// The group (its index in `groups`).
+        group: usize,
+        /// Its `(mu, lambda)`.
+        pair: (f64, f64),
+    },
+    /// The fit explains (almost) nothing of the data: relative residual at least 0.99.
+    NoFit {
+        /// The relative residual.
+        relative_residual: f64,
+    },
+}
+
+impl std::fmt::Display for Unusable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unusable::InvalidPair { group, pair } => write!(
+                f,
+                "group {group}: (mu, lambda) = {pair:?} is no material (the data do not determine it; noisy positions?)"
+            ),
+            Unusable::NoFit { relative_residual } => write!(
+                f,
+                "relative residual {relative_residual:.3}: the equation error explains nothing of the data"
+            ),
+        }
+    }
+}
+
+impl EquationErrorFit {
+    /// Why the estimate cannot be used as a model, or `None` when it can. An ensemble's
+    /// members may be zero (a member the data do not support); a single model's pair must
+    /// be a material.
+    pub fn unusable(&self) -> Option<Unusable> {
+        if !(self.relative_residual < 0.99) {
+            return Some(Unusable::NoFit {
+                relative_residual: self.relative_residual,
+            });
+        }
+        if self.terms != 2 {
+            return None;
+        }
+        self.coefficients
+            .chunks(2)
+            .enumerate()
+            .find(|(_, c)| deform_materials::Lame::try_new(c[0], c[1]).is_err())
+            .map(|(group, c)| Unusable::InvalidPair {
+                group,
+                pair: (c[0], c[1]),
+            })
+    }
+}
+
 impl FitError {
     /// Whether simulating the model failed (a step, a retried step, an adjoint solve):
     /// what a trial point of an optimiser may do, and be backed off from.
@@ -362,6 +419,37 @@ pub fn lame_of(fit: &EquationErrorFit, group: usize) -> Option<deform_materials:
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_estimate_that_is_no_material_or_explains_nothing_is_unusable() {
+        let fit = |coefficients: Vec<f64>, terms, relative_residual| EquationErrorFit {
+            groups: vec![0; coefficients.len() / terms],
+            coefficients,
+            terms,
+            alpha: 0.0,
+            gamma: 0.0,
+            relative_residual,
+            equations: 10,
+        };
+        assert_eq!(fit(vec![3e4, 5e4], 2, 0.1).unusable(), None);
+        // The case: mu = lambda = 0 with residual 1.00 on noisy positions.
+        assert_eq!(
+            fit(vec![0.0, 0.0], 2, 1.0).unusable(),
+            Some(Unusable::NoFit {
+                relative_residual: 1.0
+            })
+        );
+        assert_eq!(
+            fit(vec![3e4, 5e4, 0.0, 5e4], 2, 0.3).unusable(),
+            Some(Unusable::InvalidPair {
+                group: 1,
+                pair: (0.0, 5e4)
+            })
+        );
+        assert!(fit(vec![1.0, 1.0], 2, f64::NAN).unusable().is_some());
+        // An ensemble may leave members out.
+        assert_eq!(fit(vec![3e4, 0.0, 0.0, 5e4], 4, 0.1).unusable(), None);
+    }
 
     #[test]
     fn nnls_matches_a_brute_force_on_small_problems() {

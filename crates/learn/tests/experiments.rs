@@ -463,3 +463,23 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     assert_eq!(names, ["rollout_error_1x_dt", "rollout_error_2x_dt"]);
     assert!(dir.path().join("models.csv").is_file());
 }
+
+#[test]
+fn an_unusable_stage_one_falls_back_to_the_scenes_moduli_and_says_so() {
+    // Positions so noisy that the equation error explains nothing of the data.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("noisy.ron");
+    let text = std::fs::read_to_string(data("fit_material.ron"))
+        .unwrap()
+        .replace("position: 0.001", "position: 3.0")
+        .replace("\"tiny_beam.ron\"", &format!("{:?}", data("tiny_beam.ron")));
+    std::fs::write(&path, text).unwrap();
+    let report = run(&Experiment::load(&path).unwrap(), None, &mut NoProgress).unwrap();
+    let TaskReport::FitMaterial(r) = &report.task else {
+        panic!("task")
+    };
+    let why = r.stage1_unusable.as_ref().expect("stage 1 is unusable");
+    eprintln!("{why}; rows {:?}", r.rows);
+    assert!(r.output_error.is_some() && r.started_from_prior.is_some());
+    assert!(r.rows[2].young.is_finite() && r.rows[2].poisson.is_finite());
+}

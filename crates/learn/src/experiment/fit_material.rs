@@ -56,8 +56,13 @@ pub struct FitMaterialReport {
     pub rows: Vec<ModuliRow>,
     /// Stage 2's result, when it ran.
     pub output_error: Option<OutputErrorFit>,
-    /// Stage 2 started from the prior, whose loss (first) beat the stage-1 estimate's.
+    /// Stage 2 started from the prior, whose loss (first) beat the stage-1 estimate's
+    /// (infinite when that is no material).
     pub started_from_prior: Option<(f64, f64)>,
+    /// Why the stage-1 estimate is no model, when it is not: stage 2 then starts from the
+    /// task's `start`, or else from the scene's own moduli.
+    #[serde(default)]
+    pub stage1_unusable: Option<crate::fit::Unusable>,
     /// Mean test rollout error per recorded state with the true, stage-1 and fitted
     /// parameters.
     pub rollouts: Vec<Series>,
@@ -142,6 +147,7 @@ pub fn run(
         rows: Vec::new(),
         output_error: None,
         started_from_prior: None,
+        stage1_unusable: stage1.unusable(),
         rollouts: Vec::new(),
     };
     if let Some(options) = output_error {
@@ -149,10 +155,14 @@ pub fn run(
         observer.start(Stage::Fit, options.max_iterations);
         let t2 = Instant::now();
         // Start from the stage-1 estimate, or from the prior when it fits better (or the
-        // estimate cannot even be simulated).
+        // estimate is no material: then the prior is the task's, or else the scene's own).
         let mut initial = stage1.coefficients.clone();
-        if let Some(prior) = start {
-            let lame = prior.to_lame()?;
+        let prior = match (start, &report.stage1_unusable) {
+            (Some(p), _) => Some(p.to_lame()?),
+            (None, Some(_)) => Some(truth),
+            (None, None) => None,
+        };
+        if let Some(lame) = prior {
             let prior = vec![lame.mu, lame.lambda];
             let mut loss_at = |c: &[f64]| {
                 OutputError::new(&mut sim, &train, *options, |_, _| {})
