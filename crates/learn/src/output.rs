@@ -979,6 +979,7 @@ mod tests {
             "{error}"
         );
         assert!(error.is_failed_simulation());
+        drop(objective);
         // Unless asked to accept them.
         let options = OutputErrorOptions {
             allow_retries: true,
