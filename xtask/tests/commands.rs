@@ -129,6 +129,7 @@ fn demo_composes_the_reports_of_a_folder_of_experiments() {
     ]);
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     for name in [
+        "coarsen",
         "fit_material",
         "select_model",
         "select_solver",
@@ -139,6 +140,20 @@ fn demo_composes_the_reports_of_a_folder_of_experiments() {
         assert!(out.join(name).join("report.md").exists(), "{name}");
     }
     assert!(report.contains("tuned / untuned: error"), "{report}");
+    assert!(report.contains("8x fewer tets, 2x the step"), "{report}");
+    // The learned coarse model is a scene the runner simulates, its field beside it.
+    let model = out.join("coarsen/coarse_2x_dt.ron");
+    assert!(out.join("coarsen/coarse_2x_dt_field.vtu").exists());
+    let text = ok(&[
+        "simulate",
+        model.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--out",
+        dir.path().join("coarse_run").to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(text.contains("2 steps"), "{text}");
     assert!(out.join("tiny_beam/series.pvd").exists());
     assert!(
         out.join("tune_backward_euler/frames/tuned/series.pvd")
