@@ -460,7 +460,26 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
         }
     }
     let names: Vec<String> = report.plots().into_iter().map(|p| p.stem).collect();
-    assert_eq!(names, ["rollout_error_1x_dt", "rollout_error_2x_dt"]);
+    assert_eq!(
+        names,
+        [
+            "rollout_error_1x_dt",
+            "field_1x_dt",
+            "rollout_error_2x_dt",
+            "field_2x_dt"
+        ]
+    );
+    // The field plot holds every element's pair, the same values as the saved field.
+    for c in &r.cases {
+        assert_eq!(c.field.len(), 2);
+        assert!(c.field.iter().all(|s| s.values.len() == 24));
+        let saved = deform_fs::npy::read(&dir.path().join(&c.files[1])).unwrap();
+        let mut mu: Vec<f64> = saved.data.iter().step_by(2).copied().collect();
+        let mut plotted = c.field[0].values.clone();
+        mu.sort_by(f64::total_cmp);
+        plotted.sort_by(f64::total_cmp);
+        assert_eq!(mu, plotted);
+    }
     assert!(dir.path().join("models.csv").is_file());
 }
 

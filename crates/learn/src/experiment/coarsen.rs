@@ -108,6 +108,9 @@ pub struct CoarsenCase {
     /// The per-element model's scene and its field for ParaView (relative to the results
     /// folder), when files are written.
     pub files: Vec<PathBuf>,
+    /// The per-element field, one series per term (`mu`, `lambda`), the elements ordered by
+    /// position along the rest shape's longest axis.
+    pub field: Vec<Series>,
 }
 
 impl CoarsenCase {
@@ -403,6 +406,7 @@ fn run_case(
         regularisation: tried,
         chosen,
         files: Vec::new(),
+        field: field_series(&mesh, &coefficients),
     };
     let options = sim.options().clone();
     Ok((
@@ -465,9 +469,9 @@ fn measure(
     })
 }
 
-/// Labels of `regions` slabs of equal length along the rest shape's longest axis, by each
-/// element's centroid.
-fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
+/// Each element's position along the rest shape's longest axis, from 0 to 1 (by its
+/// centroid).
+fn along_axis(mesh: &TetMesh) -> Vec<f64> {
     let p = mesh.rest_positions();
     let (lo, hi) = p
         .iter()
@@ -475,11 +479,27 @@ fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
     let extent = hi - lo;
     let axis = extent.imax();
     let centroid = |t: &[usize; 4]| t.iter().map(|&v| p[v][axis]).sum::<f64>() / 4.0;
-    let slab = |t: &[usize; 4]| {
-        let s = (centroid(t) - lo[axis]) / extent[axis].max(f64::MIN_POSITIVE);
-        ((s * regions as f64) as u32).min(regions - 1)
-    };
-    mesh.tets().iter().map(slab).collect()
+    let along = |t: &[usize; 4]| (centroid(t) - lo[axis]) / extent[axis].max(f64::MIN_POSITIVE);
+    mesh.tets().iter().map(along).collect()
+}
+
+/// Labels of `regions` slabs of equal length along the rest shape's longest axis, by each
+/// element's centroid.
+fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
+    let slab = |s: &f64| ((s * regions as f64) as u32).min(regions - 1);
+    along_axis(mesh).iter().map(slab).collect()
+}
+
+/// The per-element field as series, one per term, with the elements ordered by their
+/// position along the rest shape's longest axis.
+fn field_series(mesh: &TetMesh, coefficients: &[f64]) -> Vec<Series> {
+    let along = along_axis(mesh);
+    let mut order: Vec<usize> = (0..along.len()).collect();
+    order.sort_by(|&a, &b| along[a].total_cmp(&along[b]).then(a.cmp(&b)));
+    let terms = coefficients.len() / along.len().max(1);
+    let values = |j: usize| order.iter().map(|&e| coefficients[e * terms + j]).collect();
+    let names = term_names(terms).into_iter().enumerate();
+    names.map(|(j, n)| Series::new(n, values(j))).collect()
 }
 
 /// Names of the term coefficients of a model with `terms` of them: Lame pairs (`mu`,

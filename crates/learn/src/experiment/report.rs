@@ -166,18 +166,24 @@ impl ExperimentReport {
             TaskReport::Coarsen(r) => r
                 .cases
                 .iter()
-                .map(|c| {
+                .flat_map(|c| {
                     let rows = c.rows.iter().filter(|row| row.model != CoarseModel::Fine);
                     let series = rows.map(|row| Series::new(row.model.name(), row.errors.clone()));
-                    Plot::new(
-                        format!("rollout_error_{}x_dt", c.dt_factor),
-                        format!(
-                            "held-out RMS position error against the fine model, coarse step {}x",
-                            c.dt_factor
-                        ),
+                    let k = c.dt_factor;
+                    let errors = Plot::new(
+                        format!("rollout_error_{k}x_dt"),
+                        format!("held-out RMS position error against the fine model, coarse step {k}x"),
                         ["coarse step", "m"],
                     )
-                    .with(series.collect())
+                    .with(series.collect());
+                    let field = Plot::new(
+                        format!("field_{k}x_dt"),
+                        format!("per-element field, coarse step {k}x (ParaView: coarse_{k}x_dt_field.vtu)"),
+                        ["element, by position along the body", "Pa"],
+                    )
+                    .log()
+                    .with(c.field.clone());
+                    [errors, field]
                 })
                 .collect(),
         }
