@@ -715,13 +715,7 @@ impl Integrator {
                 *ui += step_length * di;
             }
             self.positions_into(mode, state, &u, &mut x);
-            let scale = match mode {
-                Mode::Dynamic { dt } => dt,
-                Mode::Static => 1.0,
-            };
-            let update =
-                w.du.iter()
-                    .fold(0.0f64, |m, v| m.max((scale * step_length * v).abs()));
+            let update = position_update(mode, &w.du, step_length);
             if !update.is_finite() {
                 return Err(StepError::NonFinite {
                     what: "update",
@@ -1185,6 +1179,17 @@ impl StageError {
             },
         }
     }
+}
+
+/// The max-norm of the position update of a Newton step `du` taken with `step_length`
+/// (`du` is a velocity update when dynamic: positions move `dt` times it).
+fn position_update(mode: Mode, du: &[f64], step_length: f64) -> f64 {
+    let scale = match mode {
+        Mode::Dynamic { dt } => dt,
+        Mode::Static => 1.0,
+    };
+    du.iter()
+        .fold(0.0f64, |m, v| m.max((scale * step_length * v).abs()))
 }
 
 fn fail_assembly(source: AssemblyError, report: &StepReport) -> StepError {

@@ -263,11 +263,10 @@ pub fn run(
         let (data, m) = map(&cx.data)?;
         let (tests, _) = map(&test_data)?;
         mapping = Some(m);
-        let (mut case, fitted) = run_case(&data, &tests, &settings, origin, observer)?;
-        case.dt_factor = k;
+        let (mut case, fitted) = run_case((&data, &tests, k), &settings, origin, observer)?;
         case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
         if let Some(out) = cx.out {
-            case.files = save_case(&data.meta.scene, &case, &fitted, origin, out)?;
+            case.files = save_case(&data.meta.scene, &case, &fitted, out)?;
             files.extend(case.files.iter().cloned());
         }
         cases.push(case);
@@ -295,15 +294,19 @@ fn fine_row(case: &CoarsenCase, cost: f64, base: &Scene) -> CoarseRow {
 struct Fitted {
     /// Term coefficients by element, then term.
     coefficients: Vec<f64>,
-    /// Its damping.
+    /// Its integrator options (with the fitted damping).
     options: IntegratorOptions,
+    /// The coarse mesh.
+    mesh: TetMesh,
 }
+
+/// A fitted model in an integrator: its materials and options.
+type FittedModel = (MaterialField, IntegratorOptions);
 
 /// The untuned, homogeneous, per-region and per-element rows on the coarse data, and the
 /// per-element model.
 fn run_case(
-    data: &Dataset,
-    tests: &Dataset,
+    (data, tests, dt_factor): (&Dataset, &Dataset, usize),
     settings: &Settings<'_>,
     origin: &Path,
     observer: &mut dyn ExperimentObserver,
@@ -346,11 +349,12 @@ fn run_case(
         CoarseModel::PerRegion,
         Some(summary),
     )?);
-    // Per element: each weight from the homogeneous fit; the best on validation is kept.
+    // Per element: each weight from the homogeneous fit; the best on validation is kept,
+    // with the model it left in `sim`.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
     let neighbours = face_neighbours(&mesh, &labels);
     let mut tried = Vec::new();
-    let mut best: Option<(f64, Vec<f64>, FitSummary)> = None;
+    let mut best: Option<(f64, f64, Vec<f64>, FitSummary, FittedModel)> = None;
     let (mut evaluations, mut seconds) = (0, 0.0);
     for &w in settings.regularisation {
         reset(&mut sim)?;
@@ -370,52 +374,38 @@ fn run_case(
         tried.push((w, e));
         (evaluations, seconds) = (evaluations + summary.evaluations, seconds + summary.seconds);
         if best.as_ref().is_none_or(|b| e < b.0) {
-            best = Some((e, c, summary));
+            let model = (sim.assembly().materials().clone(), sim.options().clone());
+            best = Some((e, w, c, summary, model));
         }
     }
-    let (_, c, mut summary) = best.expect("validated: at least one weight");
+    let (_, chosen, mut c, mut summary, (materials, options)) =
+        best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
-    // Put the chosen field back (the last weight's is in `sim`).
-    reset(&mut sim)?;
-    let mut o = sim.options().clone();
-    let terms = c.len() - if settings.damping { 2 } else { 0 };
-    if settings.damping {
-        (o.alpha, o.gamma) = (c[terms], c[terms + 1]);
-    }
-    sim.set_options(o)?;
-    let MaterialField::Uniform(base) = &homogeneous.0 else {
-        unreachable!("the homogeneous fit is uniform")
-    };
-    let coefficients = c[..terms].to_vec();
-    let materials = crate::output::field_of(base, Some(&labels), &coefficients)?;
     set_materials(&mut sim, materials)?;
+    sim.set_options(options)?;
     rows.push(measure(
         &mut sim,
         &test,
         CoarseModel::PerElement,
         Some(summary),
     )?);
-    let chosen = tried
-        .iter()
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .map_or(0.0, |t| t.0);
+    // The term coefficients, without alpha and gamma.
+    c.truncate(c.len() - if settings.damping { 2 } else { 0 });
     let case = CoarsenCase {
-        dt_factor: 1,
+        dt_factor,
         dt: sim.options().dt,
         rows,
         regularisation: tried,
         chosen,
         files: Vec::new(),
-        field: field_series(&mesh, &coefficients),
+        field: field_series(&mesh, &c),
     };
-    let options = sim.options().clone();
-    Ok((
-        case,
-        Fitted {
-            coefficients,
-            options,
-        },
-    ))
+    let fitted = Fitted {
+        coefficients: c,
+        options: sim.options().clone(),
+        mesh,
+    };
+    Ok((case, fitted))
 }
 
 fn set_materials(sim: &mut Integrator, materials: MaterialField) -> Result<(), LearnError> {
@@ -521,17 +511,16 @@ fn save_case(
     scene: &Scene,
     case: &CoarsenCase,
     fitted: &Fitted,
-    origin: &Path,
     out: &Path,
 ) -> Result<Vec<PathBuf>, LearnError> {
     let name = format!("coarse_{}x_dt", case.dt_factor);
-    let mut model = Scene {
+    let model = Scene {
         name: name.clone(),
+        integrator: fitted.options.clone(),
         ..scene.clone()
     };
-    (model.integrator.alpha, model.integrator.gamma) = (fitted.options.alpha, fitted.options.gamma);
     let written = save_model(&model, &fitted.coefficients, out)?;
-    let mesh = scene.build_mesh(origin)?;
+    let mesh = &fitted.mesh;
     let terms = fitted.coefficients.len() / mesh.num_tets().max(1);
     let column = |j: usize| -> Vec<f64> {
         let c = fitted.coefficients.iter().skip(j).step_by(terms.max(1));
@@ -542,7 +531,7 @@ fn save_case(
         .enumerate()
         .map(|(j, n)| (n, column(j)))
         .collect();
-    let mut vtu = Vtu::new(&mesh);
+    let mut vtu = Vtu::new(mesh);
     for (n, values) in &columns {
         vtu = vtu.cell_scalars(n, values);
     }
