@@ -399,9 +399,9 @@ fn feed(input: Input, dir: &Path) -> Result<(), String> {
         }
         Input::Npy(bytes) => {
             let path = write("x.npy", &bytes);
-            deform_learn::dataset::import_trajectory(
+            deform_learn::import::import_trajectory(
                 &path,
-                deform_learn::dataset::Velocities::Derived,
+                deform_learn::import::Velocities::Derived,
                 0.01,
             )
             .map(drop)

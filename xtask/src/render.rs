@@ -11,7 +11,7 @@ use deform_learn::experiment::select_model::{ROUNDING_LEVEL, SelectModelReport};
 use deform_learn::experiment::select_solver::{CaseReport, Key, SelectSolverReport};
 use deform_learn::experiment::story::{StoryModel, StoryReport, TIME_REPEATS};
 use deform_learn::experiment::tune_solver::TuneSolverReport;
-use deform_learn::experiment::{ExperimentReport, TaskReport};
+use deform_learn::experiment::{Data, ExperimentReport, TaskReport};
 use deform_learn::output::{OutputErrorFit, Termination};
 use deform_learn::rollout::mean_error;
 
@@ -19,21 +19,31 @@ use crate::plots::plot;
 
 /// Draws the plots of `report` into `out`; returns its markdown.
 pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
-    let d = &report.dataset;
+    let data = match &report.data {
+        Data::Generate(d) => format!(
+            "Dataset: {} trajectories x {} steps (seed {}), split {:?} train/validation (rest test), noise {:?}.",
+            d.trajectories, d.steps, d.seed, d.split, d.noise
+        ),
+        Data::Import(i) => format!(
+            "Dataset: {} trajectories imported (dt {} s, gravity {:?}, {:?} mass; first `{}`), split {:?} train/validation (rest test), noise added {:?}. The scene is the model to learn: its own parameters (rows named truth or true) are the truth only if the data were made with them.",
+            i.trajectories.len(),
+            i.dt,
+            i.gravity,
+            i.mass,
+            i.trajectories[0].positions.display(),
+            i.split,
+            i.noise
+        ),
+    };
     let mut md = format!(
-        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\nDataset: {} trajectories x {} steps (seed {}), split {:?} train/validation (rest test), noise {:?}. Saved in `dataset/` (RON + .npy, see docs/experiments.md). The learned model steps with dt = {} s ({}x the base's).\n\n",
+        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\n{data} Saved in `dataset/` (RON + .npy, see docs/experiments.md). The learned model steps with dt = {} s ({}x the data's).\n\n",
         report.name,
         report.scene.display(),
         report.vertices,
         report.tets,
         report.material,
-        d.trajectories,
-        d.steps,
-        d.seed,
-        d.split,
-        d.noise,
         report.learned_dt,
-        d.subsample
+        report.data.subsample()
     );
     match &report.task {
         TaskReport::FitMaterial(r) => fit_material(r, &mut md)?,

@@ -113,6 +113,48 @@ fn experiment_writes_its_report_tables_and_plots() {
     );
     assert!(out.join("rollout_error.svg").exists());
     assert!(out.join("dataset").is_dir());
+    // The dataset it wrote, imported back through the runner: the same fit.
+    let list: Vec<String> = (0..3)
+        .map(|k| {
+            let f = format!("exp/dataset/traj_{k:03}");
+            format!("(positions: \"{f}/x.npy\", velocities: File(\"{f}/v.npy\"))")
+        })
+        .collect();
+    let experiment = dir.path().join("import.ron");
+    let text = format!(
+        "Experiment(name: \"imported\", scene: {:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.34, 0.33)), task: FitMaterial(output_error: Some((rollout: 3, max_iterations: 5))))",
+        tiny("tiny_beam.ron"),
+        list.join(", ")
+    );
+    std::fs::write(&experiment, text).unwrap();
+    let again = dir.path().join("again");
+    ok(&[
+        "experiment",
+        experiment.to_str().unwrap(),
+        "--out",
+        again.to_str().unwrap(),
+        "--quiet",
+    ]);
+    let imported = std::fs::read_to_string(again.join("report.md")).unwrap();
+    assert!(imported.contains("3 trajectories imported"), "{imported}");
+    let table = |md: &str| -> Vec<String> {
+        let rows = md
+            .lines()
+            .filter(|l| l.starts_with("| equation error |") || l.starts_with("| output error |"));
+        // The fit time column differs run to run.
+        rows.map(|l| {
+            l.rsplit_once('|')
+                .unwrap()
+                .0
+                .rsplit_once('|')
+                .unwrap()
+                .0
+                .to_owned()
+        })
+        .collect()
+    };
+    assert_eq!(table(&report).len(), 2, "{report}");
+    assert_eq!(table(&report), table(&imported));
 }
 
 #[test]

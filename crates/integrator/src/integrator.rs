@@ -488,6 +488,15 @@ impl Integrator {
         s
     }
 
+    /// Every constrained vertex with its prescribed position at `t`, in constraint order.
+    pub fn constrained_targets(&self, t: f64) -> Vec<(usize, [f64; 3])> {
+        let each = |c: &'_ Constraint| {
+            let at = move |&i: &usize| (i, c.motion.position(&self.rest[i], t).into());
+            c.vertices.iter().map(at).collect::<Vec<_>>()
+        };
+        self.constraints.iter().flat_map(each).collect()
+    }
+
     /// Sets constrained positions to their targets at `t` and, when `v` is given, the
     /// velocities that reach them from `x_prev` in `dt`.
     fn apply_constraints(&self, x: &mut [f64], v: Option<(&mut [f64], &[f64])>, t: f64, dt: f64) {

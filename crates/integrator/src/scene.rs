@@ -27,6 +27,35 @@ pub enum MeshSource {
     Generate(BoxGrid),
     /// The beam of size `n` of `BENCHMARKS.md`.
     Beam(usize),
+    /// Two `.npy` arrays, relative to the scene file: rest vertices (V, 3) and tets (T, 4) of
+    /// any integer dtype, 0-based.
+    Arrays {
+        /// The rest vertices.
+        vertices: PathBuf,
+        /// The tets.
+        tets: PathBuf,
+    },
+}
+
+impl MeshSource {
+    /// Makes relative file paths relative to `dir` (the folder of the file naming them).
+    pub fn resolve_paths(&mut self, dir: &Path) {
+        let files = match self {
+            MeshSource::File(file) => vec![file],
+            MeshSource::Arrays { vertices, tets } => vec![vertices, tets],
+            MeshSource::Generate(_) | MeshSource::Beam(_) => vec![],
+        };
+        for file in files {
+            if file.is_relative() {
+                *file = dir.join(&*file);
+            }
+        }
+    }
+
+    /// Whether the mesh comes from files (rather than a generator).
+    pub fn is_file(&self) -> bool {
+        matches!(self, MeshSource::File(_) | MeshSource::Arrays { .. })
+    }
 }
 
 /// A set of vertices with a prescribed motion.
@@ -57,6 +86,10 @@ pub struct Initial {
     /// Uniform scaling of the initial positions about the rest centroid (1 = rest): a
     /// stretched or squeezed start that is then released.
     pub scale: Option<[f64; 3]>,
+    /// A state in memory to start from instead (e.g. the first frame of a recorded
+    /// trajectory); it overrides the fields above. Set from code, never read from a file.
+    #[serde(skip)]
+    pub state: Option<State>,
 }
 
 /// What the runner writes.
@@ -210,15 +243,14 @@ impl Scene {
         })?;
         let mut scene = Self::parse(&text, path)?;
         let dir = path.parent().unwrap_or(Path::new("."));
-        if let MeshSource::File(file) = &mut scene.mesh
-            && file.is_relative()
-        {
-            *file = dir.join(&*file);
-        }
+        scene.mesh.resolve_paths(dir);
         if let Some(file) = &mut scene.coefficients
             && file.is_relative()
         {
             *file = dir.join(&*file);
+        }
+        for c in &mut scene.constraints {
+            c.select.resolve_paths(dir);
         }
         scene.validate(path)?;
         Ok(scene)
@@ -287,7 +319,7 @@ impl Scene {
         }
         // Refuse a generated mesh that cannot fit before allocating it.
         match &self.mesh {
-            MeshSource::File(_) => Ok(()),
+            MeshSource::File(_) | MeshSource::Arrays { .. } => Ok(()),
             MeshSource::Generate(grid) => fits(origin, grid.num_vertices(), grid.num_tets()),
             MeshSource::Beam(n) => {
                 let grid = BoxGrid::beam(*n);
@@ -314,6 +346,10 @@ impl Scene {
             }
             MeshSource::Generate(grid) => grid.build().map_err(|e| invalid(&e))?,
             MeshSource::Beam(n) => BoxGrid::beam(*n).build().map_err(|e| invalid(&e))?,
+            MeshSource::Arrays { vertices, tets } => {
+                deform_mesh::io::read_arrays(vertices, tets, &MeshOptions::default())
+                    .map_err(|e| invalid(&e))?
+            }
         };
         // A file's size is known only now; generated meshes were measured by `validate`.
         fits(origin, mesh.num_vertices(), mesh.num_tets())?;
@@ -379,8 +415,21 @@ impl Scene {
     }
 
     fn initial_state(&self, mesh: &TetMesh, integrator: &mut Integrator) -> Result<State, String> {
-        let mut state = integrator.rest_state();
         let init = &self.initial;
+        if let Some(state) = &init.state {
+            let n = 3 * mesh.num_vertices();
+            if state.x.len() != n || state.v.len() != n {
+                let (x, v) = (state.x.len(), state.v.len());
+                return Err(format!(
+                    "the given state has {x} positions and {v} velocities, the mesh {n} DOFs"
+                ));
+            }
+            if !state.x.iter().chain(&state.v).all(|v| v.is_finite()) {
+                return Err("non-finite initial state".into());
+            }
+            return Ok(state.clone());
+        }
+        let mut state = integrator.rest_state();
         if init.equilibrium {
             integrator
                 .solve_static(&mut state)

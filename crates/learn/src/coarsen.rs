@@ -174,7 +174,7 @@ pub fn save_model(
     };
     std::fs::create_dir_all(dir).map_err(|e| io(dir, &e))?;
     let mut written = vec![origin.clone()];
-    if let MeshSource::File(_) = &saved.mesh {
+    if saved.mesh.is_file() {
         let name = format!("{}.msh", scene.name);
         let format = MshFormat {
             version: MshVersion::V4_1,

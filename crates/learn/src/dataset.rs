@@ -58,8 +58,11 @@ pub struct TrajectoryMeta {
     pub split: Split,
     /// Number of steps.
     pub steps: usize,
-    /// The initial conditions used.
+    /// The initial conditions used (the scene's own for imported data).
     pub initial: Initial,
+    /// The positions file an imported trajectory came from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<PathBuf>,
 }
 
 /// Gaussian noise added after generation.
@@ -164,11 +167,11 @@ pub enum DatasetError {
 }
 
 /// Current layout version.
-const FORMAT: u32 = 1;
+pub(crate) const FORMAT: u32 = 1;
 
 /// Split `count` trajectories by the fractions `(train, validation)`, the rest test; at least
 /// one trajectory in each non-empty split when there are three or more.
-fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
+pub(crate) fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
     let (train, val, _) = split_counts(count, fractions);
     if k < train {
         Split::Train
@@ -212,11 +215,11 @@ pub struct DatasetSpec {
     pub subsample: usize,
 }
 
-fn one() -> usize {
+pub(crate) fn one() -> usize {
     1
 }
 
-fn default_split() -> (f64, f64) {
+pub(crate) fn default_split() -> (f64, f64) {
     (0.6, 0.2)
 }
 
@@ -276,6 +279,7 @@ pub fn generate(
                     rng.range(1.0 - s, 1.0 + s),
                     rng.range(1.0 - s, 1.0 + s),
                 ]),
+                state: None,
             }
         };
         let mut variant = scene.clone();
@@ -310,6 +314,7 @@ pub fn generate(
             split: split_of(k, count, fractions),
             steps,
             initial,
+            source: None,
         });
         trajectories.push(traj);
     }
@@ -341,6 +346,18 @@ impl Dataset {
             .filter(|(m, _)| m.split == split)
             .map(|(_, t)| t)
             .collect()
+    }
+
+    /// `scene` starting where trajectory `k` starts: the initial conditions that generated
+    /// it, or, for an imported trajectory (which has none), its first state.
+    pub fn scene_of(&self, k: usize, scene: &Scene) -> Scene {
+        let meta = &self.meta.trajectories[k];
+        let mut s = scene.clone();
+        s.initial = meta.initial.clone();
+        if meta.source.is_some() {
+            s.initial.state = Some(state_at(&self.trajectories[k], 0, self.meta.dt));
+        }
+        s
     }
 
     /// Keeps every `k`-th state of every trajectory: data of a fine time step seen at the
@@ -495,99 +512,6 @@ impl Dataset {
         }
         Ok(Self { meta, trajectories })
     }
-}
-
-/// Rejects a non-finite value of an array of `frame` values per step, naming the file, step
-/// and vertex.
-fn finite(path: &Path, data: &[f64], frame: usize) -> Result<(), DatasetError> {
-    match data.iter().position(|v| !v.is_finite()) {
-        Some(i) => Err(DatasetError::Inconsistent(format!(
-            "{}: non-finite value at step {}, vertex {}",
-            path.display(),
-            i / frame,
-            (i % frame) / 3
-        ))),
-        None => Ok(()),
-    }
-}
-
-/// The velocities of an imported trajectory.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Velocities<'a> {
-    /// Every step's, an `.npy` of the positions' shape.
-    File(&'a Path),
-    /// Only the initial velocity `v0`, an `.npy` of shape (vertices, 3); the others follow
-    /// from Backward Euler's own relation `v^n+1 = (x^n+1 - x^n) / dt`, and the first frame,
-    /// the one state known exactly, is kept.
-    Initial(&'a Path),
-    /// None: every velocity from that relation; the first frame has none and is dropped, so
-    /// the trajectory starts at step 1.
-    Derived,
-}
-
-/// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
-/// 3) (any float or integer dtype numpy writes), with the velocities `velocities` says.
-///
-/// # Errors
-/// [`DatasetError`] naming the file.
-pub fn import_trajectory(
-    positions: &Path,
-    velocities: Velocities<'_>,
-    dt: f64,
-) -> Result<Trajectory, DatasetError> {
-    let a = npy::read(positions)?;
-    if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 || a.shape[1] == 0 {
-        return Err(DatasetError::Inconsistent(format!(
-            "{}: shape {:?}, expected (steps + 1 >= 2, vertices >= 1, 3)",
-            positions.display(),
-            a.shape
-        )));
-    }
-    if !(dt.is_finite() && dt > 0.0) {
-        return Err(DatasetError::Inconsistent(format!(
-            "dt = {dt} must be finite and > 0"
-        )));
-    }
-    let frame = 3 * a.shape[1];
-    finite(positions, &a.data, frame)?;
-    let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
-    let read = |path: &Path, shape: &[usize]| -> Result<Vec<f64>, DatasetError> {
-        let b = npy::read(path)?;
-        if b.shape != shape {
-            return Err(DatasetError::Inconsistent(format!(
-                "{}: shape {:?}, expected {shape:?} (as the positions {})",
-                path.display(),
-                b.shape,
-                positions.display()
-            )));
-        }
-        finite(path, &b.data, frame)?;
-        Ok(b.data)
-    };
-    let derived = |n: usize| -> Vec<f64> {
-        let (a, b) = (&x[n], &x[n - 1]);
-        a.iter().zip(b).map(|(a, b)| (a - b) / dt).collect()
-    };
-    let v = match velocities {
-        Velocities::File(path) => {
-            let data = read(path, &a.shape)?;
-            data.chunks(frame).map(<[f64]>::to_vec).collect()
-        }
-        Velocities::Initial(path) => {
-            let v0 = read(path, &a.shape[1..])?;
-            std::iter::once(v0)
-                .chain((1..x.len()).map(derived))
-                .collect()
-        }
-        Velocities::Derived => {
-            let v = (1..x.len()).map(derived).collect();
-            return Ok(Trajectory {
-                x: x[1..].to_vec(),
-                v,
-            });
-        }
-    };
-    Ok(Trajectory { x, v })
 }
 
 /// The state at step `n` of a trajectory.

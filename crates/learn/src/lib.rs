@@ -8,7 +8,8 @@
 //! [`rollout`] holds the one definition of the rollout error; [`coarsen`] carries a fine
 //! model's trajectories onto a coarse mesh, so a cheap model learns from an accurate one.
 //!
-//! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]); every
+//! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]), made by a
+//! base model or imported from elsewhere ([`import`]); every
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
 
 pub mod coarsen;
@@ -18,6 +19,7 @@ pub mod ensemble;
 mod error;
 pub mod experiment;
 pub mod fit;
+pub mod import;
 pub mod output;
 /// `.npy` arrays (re-exported from `deform-fs`, where the integrator reads coefficient fields).
 pub use deform_fs::npy;

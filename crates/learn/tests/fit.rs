@@ -6,8 +6,9 @@ use std::path::Path;
 
 use deform_integrator::Scene;
 use deform_learn::DatasetSpec;
-use deform_learn::dataset::{self, Velocities, generate, import_trajectory};
+use deform_learn::dataset::{self, generate};
 use deform_learn::fit::lame_of;
+use deform_learn::import::{Velocities, import_trajectory};
 use deform_learn::{
     Dataset, EquationErrorOptions, Noise, Split, Variations, fit_equation_error, npy,
 };

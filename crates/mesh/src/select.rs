@@ -39,6 +39,9 @@ pub enum Selector {
     Surface,
     /// Explicit vertex indices.
     Indices(Vec<usize>),
+    /// Vertex indices in an `.npy` file (any integer dtype, any shape: e.g. the int64 array
+    /// of clamped vertex ids a numpy user has), relative to the scene file.
+    File(std::path::PathBuf),
     /// Vertices selected by every one of these.
     And(Vec<Selector>),
     /// Vertices selected by any of these.
@@ -62,9 +65,29 @@ pub enum SelectError {
     /// A plane normal is zero or non-finite, or a coordinate is not finite.
     #[error("invalid selector geometry: {0}")]
     InvalidGeometry(String),
+    /// An index file could not be read or holds something other than vertex ids.
+    #[error("{}: {reason}", path.display())]
+    File {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
 }
 
 impl Selector {
+    /// Makes the relative paths of index files relative to `dir` (the scene file's folder).
+    pub fn resolve_paths(&mut self, dir: &std::path::Path) {
+        match self {
+            Selector::File(path) if path.is_relative() => *path = dir.join(&*path),
+            Selector::And(parts) | Selector::Or(parts) => {
+                parts.iter_mut().for_each(|p| p.resolve_paths(dir));
+            }
+            Selector::Not(inner) => inner.resolve_paths(dir),
+            _ => {}
+        }
+    }
+
     /// The selected vertices (sorted, unique), evaluated on rest positions.
     ///
     /// # Errors
@@ -116,15 +139,19 @@ impl Selector {
                     mask[i] = true;
                 }
             }
-            Selector::Indices(indices) => {
-                mask.fill(false);
-                for &index in indices {
-                    let slot = mask.get_mut(index).ok_or(SelectError::IndexOutOfRange {
-                        index,
-                        num_vertices: rest.len(),
-                    })?;
-                    *slot = true;
-                }
+            Selector::Indices(indices) => mark_indices(indices, mask)?,
+            Selector::File(path) => {
+                let file_error = |reason: String| SelectError::File {
+                    path: path.clone(),
+                    reason,
+                };
+                let array = deform_fs::npy::read(path).map_err(|e| match e {
+                    deform_fs::npy::NpyError::Io { error, .. } => file_error(error.to_string()),
+                    deform_fs::npy::NpyError::Format { reason, .. } => file_error(reason),
+                    other => file_error(other.to_string()),
+                })?;
+                let indices = array.indices().map_err(file_error)?;
+                mark_indices(&indices, mask).map_err(|e| file_error(e.to_string()))?;
             }
             Selector::And(parts) | Selector::Or(parts) => {
                 let is_and = matches!(self, Selector::And(_));
@@ -146,6 +173,20 @@ impl Selector {
         }
         Ok(())
     }
+}
+
+/// Marks exactly `indices` in `mask`.
+fn mark_indices(indices: &[usize], mask: &mut [bool]) -> Result<(), SelectError> {
+    let num_vertices = mask.len();
+    mask.fill(false);
+    for &index in indices {
+        let slot = mask.get_mut(index).ok_or(SelectError::IndexOutOfRange {
+            index,
+            num_vertices,
+        })?;
+        *slot = true;
+    }
+    Ok(())
 }
 
 /// Vertices whose rest position satisfies `predicate(index, position)`, sorted.

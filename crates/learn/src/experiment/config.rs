@@ -5,9 +5,10 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::DatasetSpec;
+use crate::dataset::{DatasetSpec, Noise};
 use crate::error::LearnError;
 use crate::fit::EquationErrorOptions;
+use crate::import::ImportSpec;
 use crate::output::OutputErrorOptions;
 
 /// What to learn.
@@ -240,18 +241,130 @@ fn twenty() -> u64 {
     20
 }
 
+/// Where an experiment's data come from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Data {
+    /// Simulated by the base scene (the file's `dataset`).
+    Generate(DatasetSpec),
+    /// Made elsewhere (the file's `import`); the scene is the model to learn.
+    Import(ImportSpec),
+}
+
+impl Data {
+    /// Number of trajectories.
+    pub fn trajectories(&self) -> usize {
+        match self {
+            Data::Generate(d) => d.trajectories,
+            Data::Import(i) => i.trajectories.len(),
+        }
+    }
+
+    /// Train and validation fractions (the rest is test).
+    pub fn split(&self) -> (f64, f64) {
+        match self {
+            Data::Generate(d) => d.split,
+            Data::Import(i) => i.split,
+        }
+    }
+
+    /// How many times coarser than the data the learned model steps.
+    pub fn subsample(&self) -> usize {
+        match self {
+            Data::Generate(d) => d.subsample,
+            Data::Import(i) => i.subsample,
+        }
+    }
+
+    /// Noise added to the data.
+    pub fn noise(&self) -> Option<Noise> {
+        match self {
+            Data::Generate(d) => d.noise,
+            Data::Import(i) => i.noise,
+        }
+    }
+}
+
 /// An experiment.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(try_from = "ExperimentFile", into = "ExperimentFile")]
 pub struct Experiment {
     /// Name (results folder).
     pub name: String,
-    /// The base model's scene file, relative to the experiment file.
+    /// The base model's scene file, relative to the experiment file: it makes the data, or,
+    /// for imported data, it is the model to learn.
     pub scene: PathBuf,
-    /// The dataset.
-    pub dataset: DatasetSpec,
+    /// The data.
+    pub data: Data,
     /// What to learn.
     pub task: Task,
+}
+
+/// An experiment as its file states it: `dataset` (generate) or `import`, exactly one.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, rename = "Experiment")]
+struct ExperimentFile {
+    name: String,
+    scene: PathBuf,
+    #[serde(
+        default,
+        deserialize_with = "present",
+        skip_serializing_if = "Option::is_none"
+    )]
+    dataset: Option<DatasetSpec>,
+    #[serde(
+        default,
+        deserialize_with = "present",
+        skip_serializing_if = "Option::is_none"
+    )]
+    import: Option<ImportSpec>,
+    task: Task,
+}
+
+/// A field that is either absent (`None`, by `default`) or written plainly, without RON's
+/// `Some(...)`.
+fn present<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    T::deserialize(d).map(Some)
+}
+
+impl TryFrom<ExperimentFile> for Experiment {
+    type Error = String;
+
+    fn try_from(f: ExperimentFile) -> Result<Self, String> {
+        let data = match (f.dataset, f.import) {
+            (Some(d), None) => Data::Generate(d),
+            (None, Some(i)) => Data::Import(i),
+            (Some(_), Some(_)) => {
+                return Err("give `dataset` (generate) or `import`, not both".into());
+            }
+            (None, None) => return Err("missing field `dataset` (or `import`)".into()),
+        };
+        Ok(Self {
+            name: f.name,
+            scene: f.scene,
+            data,
+            task: f.task,
+        })
+    }
+}
+
+impl From<Experiment> for ExperimentFile {
+    fn from(e: Experiment) -> Self {
+        let (dataset, import) = match e.data {
+            Data::Generate(d) => (Some(d), None),
+            Data::Import(i) => (None, Some(i)),
+        };
+        Self {
+            name: e.name,
+            scene: e.scene,
+            dataset,
+            import,
+            task: e.task,
+        }
+    }
 }
 
 impl Experiment {
@@ -303,13 +416,11 @@ impl Experiment {
                 }
             }
         }
-        if let Task::Coarsen {
-            mesh: deform_integrator::scene::MeshSource::File(file),
-            ..
-        } = &mut e.task
-            && file.is_relative()
-        {
-            *file = dir.join(&*file);
+        if let Task::Coarsen { mesh, .. } = &mut e.task {
+            mesh.resolve_paths(dir);
+        }
+        if let Data::Import(import) = &mut e.data {
+            import.resolve_paths(dir);
         }
         Ok(e)
     }
@@ -459,9 +570,15 @@ impl Experiment {
                 format!("{dt_factors:?}: needs factors >= 1"),
             ));
         }
+        let Data::Generate(dataset) = &self.data else {
+            return Err((
+                "import",
+                "coarsening simulates its held-out motions with the base model, which imported data do not have: use a generated `dataset`".into(),
+            ));
+        };
         if let Some(k) = dt_factors
             .iter()
-            .find(|&&k| 2 * k > self.dataset.steps.min(test.steps))
+            .find(|&&k| 2 * k > dataset.steps.min(test.steps))
         {
             return Err((
                 "task.dt_factors",
@@ -481,23 +598,50 @@ impl Experiment {
     }
 
     fn validate_dataset(&self) -> Result<(), (&'static str, String)> {
-        let d = &self.dataset;
-        if d.trajectories < 3 {
+        let (trajectories, subsample, split, noise) = match &self.data {
+            Data::Generate(d) => {
+                if d.steps == 0 {
+                    return Err(("dataset.steps", "must be at least 1".into()));
+                }
+                if d.subsample == 0 || d.steps < 2 * d.subsample {
+                    return Err((
+                        "dataset.subsample",
+                        "must be at least 1 and leave two coarse steps".into(),
+                    ));
+                }
+                (
+                    "dataset.trajectories",
+                    "dataset.subsample",
+                    "dataset.split",
+                    "dataset.noise",
+                )
+            }
+            Data::Import(i) => {
+                if !(i.dt.is_finite() && i.dt > 0.0) {
+                    return Err(("import.dt", format!("{} must be finite and > 0", i.dt)));
+                }
+                if !i.gravity.iter().all(|g| g.is_finite()) {
+                    return Err(("import.gravity", format!("{:?} must be finite", i.gravity)));
+                }
+                if i.subsample == 0 {
+                    return Err(("import.subsample", "must be at least 1".into()));
+                }
+                (
+                    "import.trajectories",
+                    "import.subsample",
+                    "import.split",
+                    "import.noise",
+                )
+            }
+        };
+        let count = self.data.trajectories();
+        if count < 3 {
             return Err((
-                "dataset.trajectories",
+                trajectories,
                 "must be at least 3 (train, validation, test)".into(),
             ));
         }
-        if d.steps == 0 {
-            return Err(("dataset.steps", "must be at least 1".into()));
-        }
-        if d.subsample == 0 || d.steps < 2 * d.subsample {
-            return Err((
-                "dataset.subsample",
-                "must be at least 1 and leave two coarse steps".into(),
-            ));
-        }
-        let (a, b) = d.split;
+        let (a, b) = self.data.split();
         // Every task but solver tuning and coarsening reports on the test trajectories.
         let needs_test = !matches!(self.task, Task::TuneSolver { .. } | Task::Coarsen { .. });
         let room = if needs_test {
@@ -507,45 +651,33 @@ impl Experiment {
         };
         if !(a > 0.0 && b >= 0.0 && room) {
             return Err((
-                "dataset.split",
+                split,
                 format!("({a}, {b}) must leave room for a test split"),
             ));
         }
         if let Task::Coarsen { .. } = self.task {
             // Its test motions are its own; it chooses weights on validation trajectories.
-            if d.subsample != 1 {
-                return Err((
-                    "dataset.subsample",
-                    "must be 1: coarsening has dt_factors".into(),
-                ));
+            if self.data.subsample() != 1 {
+                return Err((subsample, "must be 1: coarsening has dt_factors".into()));
             }
-            let (_, validation, _) = crate::dataset::split_counts(d.trajectories, d.split);
+            let (_, validation, _) = crate::dataset::split_counts(count, (a, b));
             if validation == 0 {
-                return Err((
-                    "dataset.split",
-                    format!("({a}, {b}) leaves no validation trajectory"),
-                ));
+                return Err((split, format!("({a}, {b}) leaves no validation trajectory")));
             }
         }
-        if needs_test && crate::dataset::split_counts(d.trajectories, d.split).2 == 0 {
+        if needs_test && crate::dataset::split_counts(count, (a, b)).2 == 0 {
             return Err((
-                "dataset.split",
-                format!(
-                    "({a}, {b}) of {} trajectories leaves no test trajectory",
-                    d.trajectories
-                ),
+                split,
+                format!("({a}, {b}) of {count} trajectories leaves no test trajectory"),
             ));
         }
-        if let Some(n) = &d.noise
+        if let Some(n) = self.data.noise()
             && !(n.position.is_finite()
                 && n.position >= 0.0
                 && n.velocity.is_finite()
                 && n.velocity >= 0.0)
         {
-            return Err((
-                "dataset.noise",
-                format!("{n:?}: levels must be finite and >= 0"),
-            ));
+            return Err((noise, format!("{n:?}: levels must be finite and >= 0")));
         }
         Ok(())
     }

@@ -37,10 +37,11 @@ use std::time::Instant;
 use deform_integrator::Scene;
 use deform_integrator::scene::Built;
 
-pub use config::{Experiment, PolicyTune, SceneRun, Task};
+pub use config::{Data, Experiment, PolicyTune, SceneRun, Task};
 pub use report::{ExperimentReport, Plot, Series, TaskReport};
 
 pub use crate::dataset::DatasetSpec;
+pub use crate::import::ImportSpec;
 
 use crate::dataset::{self, Dataset};
 use crate::error::LearnError;
@@ -180,27 +181,25 @@ pub fn run(
     observer: &mut dyn ExperimentObserver,
 ) -> Result<ExperimentReport, LearnError> {
     let started = Instant::now();
-    let base = Scene::load(&experiment.scene)?;
+    let scene = Scene::load(&experiment.scene)?;
     // One run at a time per results folder, which then holds only this run's files.
     let _lock = out.map(deform_fs::lock_folder).transpose()?;
     if let Some(out) = out {
         clear_previous(out)?;
     }
-    let spec = &experiment.dataset;
-    observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
-    let mut data = dataset::generate(&base, &experiment.scene, spec, |_, _| observer.advance(1))?;
-    observer.finish();
-    let built = base.build(&experiment.scene)?;
-    if let Some(noise) = spec.noise {
-        data.add_noise(noise, &built.integrator.dofs().constrained_vertices());
-    }
+    let (base, data, built) = make_data(experiment, &scene, observer)?;
     let mut files = Vec::new();
     if let Some(out) = out {
         data.save(&out.join("dataset"))?;
         files.push(PathBuf::from("dataset"));
     }
     // The learned model may step coarser than the base (seed: cheap model, accurate data).
-    let k = spec.subsample;
+    let k = experiment.data.subsample();
+    if data.trajectories.iter().any(|t| t.steps() < 2 * k) {
+        return Err(LearnError::Unsupported(format!(
+            "subsample {k} leaves a trajectory with less than two coarse steps"
+        )));
+    }
     let data = if k > 1 { data.subsample(k) } else { data };
     let mut scene = base.clone();
     scene.integrator.dt *= k as f64;
@@ -238,7 +237,7 @@ pub fn run(
         vertices,
         tets,
         material: cx_material,
-        dataset: experiment.dataset.clone(),
+        data: experiment.data.clone(),
         learned_dt,
         task,
         files,
@@ -253,6 +252,35 @@ pub fn run(
     }
     report.seconds = started.elapsed().as_secs_f64();
     Ok(report)
+}
+
+/// The base model's scene (the experiment's, with the data's facts for imported data), the
+/// data (noise added) and the base scene built.
+fn make_data(
+    experiment: &Experiment,
+    scene: &Scene,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(Scene, Dataset, Built), LearnError> {
+    let origin = experiment.scene.as_path();
+    let (base, mut data) = match &experiment.data {
+        Data::Generate(spec) => {
+            observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
+            let data = dataset::generate(scene, origin, spec, |_, _| observer.advance(1))?;
+            observer.finish();
+            (scene.clone(), data)
+        }
+        Data::Import(spec) => {
+            observer.start(Stage::Dataset, spec.trajectories.len() as u64);
+            let data = crate::import::import(spec, scene, origin)?;
+            observer.finish();
+            (spec.scene(scene), data)
+        }
+    };
+    let built = base.build(origin)?;
+    if let Some(noise) = experiment.data.noise() {
+        data.add_noise(noise, &built.integrator.dofs().constrained_vertices());
+    }
+    Ok((base, data, built))
 }
 
 /// The scene with its single material's moduli replaced by a Lame pair.

@@ -12,7 +12,6 @@ use super::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
 use super::story::StoryReport;
 use super::tune_solver::TuneSolverReport;
 use crate::compare::Choice;
-use crate::dataset::DatasetSpec;
 
 /// A named sequence of values, one per step (or iteration): a line of a plot, a column of a
 /// CSV file.
@@ -100,8 +99,8 @@ pub struct ExperimentReport {
     pub tets: usize,
     /// The base scene's material.
     pub material: deform_materials::MaterialSpec,
-    /// How the dataset was made.
-    pub dataset: DatasetSpec,
+    /// Where the data came from.
+    pub data: super::Data,
     /// The learned model's time step (`subsample` x the base's).
     pub learned_dt: f64,
     /// The task's results.

@@ -293,17 +293,11 @@ pub fn run(
     };
     let origin = cx.experiment.scene.as_path();
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
-    let variant = |initial: &deform_integrator::scene::Initial| {
-        let mut s = cx.scene.clone();
-        s.initial = initial.clone();
-        s
-    };
+    let variant = |k: usize| cx.data.scene_of(k, &cx.scene);
+    // Indices of the trajectories of a split.
     let of_split = |split: Split| {
-        cx.data
-            .meta
-            .trajectories
-            .iter()
-            .filter(move |m| m.split == split)
+        let metas = cx.data.meta.trajectories.iter().enumerate();
+        metas.filter(move |(_, m)| m.split == split).map(|(k, _)| k)
     };
     // Counterfactual logs from the training trajectories' initial conditions.
     let train = of_split(Split::Train).count();
@@ -313,7 +307,7 @@ pub fn run(
         .map(|r| Ok((Scene::load(&r.scene)?, r.scene.as_path(), r.steps)))
         .collect::<Result<_, LearnError>>()?;
     let runs: Vec<Run<'_>> = of_split(Split::Train)
-        .map(|m| (variant(&m.initial), origin, steps))
+        .map(|k| (variant(k), origin, steps))
         .chain(also)
         .collect();
     let logged = collect_runs(&runs, candidates, |_| observer.advance(1))?;
@@ -343,8 +337,8 @@ pub fn run(
     // The learned policy with its Newton options and forcing tuned on the first training
     // run (and the tuning's own scenes).
     let mut tuning = None;
-    if let (Some(t), Some(m)) = (tune, of_split(Split::Train).next()) {
-        let mut runs: Vec<Run<'_>> = vec![(variant(&m.initial), origin, steps)];
+    if let (Some(t), Some(k)) = (tune, of_split(Split::Train).next()) {
+        let mut runs: Vec<Run<'_>> = vec![(variant(k), origin, steps)];
         for r in &t.scenes {
             runs.push((Scene::load(&r.scene)?, r.scene.as_path(), r.steps));
         }
@@ -361,7 +355,7 @@ pub fn run(
     let mut cases = vec![Case {
         label: format!("test trajectories of `{}`", cx.scene.name),
         runs: of_split(Split::Test)
-            .map(|m| (variant(&m.initial), origin))
+            .map(|k| (variant(k), origin))
             .collect(),
         steps,
     }];

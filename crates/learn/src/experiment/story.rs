@@ -228,19 +228,12 @@ pub fn run(
 
     // 3. Solver selection on the tuned model's own Newton systems.
     let steps = train.first().map_or(0, |t| t.steps());
-    let train_meta = cx
-        .data
-        .meta
-        .trajectories
-        .iter()
-        .filter(|m| m.split == Split::Train);
-    let runs: Vec<Run<'_>> = train_meta
+    // Indices of the training trajectories.
+    let train_index = (0..cx.data.trajectories.len())
+        .filter(|&k| cx.data.meta.trajectories[k].split == Split::Train);
+    let runs: Vec<Run<'_>> = train_index
         .clone()
-        .map(|m| {
-            let mut variant = tuned_scene.clone();
-            variant.initial = m.initial.clone();
-            (variant, origin, steps)
-        })
+        .map(|k| (cx.data.scene_of(k, &tuned_scene), origin, steps))
         .collect();
     let (policy, logged) = learn_policy(&runs, candidates, *factor_weight, fitted, observer)?;
     if let Some(path) = solver_data {
@@ -250,8 +243,8 @@ pub fn run(
 
     // 4. Solver optimisation: the largest forcing term, on the first training trajectory.
     let mut tune_scene = tuned_scene.clone();
-    if let Some(m) = train_meta.clone().next() {
-        tune_scene.initial = m.initial.clone();
+    if let Some(k) = train_index.clone().next() {
+        tune_scene = cx.data.scene_of(k, &tuned_scene);
     }
     let tuning = tune_forcing(
         &policy,
@@ -282,7 +275,7 @@ pub fn run(
     };
     let rows = side_by_side(&cx, &tuned, truth, &on, files, observer)?;
     Ok(StoryReport {
-        subsample: cx.experiment.dataset.subsample,
+        subsample: cx.experiment.data.subsample(),
         damping_before: (cx.scene.integrator.alpha, cx.scene.integrator.gamma),
         damping_after: (stage1.alpha, stage1.gamma),
         fit,
@@ -334,7 +327,7 @@ fn side_by_side(
             StoryModel::Base,
             &cx.base,
             None,
-            cx.experiment.dataset.subsample,
+            cx.experiment.data.subsample(),
         ),
         (StoryModel::Untuned, &cx.scene, None, 1),
         (StoryModel::Tuned, tuned.scene, Some(tuned.policy), 1),

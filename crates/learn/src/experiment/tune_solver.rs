@@ -63,8 +63,13 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
         unreachable!("dispatched on the task")
     };
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
+    // The scene's own motion; imported data have none written, so their first trajectory's.
+    let scene = match cx.experiment.data {
+        super::Data::Generate(_) => cx.scene.clone(),
+        super::Data::Import(_) => cx.data.scene_of(0, &cx.scene),
+    };
     let result = tune_solver(
-        &cx.scene,
+        &scene,
         cx.origin(),
         &SolverTuning {
             solver,

@@ -7,7 +7,8 @@
 //! | VTK `.vtu` + `.pvd` (ParaView) | | [`Vtu`], [`Pvd`] |
 //! | Wavefront `.obj` (surface) | | [`write_obj`] |
 //!
-//! [`read`] and [`write`] pick the format from the extension. Readers never panic on any
+//! [`read_arrays`] reads a mesh from numpy's `.npy` vertex and tet arrays. [`read`] and
+//! [`write`] pick the format from the extension. Readers never panic on any
 //! input: every error names the file, the line (and byte offset) and what was expected.
 //! Writers go through `deform_fs::write_atomic`: a temporary file in the same directory, synced,
 //! then renamed over the target, so a crash never leaves a half-written file.
@@ -77,6 +78,14 @@ pub enum ReadError {
         context: Option<String>,
         /// The validation failure (indices in deform's numbering).
         error: MeshError,
+    },
+    /// An `.npy` array of vertices or tets has the wrong dtype, shape or values.
+    #[error("{}: {reason}", path.display())]
+    Array {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
     },
     /// The extension names no mesh format deform reads.
     #[error("{}: unknown mesh format (expected .msh, .node or .ele)", path.display())]
@@ -267,6 +276,54 @@ pub fn read_tetgen(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadEr
     let node = read_bytes(&node_path)?;
     let ele = read_bytes(&ele_path)?;
     parse_tetgen(&node, &ele, &node_path, &ele_path)?.into_mesh(&ele_path, options)
+}
+
+/// Reads and validates a mesh given as two `.npy` arrays, as numpy users have one: rest
+/// `vertices` of shape (V, 3) and `tets` of shape (T, 4) (any integer dtype, 0-based). Errors
+/// name the file, and a mesh error the row ("file element" `k` is row `k` of `tets`).
+///
+/// # Errors
+/// [`ReadError::Io`], [`ReadError::Array`] (dtype, shape, a non-integer or negative index) or
+/// [`ReadError::Invalid`].
+pub fn read_arrays(
+    vertices: &Path,
+    tets: &Path,
+    options: &MeshOptions,
+) -> Result<TetMesh, ReadError> {
+    let read = |path: &Path, columns: usize| {
+        let array = deform_fs::npy::read(path).map_err(|e| match e {
+            deform_fs::npy::NpyError::Io { path, error } => ReadError::Io { path, error },
+            other => ReadError::Array {
+                path: path.to_owned(),
+                reason: other.to_string(),
+            },
+        })?;
+        if array.shape.len() != 2 || array.shape[1] != columns || array.shape[0] == 0 {
+            return Err(ReadError::Array {
+                path: path.to_owned(),
+                reason: format!("shape {:?}, expected (rows >= 1, {columns})", array.shape),
+            });
+        }
+        Ok(array)
+    };
+    let v = read(vertices, 3)?;
+    let t = read(tets, 4)?;
+    let corners = t.indices().map_err(|reason| ReadError::Array {
+        path: tets.to_owned(),
+        reason,
+    })?;
+    let raw = RawMesh {
+        positions: v.data.chunks(3).map(Vector3::from_column_slice).collect(),
+        tets: corners
+            .chunks(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect(),
+        regions: vec![0; t.shape[0]],
+        region_names: BTreeMap::new(),
+        node_tags: (0..v.shape[0] as u64).collect(),
+        element_tags: (0..t.shape[0] as u64).collect(),
+    };
+    raw.into_mesh(tets, options)
 }
 
 /// Reads any supported mesh file, chosen by extension (`.msh`, `.node`, `.ele`).

@@ -1,0 +1,253 @@
+//! Data deform did not make: trajectories from `.npy` files, as an experiment's dataset
+//! ([`ImportSpec`], the `import` of an experiment file) or one by one
+//! ([`import_trajectory`]).
+//!
+//! The experiment's scene is the model to learn: its mesh (a file or `.npy` arrays), material
+//! family and starting guess, density, constraints (selectors or an `.npy` of vertex ids) and
+//! Newton options. The import states the facts of how the data were made that a scene would
+//! otherwise default: the time step, gravity and the mass matrix; they replace the scene's.
+
+use std::path::{Path, PathBuf};
+
+use deform_fs::npy;
+use deform_integrator::{MassKind, Scene};
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::{
+    self, Dataset, DatasetError, DatasetMeta, Noise, Trajectory, TrajectoryMeta, split_of,
+};
+
+/// Where an imported trajectory's velocities come from.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum VelocitySource {
+    /// Every step's, an `.npy` of the positions' shape.
+    File(PathBuf),
+    /// Only the initial velocity `v0`, an `.npy` of shape (vertices, 3) ([`Velocities::Initial`]).
+    Initial(PathBuf),
+    /// None: derived from the positions ([`Velocities::Derived`]; the first frame is dropped).
+    Derived,
+}
+
+/// One imported trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportedTrajectory {
+    /// Positions, an `.npy` of shape (steps + 1, vertices, 3), relative to the experiment file.
+    pub positions: PathBuf,
+    /// Its velocities.
+    pub velocities: VelocitySource,
+}
+
+/// A dataset made elsewhere. Nothing about how the data were made is assumed: `dt`,
+/// `gravity` (`(0, 0, 0)` for none) and `mass` are required and replace the scene's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportSpec {
+    /// The data's time step (s).
+    pub dt: f64,
+    /// The gravity the data were made under (m/s^2).
+    pub gravity: [f64; 3],
+    /// The mass matrix the data were made with.
+    pub mass: MassKind,
+    /// The trajectories, split in this order by `split`.
+    pub trajectories: Vec<ImportedTrajectory>,
+    /// Train and validation fractions (the rest is test).
+    #[serde(default = "dataset::default_split")]
+    pub split: (f64, f64),
+    /// Noise added after import (e.g. to test a fit's robustness on clean outside data).
+    #[serde(default)]
+    pub noise: Option<Noise>,
+    /// Learn a model that steps `subsample` times coarser than the data.
+    #[serde(default = "dataset::one")]
+    pub subsample: usize,
+}
+
+impl ImportSpec {
+    /// `scene` with the data's time step, gravity and mass matrix.
+    pub fn scene(&self, scene: &Scene) -> Scene {
+        let mut s = scene.clone();
+        s.integrator.dt = self.dt;
+        s.integrator.gravity = self.gravity;
+        s.integrator.mass = self.mass;
+        s
+    }
+
+    /// Makes relative file paths relative to `dir` (the experiment file's folder).
+    pub fn resolve_paths(&mut self, dir: &Path) {
+        for t in &mut self.trajectories {
+            let velocities = match &mut t.velocities {
+                VelocitySource::File(p) | VelocitySource::Initial(p) => Some(p),
+                VelocitySource::Derived => None,
+            };
+            for p in std::iter::once(&mut t.positions).chain(velocities) {
+                if p.is_relative() {
+                    *p = dir.join(&*p);
+                }
+            }
+        }
+    }
+}
+
+/// Reads the trajectories of `spec` for the model `scene` (whose data's facts `spec` sets:
+/// [`ImportSpec::scene`]), split by `spec.split`. Each trajectory must have the mesh's
+/// vertex count, and its constrained vertices must sit where the scene's constraints put
+/// them (to 1e-9 of the mesh's size): data the model cannot reproduce are refused, naming the
+/// trajectory, step and vertex. Noise and subsampling are the caller's, as for generated data.
+///
+/// # Errors
+/// [`DatasetError`] naming the file, or the scene's error.
+pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset, DatasetError> {
+    let scene = spec.scene(scene);
+    let built = scene.build(origin)?;
+    let vertices = built.mesh.num_vertices();
+    let (lo, hi) = built.mesh.bounding_box();
+    let tolerance = 1e-9 * (hi - lo).norm();
+    let count = spec.trajectories.len();
+    let mut trajectories = Vec::with_capacity(count);
+    let mut metas = Vec::with_capacity(count);
+    for (k, t) in spec.trajectories.iter().enumerate() {
+        let velocities = match &t.velocities {
+            VelocitySource::File(p) => Velocities::File(p),
+            VelocitySource::Initial(p) => Velocities::Initial(p),
+            VelocitySource::Derived => Velocities::Derived,
+        };
+        let trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
+        let found = trajectory.x[0].len() / 3;
+        if found != vertices {
+            return Err(DatasetError::Inconsistent(format!(
+                "{}: {found} vertices, the scene's mesh has {vertices}",
+                t.positions.display()
+            )));
+        }
+        for (n, x) in trajectory.x.iter().enumerate() {
+            let targets = built.integrator.constrained_targets(n as f64 * spec.dt);
+            for (i, target) in targets {
+                let off = (0..3)
+                    .map(|d| (x[3 * i + d] - target[d]).powi(2))
+                    .sum::<f64>();
+                if off.sqrt() > tolerance {
+                    return Err(DatasetError::Inconsistent(format!(
+                        "{}: step {n}: vertex {i} is constrained by the scene but lies {:.3e} m from where its constraint puts it",
+                        t.positions.display(),
+                        off.sqrt()
+                    )));
+                }
+            }
+        }
+        metas.push(TrajectoryMeta {
+            name: format!("traj_{k:03}"),
+            split: split_of(k, count, spec.split),
+            steps: trajectory.steps(),
+            initial: scene.initial.clone(),
+            source: Some(t.positions.clone()),
+        });
+        trajectories.push(trajectory);
+    }
+    Ok(Dataset {
+        meta: DatasetMeta {
+            format: dataset::FORMAT,
+            deform_version: env!("CARGO_PKG_VERSION").to_owned(),
+            scene: scene.clone(),
+            seed: 0,
+            dt: spec.dt,
+            vertices,
+            trajectories: metas,
+            noise: None,
+        },
+        trajectories,
+    })
+}
+
+/// Rejects a non-finite value of an array of `frame` values per step, naming the file, step
+/// and vertex.
+fn finite(path: &Path, data: &[f64], frame: usize) -> Result<(), DatasetError> {
+    match data.iter().position(|v| !v.is_finite()) {
+        Some(i) => Err(DatasetError::Inconsistent(format!(
+            "{}: non-finite value at step {}, vertex {}",
+            path.display(),
+            i / frame,
+            (i % frame) / 3
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// The velocities of an imported trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Velocities<'a> {
+    /// Every step's, an `.npy` of the positions' shape.
+    File(&'a Path),
+    /// Only the initial velocity `v0`, an `.npy` of shape (vertices, 3); the others follow
+    /// from Backward Euler's own relation `v^n+1 = (x^n+1 - x^n) / dt`, and the first frame,
+    /// the one state known exactly, is kept.
+    Initial(&'a Path),
+    /// None: every velocity from that relation; the first frame has none and is dropped, so
+    /// the trajectory starts at step 1.
+    Derived,
+}
+
+/// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
+/// 3) (any float or integer dtype numpy writes), with the velocities `velocities` says.
+///
+/// # Errors
+/// [`DatasetError`] naming the file.
+pub fn import_trajectory(
+    positions: &Path,
+    velocities: Velocities<'_>,
+    dt: f64,
+) -> Result<Trajectory, DatasetError> {
+    let a = npy::read(positions)?;
+    if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 || a.shape[1] == 0 {
+        return Err(DatasetError::Inconsistent(format!(
+            "{}: shape {:?}, expected (steps + 1 >= 2, vertices >= 1, 3)",
+            positions.display(),
+            a.shape
+        )));
+    }
+    if !(dt.is_finite() && dt > 0.0) {
+        return Err(DatasetError::Inconsistent(format!(
+            "dt = {dt} must be finite and > 0"
+        )));
+    }
+    let frame = 3 * a.shape[1];
+    finite(positions, &a.data, frame)?;
+    let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
+    let read = |path: &Path, shape: &[usize]| -> Result<Vec<f64>, DatasetError> {
+        let b = npy::read(path)?;
+        if b.shape != shape {
+            return Err(DatasetError::Inconsistent(format!(
+                "{}: shape {:?}, expected {shape:?} (as the positions {})",
+                path.display(),
+                b.shape,
+                positions.display()
+            )));
+        }
+        finite(path, &b.data, frame)?;
+        Ok(b.data)
+    };
+    let derived = |n: usize| -> Vec<f64> {
+        let (a, b) = (&x[n], &x[n - 1]);
+        a.iter().zip(b).map(|(a, b)| (a - b) / dt).collect()
+    };
+    let v = match velocities {
+        Velocities::File(path) => {
+            let data = read(path, &a.shape)?;
+            data.chunks(frame).map(<[f64]>::to_vec).collect()
+        }
+        Velocities::Initial(path) => {
+            let v0 = read(path, &a.shape[1..])?;
+            std::iter::once(v0)
+                .chain((1..x.len()).map(derived))
+                .collect()
+        }
+        Velocities::Derived => {
+            let v = (1..x.len()).map(derived).collect();
+            return Ok(Trajectory {
+                x: x[1..].to_vec(),
+                v,
+            });
+        }
+    };
+    Ok(Trajectory { x, v })
+}

@@ -1,0 +1,324 @@
+//! Experiments on imported data: a generated dataset saved by the runner and imported back
+//! gives the same data and the same fit; meshes and constraints from `.npy` arrays; bad
+//! imports refused naming the file, field, step or vertex.
+
+use std::path::{Path, PathBuf};
+
+use deform_integrator::Scene;
+use deform_learn::LearnError;
+use deform_learn::experiment::{Data, Experiment, NoProgress, TaskReport, run};
+use deform_learn::npy;
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
+}
+
+/// The import of a saved dataset's trajectories (positions and velocities files) with the
+/// given extra text (e.g. a split).
+fn import_text(dir: &Path, trajectories: usize, velocities: &str, task: &str) -> String {
+    let list: Vec<String> = (0..trajectories)
+        .map(|k| {
+            let folder = dir.join(format!("traj_{k:03}"));
+            let v = match velocities {
+                "File" => format!("File({:?})", folder.join("v.npy")),
+                "Initial" => format!("Initial({:?})", folder.join("v0.npy")),
+                _ => "Derived".to_owned(),
+            };
+            format!("(positions: {:?}, velocities: {v})", folder.join("x.npy"))
+        })
+        .collect();
+    format!(
+        "Experiment(name: \"imported\", scene: {:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.34, 0.33)), task: {task})",
+        data("tiny_beam.ron"),
+        list.join(", ")
+    )
+}
+
+fn load(dir: &Path, text: &str) -> Result<Experiment, LearnError> {
+    let path = dir.join("experiment.ron");
+    std::fs::write(&path, text).unwrap();
+    Experiment::load(&path)
+}
+
+#[test]
+fn a_saved_dataset_imported_back_gives_the_same_data_and_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let generated = Experiment::load(&data("fit_material.ron")).unwrap();
+    let out = dir.path().join("generated");
+    let first = run(&generated, Some(&out), &mut NoProgress).unwrap();
+    let saved = out.join("dataset");
+    let task = "FitMaterial(output_error: Some((rollout: 3, max_iterations: 5)))";
+    let imported = load(dir.path(), &import_text(&saved, 3, "File", task)).unwrap();
+    assert!(matches!(imported.data, Data::Import(_)));
+    let again_out = dir.path().join("imported");
+    let again = run(&imported, Some(&again_out), &mut NoProgress).unwrap();
+    // The data are the saved ones, bit for bit (noise was added before saving).
+    let a = deform_learn::Dataset::load(&saved).unwrap();
+    let b = deform_learn::Dataset::load(&again_out.join("dataset")).unwrap();
+    assert_eq!(a.trajectories, b.trajectories);
+    assert!(b.meta.trajectories[0].source.is_some());
+    let (TaskReport::FitMaterial(r1), TaskReport::FitMaterial(r2)) = (first.task, again.task)
+    else {
+        panic!("task")
+    };
+    assert_eq!(r1.rows.len(), 3);
+    for (x, y) in r1.rows.iter().zip(&r2.rows) {
+        assert_eq!(
+            (x.young, x.poisson),
+            (y.young, y.poisson),
+            "{:?}",
+            x.estimate
+        );
+    }
+}
+
+#[test]
+fn only_v0_keeps_the_first_frame_and_derives_the_rest() {
+    let dir = tempfile::tempdir().unwrap();
+    let generated = Experiment::load(&data("select_model.ron")).unwrap();
+    let out = dir.path().join("generated");
+    run(&generated, Some(&out), &mut NoProgress).unwrap();
+    let saved = out.join("dataset");
+    let a = deform_learn::Dataset::load(&saved).unwrap();
+    for (k, t) in a.trajectories.iter().enumerate() {
+        let v0 = saved.join(format!("traj_{k:03}/v0.npy"));
+        npy::write(&v0, &[t.v[0].len() / 3, 3], &t.v[0]).unwrap();
+    }
+    let task = "SelectModel(members: [CorotatedLinear, NeoHookean], output_error: Some((rollout: 2, max_evaluations: 4)))";
+    let e = load(dir.path(), &import_text(&saved, 3, "Initial", task)).unwrap();
+    let report = run(&e, Some(&dir.path().join("v0")), &mut NoProgress).unwrap();
+    let b = deform_learn::Dataset::load(&dir.path().join("v0/dataset")).unwrap();
+    for (ta, tb) in a.trajectories.iter().zip(&b.trajectories) {
+        assert_eq!(ta.x, tb.x);
+        assert_eq!(ta.v[0], tb.v[0]);
+        // Backward Euler's own relation: the derived velocities are the data's to rounding.
+        for (va, vb) in ta.v.iter().zip(&tb.v).skip(1) {
+            let scale = va.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+            assert!(
+                va.iter()
+                    .zip(vb)
+                    .all(|(p, q)| (p - q).abs() <= 1e-9 * scale)
+            );
+        }
+    }
+    let TaskReport::SelectModel(r) = report.task else {
+        panic!("task")
+    };
+    assert!(!r.models.is_empty() && !r.rollouts.is_empty());
+    // Derived velocities drop the first frame.
+    let e = load(dir.path(), &import_text(&saved, 3, "Derived", task)).unwrap();
+    let Data::Import(spec) = &e.data else {
+        panic!("import")
+    };
+    let scene = Scene::load(&data("tiny_beam.ron")).unwrap();
+    let c = deform_learn::import::import(spec, &scene, &data("tiny_beam.ron")).unwrap();
+    assert_eq!(c.trajectories[0].x[0], a.trajectories[0].x[1]);
+    assert_eq!(
+        c.meta.trajectories[0].steps,
+        a.meta.trajectories[0].steps - 1
+    );
+}
+
+/// A scene whose mesh and clamped vertex ids are `.npy` arrays builds the same model as
+/// the generated beam with a plane selector.
+#[test]
+fn meshes_and_constraints_from_arrays() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::load(&data("tiny_beam.ron")).unwrap();
+    let built = scene.build(&data("tiny_beam.ron")).unwrap();
+    let mesh = &built.mesh;
+    let vertices: Vec<f64> = mesh.rest_positions_flat();
+    let tets: Vec<f64> = mesh.tets().iter().flatten().map(|&i| i as f64).collect();
+    npy::write(
+        &dir.path().join("vertices.npy"),
+        &[mesh.num_vertices(), 3],
+        &vertices,
+    )
+    .unwrap();
+    npy::write(&dir.path().join("tets.npy"), &[mesh.num_tets(), 4], &tets).unwrap();
+    let clamped = built.integrator.dofs().constrained_vertices();
+    let ids: Vec<f64> = clamped.iter().map(|&i| i as f64).collect();
+    npy::write(&dir.path().join("clamped.npy"), &[ids.len()], &ids).unwrap();
+    let text = std::fs::read_to_string(data("tiny_beam.ron"))
+        .unwrap()
+        .replace(
+            "mesh: Beam(1)",
+            "mesh: Arrays(vertices: \"vertices.npy\", tets: \"tets.npy\")",
+        )
+        .replace(
+            "Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0))",
+            "File(\"clamped.npy\")",
+        );
+    let path = dir.path().join("scene.ron");
+    std::fs::write(&path, &text).unwrap();
+    let from_arrays = Scene::load(&path).unwrap().build(&path).unwrap();
+    assert_eq!(from_arrays.mesh.tets(), mesh.tets());
+    assert_eq!(from_arrays.mesh.rest_positions(), mesh.rest_positions());
+    assert_eq!(
+        from_arrays.integrator.dofs().constrained_vertices(),
+        clamped
+    );
+    // Bad arrays are refused naming the file.
+    npy::write(&dir.path().join("tets.npy"), &[2, 3], &tets[..6]).unwrap();
+    let e = Scene::load(&path)
+        .unwrap()
+        .build(&path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("tets.npy") && e.contains("shape"), "{e}");
+    npy::write(&dir.path().join("tets.npy"), &[mesh.num_tets(), 4], &tets).unwrap();
+    npy::write(&dir.path().join("clamped.npy"), &[1], &[1e6]).unwrap();
+    let e = Scene::load(&path)
+        .unwrap()
+        .build(&path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("clamped.npy") && e.contains("out of range"),
+        "{e}"
+    );
+    npy::write(&dir.path().join("clamped.npy"), &[1], &[0.5]).unwrap();
+    let e = Scene::load(&path)
+        .unwrap()
+        .build(&path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("clamped.npy") && e.contains("integer"), "{e}");
+}
+
+#[test]
+fn bad_imports_are_refused_naming_what_is_wrong() {
+    let dir = tempfile::tempdir().unwrap();
+    let saved = dir.path().join("d");
+    let task = "FitMaterial()";
+    let good = import_text(&saved, 3, "File", task);
+    // Gravity is never assumed.
+    let e = load(dir.path(), &good.replace("gravity: (0, 0, -9.81), ", ""))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("gravity"), "{e}");
+    let e = load(dir.path(), &good.replace("mass: Lumped, ", ""))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("mass"), "{e}");
+    let both = good.replace(
+        "import:",
+        "dataset: (trajectories: 3, steps: 3, seed: 1), import:",
+    );
+    let e = load(dir.path(), &both).unwrap_err().to_string();
+    assert!(e.contains("not both"), "{e}");
+    let e = load(dir.path(), &good.replace("dt: 0.01", "dt: -1.0"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("import.dt"), "{e}");
+    let coarsen = good.replace(
+        task,
+        "Coarsen(mesh: Beam(1), test: (trajectories: 1, steps: 4, seed: 1), output_error: ())",
+    );
+    let e = load(dir.path(), &coarsen).unwrap_err().to_string();
+    assert!(e.contains("import") && e.contains("base model"), "{e}");
+    // Files: missing, wrong vertex count, a constrained vertex that moves.
+    let e = load(dir.path(), &good).unwrap();
+    let err = run(&e, None, &mut NoProgress).unwrap_err().to_string();
+    assert!(err.contains("traj_000") && err.contains("x.npy"), "{err}");
+    let scene = Scene::load(&data("tiny_beam.ron")).unwrap();
+    let built = scene.build(&data("tiny_beam.ron")).unwrap();
+    let n = built.mesh.num_vertices();
+    let rest = built.mesh.rest_positions_flat();
+    for k in 0..3 {
+        let folder = saved.join(format!("traj_{k:03}"));
+        std::fs::create_dir_all(&folder).unwrap();
+        let frames: Vec<f64> = rest.iter().chain(&rest).chain(&rest).copied().collect();
+        npy::write(&folder.join("x.npy"), &[3, n, 3], &frames).unwrap();
+        npy::write(&folder.join("v.npy"), &[3, n, 3], &vec![0.0; 9 * n]).unwrap();
+    }
+    let bad = saved.join("traj_001/x.npy");
+    let bad_v = saved.join("traj_001/v.npy");
+    npy::write(&bad, &[3, n - 1, 3], &vec![0.0; 9 * (n - 1)]).unwrap();
+    npy::write(&bad_v, &[3, n - 1, 3], &vec![0.0; 9 * (n - 1)]).unwrap();
+    let err = run(&e, None, &mut NoProgress).unwrap_err().to_string();
+    assert!(
+        err.contains("traj_001") && err.contains("vertices"),
+        "{err}"
+    );
+    let clamped = built.integrator.dofs().constrained_vertices()[0];
+    let mut moved: Vec<f64> = rest.iter().chain(&rest).chain(&rest).copied().collect();
+    moved[3 * n + 3 * clamped] += 1e-3;
+    npy::write(&bad, &[3, n, 3], &moved).unwrap();
+    npy::write(&bad_v, &[3, n, 3], &vec![0.0; 9 * n]).unwrap();
+    let err = run(&e, None, &mut NoProgress).unwrap_err().to_string();
+    assert!(
+        err.contains("traj_001")
+            && err.contains("step 1")
+            && err.contains(&format!("vertex {clamped}")),
+        "{err}"
+    );
+}
+
+/// `experiment` run on generated data and on those data imported back (saved by the first
+/// run, at the base's step, with its subsampling): both reports.
+fn generated_and_imported(name: &str) -> (TaskReport, TaskReport) {
+    use deform_learn::import::{ImportSpec, ImportedTrajectory, VelocitySource};
+    let dir = tempfile::tempdir().unwrap();
+    let generated = Experiment::load(&data(&format!("{name}.ron"))).unwrap();
+    let out = dir.path().join("generated");
+    let first = run(&generated, Some(&out), &mut NoProgress).unwrap();
+    let Data::Generate(spec) = &generated.data else {
+        panic!("generated")
+    };
+    let folder = |k: usize| out.join(format!("dataset/traj_{k:03}"));
+    let trajectories = (0..spec.trajectories)
+        .map(|k| ImportedTrajectory {
+            positions: folder(k).join("x.npy"),
+            velocities: VelocitySource::File(folder(k).join("v.npy")),
+        })
+        .collect();
+    let scene = Scene::load(&generated.scene).unwrap();
+    let imported = Experiment {
+        data: Data::Import(ImportSpec {
+            dt: scene.integrator.dt,
+            gravity: scene.integrator.gravity,
+            mass: scene.integrator.mass,
+            trajectories,
+            split: spec.split,
+            noise: None,
+            subsample: spec.subsample,
+        }),
+        ..generated.clone()
+    };
+    let again = run(&imported, None, &mut NoProgress).unwrap();
+    (first.task, again.task)
+}
+
+#[test]
+fn solver_selection_coarse_dt_and_solver_tuning_run_on_imported_data() {
+    let (TaskReport::SelectSolver(a), TaskReport::SelectSolver(b)) =
+        generated_and_imported("select_solver")
+    else {
+        panic!("task")
+    };
+    assert_eq!((a.logged, a.cases.len()), (b.logged, b.cases.len()));
+    let (TaskReport::TuneBackwardEuler(a), TaskReport::TuneBackwardEuler(b)) =
+        generated_and_imported("tune_backward_euler")
+    else {
+        panic!("task")
+    };
+    assert_eq!(b.subsample, 2);
+    assert_eq!(a.fit.coefficients, b.fit.coefficients);
+    let (TaskReport::TuneSolver(a), TaskReport::TuneSolver(b)) =
+        generated_and_imported("tune_solver")
+    else {
+        panic!("task")
+    };
+    // Generated data tune on the scene's own motion, imported ones on their first
+    // trajectory's (a scene has no motion for them): both keep the accuracy.
+    for r in [a, b] {
+        assert!(r.result.samples.len() > 1);
+        assert!(r.result.best.error <= r.accuracy, "{:?}", r.result.best);
+    }
+}
