@@ -76,6 +76,12 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
             md,
             "Output error: {its} iterations, {n} loss evaluations, loss {l0:.4e} -> {loss:.4e}, termination {t:?}.\n"
         )?;
+        if let Some(c) = fit.start_correction {
+            writeln!(
+                md,
+                "Rollout starts estimated with the parameters: RMS correction of the data's start positions {c:.3e} m.\n"
+            )?;
+        }
     }
     md.push_str(
         "| parameters | E (Pa) | nu | E error | nu error | fit time |\n|---|---|---|---|---|---|\n",

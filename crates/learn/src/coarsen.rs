@@ -120,6 +120,7 @@ pub fn coarsen(
         .map(|t| Trajectory {
             x: map(&t.x),
             v: map(&t.v),
+            exact_start: t.exact_start,
         })
         .collect();
     let mut meta = fine.meta.clone();

@@ -40,6 +40,9 @@ pub struct Trajectory {
     pub x: Vec<Vec<f64>>,
     /// Velocities per step.
     pub v: Vec<Vec<f64>>,
+    /// The first state is known exactly (e.g. a release from a known shape at rest): fits
+    /// that estimate rollout starts keep it ([`crate::output::OutputErrorOptions::starts`]).
+    pub exact_start: bool,
 }
 
 impl Trajectory {
@@ -63,6 +66,9 @@ pub struct TrajectoryMeta {
     /// The positions file an imported trajectory came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<PathBuf>,
+    /// Its first state is known exactly ([`Trajectory::exact_start`]).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub exact_start: bool,
 }
 
 /// Gaussian noise added after generation.
@@ -292,6 +298,7 @@ pub fn generate(
         let mut traj = Trajectory {
             x: vec![state.x.clone()],
             v: vec![state.v.clone()],
+            exact_start: false,
         };
         let summary = integrator.run(
             &mut state,
@@ -315,6 +322,7 @@ pub fn generate(
             steps,
             initial,
             source: None,
+            exact_start: false,
         });
         trajectories.push(traj);
     }
@@ -508,6 +516,7 @@ impl Dataset {
             trajectories.push(Trajectory {
                 x: read("x.npy")?,
                 v: read("v.npy")?,
+                exact_start: m.exact_start,
             });
         }
         Ok(Self { meta, trajectories })

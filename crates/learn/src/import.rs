@@ -37,6 +37,11 @@ pub struct ImportedTrajectory {
     pub positions: PathBuf,
     /// Its velocities.
     pub velocities: VelocitySource,
+    /// The first frame (positions and velocities) is exact, e.g. a release from a known
+    /// shape: fits that estimate rollout starts keep it (not with `Derived` velocities,
+    /// which drop it).
+    #[serde(default)]
+    pub exact_start: bool,
 }
 
 /// A dataset made elsewhere. Nothing about how the data were made is assumed: `dt`,
@@ -112,7 +117,14 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             VelocitySource::Initial(p) => Velocities::Initial(p),
             VelocitySource::Derived => Velocities::Derived,
         };
-        let trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
+        let mut trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
+        trajectory.exact_start = t.exact_start;
+        if t.exact_start && t.velocities == VelocitySource::Derived {
+            return Err(DatasetError::Inconsistent(format!(
+                "{}: exact_start with Derived velocities: the first frame, which has no velocity, is dropped",
+                t.positions.display()
+            )));
+        }
         let found = trajectory.x[0].len() / 3;
         if found != vertices {
             return Err(DatasetError::Inconsistent(format!(
@@ -141,6 +153,7 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             steps: trajectory.steps(),
             initial: scene.initial.clone(),
             source: Some(t.positions.clone()),
+            exact_start: t.exact_start,
         });
         trajectories.push(trajectory);
     }
@@ -246,8 +259,13 @@ pub fn import_trajectory(
             return Ok(Trajectory {
                 x: x[1..].to_vec(),
                 v,
+                exact_start: false,
             });
         }
     };
-    Ok(Trajectory { x, v })
+    Ok(Trajectory {
+        x,
+        v,
+        exact_start: false,
+    })
 }

@@ -276,6 +276,7 @@ fn generated_and_imported(name: &str) -> (TaskReport, TaskReport) {
         .map(|k| ImportedTrajectory {
             positions: folder(k).join("x.npy"),
             velocities: VelocitySource::File(folder(k).join("v.npy")),
+            exact_start: false,
         })
         .collect();
     let scene = Scene::load(&generated.scene).unwrap();
@@ -321,4 +322,58 @@ fn solver_selection_coarse_dt_and_solver_tuning_run_on_imported_data() {
         assert!(r.result.samples.len() > 1);
         assert!(r.result.best.error <= r.accuracy, "{:?}", r.result.best);
     }
+}
+
+/// The runner alone on positions only with 1 % noise (no velocities: they are differenced
+/// from the noisy positions): an experiment file imports them (`Derived`) and fits with
+/// estimated rollout starts, as a user with outside data would; E within 0.5 %, nu within
+/// 2 %.
+#[test]
+fn noisy_imported_positions_give_the_moduli_with_estimated_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = data("tiny_beam.ron");
+    let scene = Scene::load(&scene_path).unwrap();
+    let spec = deform_learn::DatasetSpec {
+        split: (0.6, 0.2),
+        ..deform_learn::DatasetSpec::new(5, 41, 42)
+    };
+    let mut made = deform_learn::dataset::generate(&scene, &scene_path, &spec, |_, _| {}).unwrap();
+    let clamped = scene
+        .build(&scene_path)
+        .unwrap()
+        .integrator
+        .dofs()
+        .constrained_vertices();
+    let noise = deform_learn::Noise {
+        position: 0.01,
+        velocity: 0.0,
+        seed: 7,
+    };
+    made.add_noise(noise, &clamped);
+    let mut list = Vec::new();
+    for (k, t) in made.trajectories.iter().enumerate() {
+        let path = dir.path().join(format!("x{k}.npy"));
+        let n = t.x[0].len() / 3;
+        npy::write(&path, &[t.x.len(), n, 3], &t.x.concat()).unwrap();
+        list.push(format!("(positions: \"x{k}.npy\", velocities: Derived)"));
+    }
+    let text = format!(
+        "Experiment(name: \"noisy\", scene: {scene_path:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.6, 0.2)), task: FitMaterial(start: Some(Young(e: 1.3e5, nu: 0.35)), output_error: Some((rollout: 10, max_iterations: 150, max_evaluations: 300, starts: Some(())))))",
+        list.join(", ")
+    );
+    let e = load(dir.path(), &text).unwrap();
+    let report = run(&e, None, &mut NoProgress).unwrap();
+    let TaskReport::FitMaterial(r) = report.task else {
+        panic!("task")
+    };
+    let fit = r.output_error.as_ref().unwrap();
+    eprintln!(
+        "E {:.3} %, nu {:.3} %, {} iterations, start correction {:?}",
+        100.0 * r.young_error(),
+        100.0 * r.poisson_error(),
+        fit.iterations.len(),
+        fit.start_correction
+    );
+    assert!(fit.start_correction.is_some());
+    assert!(r.young_error() < 0.005 && r.poisson_error() < 0.02);
 }

@@ -192,12 +192,17 @@ pub fn run(
     // Rollouts on the test trajectories with each parameter set.
     observer.start(Stage::Rollouts, 3);
     let tests = cx.data.split(Split::Test);
+    let states = tests.first().map_or(0, |t| t.x.len());
     for (name, (mu, lambda)) in [
         ("true parameters", (truth.mu, truth.lambda)),
         ("equation error", (mu1, lambda1)),
         ("fitted", fitted),
     ] {
-        let errors = mean_rollout(&with_lame(&cx.scene, mu, lambda)?, origin, &tests)?;
+        // An estimate that is no material (stage 1 on noisy data) has no rollout.
+        let errors = match Lame::try_new(mu, lambda) {
+            Ok(_) => mean_rollout(&with_lame(&cx.scene, mu, lambda)?, origin, &tests)?,
+            Err(_) => vec![f64::NAN; states],
+        };
         report.rollouts.push(Series::new(name, errors));
         observer.advance(1);
     }
