@@ -502,3 +502,47 @@ fn an_unusable_stage_one_falls_back_to_the_scenes_moduli_and_says_so() {
     assert!(r.output_error.is_some() && r.started_from_prior.is_some());
     assert!(r.rows[2].young.is_finite() && r.rows[2].poisson.is_finite());
 }
+
+/// On noise-free large-deformation data (stretch 30 %, spin 4 rad/s) of each of deform's
+/// models, model selection among all of them, run as an experiment, names the generating
+/// model as the best single model (least validation rollout error).
+#[test]
+fn model_selection_identifies_the_generating_model_among_all() {
+    use deform_learn::Member;
+    let dir = tempfile::tempdir().unwrap();
+    let all: Vec<String> = Member::ALL.iter().map(|m| m.to_string()).collect();
+    for base in Member::ALL {
+        let material =
+            ron::to_string(&base.spec(deform_materials::Moduli::Young { e: 1e5, nu: 0.3 }))
+                .unwrap();
+        let scene = std::fs::read_to_string(data("tiny_beam.ron"))
+            .unwrap()
+            .replace("NeoHookean(Young(e: 1e5, nu: 0.4))", &material);
+        std::fs::write(dir.path().join("scene.ron"), scene).unwrap();
+        let text = format!(
+            r#"Experiment(name: "x", scene: "scene.ron", dataset: (trajectories: 5, steps: 12, seed: 3, variations: (speed: 2.0, spin: 4.0, stretch: 0.3), split: (0.4, 0.2)), task: SelectModel(members: [{}]))"#,
+            all.join(", ")
+        );
+        let path = dir.path().join("select.ron");
+        std::fs::write(&path, text).unwrap();
+        let e = Experiment::load(&path).unwrap();
+        let TaskReport::SelectModel(r) = run(&e, None, &mut NoProgress).unwrap().task else {
+            panic!("task")
+        };
+        let errors: Vec<String> = r
+            .models
+            .iter()
+            .map(|m| format!("{:?} {:.2e}", m.member, m.validation))
+            .collect();
+        eprintln!("data of {base}: {}", errors.join(", "));
+        let best = r.best_single().unwrap();
+        assert_eq!(best.member, Some(base), "{errors:?}");
+        // By a wide margin: every other model misses by a million times more.
+        let singles = r.models.iter().filter(|m| m.member.is_some());
+        let mut others = singles.filter(|m| m.member != Some(base));
+        assert!(
+            others.all(|m| m.validation > 1e6 * best.validation),
+            "{errors:?}"
+        );
+    }
+}
