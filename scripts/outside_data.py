@@ -1,0 +1,190 @@
+"""Trajectories deform did not make: an independent Backward-Euler Neo-Hookean simulator in
+numpy/scipy (its own element math, its own Newton, nothing shared with deform), on a gmsh
+mesh, with 1 % Gaussian position noise, written as the `.npy` arrays a user brings, plus the
+scene and experiment files that import them (docs/experiments.md, "Your own data").
+
+    python scripts/outside_data.py OUT [--mesh assets/meshes/torus.msh]
+    cargo xtask experiment OUT/fit.ron --out OUT/results
+
+Needs numpy, scipy and meshio. The truth (E, nu) is written to OUT/truth.txt; the scene's
+material is a deliberately wrong starting guess, so the report's "truth" row is the guess.
+"""
+
+import argparse
+import pathlib
+
+import meshio
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+E, NU, RHO, DT, STEPS, TRAJECTORIES = 2e5, 0.35, 1000.0, 0.01, 40, 5
+GRAVITY = np.array([0.0, 0.0, -9.81])
+MU = E / (2 * (1 + NU))
+LAM = E * NU / ((1 + NU) * (1 - 2 * NU))
+
+
+def mesh(path):
+    m = meshio.read(path)
+    x = np.asarray(m.points, dtype=float)
+    t = np.asarray(m.cells_dict["tetra"], dtype=np.int64)
+    # Positive orientation (deform reorients too, so both see the same corners).
+    d = np.einsum("eij->eji", x[t[:, 1:]] - x[t[:, :1]])
+    neg = np.linalg.det(d) < 0
+    t[neg, 1], t[neg, 2] = t[neg, 2].copy(), t[neg, 1].copy()
+    return x, t
+
+
+class NeoHookean:
+    """Psi = mu/2 (|F|^2 - 3) - mu ln J + lambda/2 (ln J)^2 on linear tets."""
+
+    def __init__(self, x0, tets):
+        self.t = tets
+        dm = np.einsum("eij->eji", x0[tets[:, 1:]] - x0[tets[:, :1]])  # columns x_i - x_0
+        self.dm_inv = np.linalg.inv(dm)
+        self.vol = np.abs(np.linalg.det(dm)) / 6.0
+        # Shape-function gradients (4 x 3 per element): grad N_k = row k of Dm^-1 (F = Ds
+        # Dm^-1 = sum_k (x_k - x_0) grad N_k^T), grad N_0 = -their sum.
+        g = self.dm_inv
+        self.grad = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)
+        n = len(x0)
+        self.n = n
+        rows = np.repeat(3 * tets[:, :, None] + np.arange(3), 1, axis=2).reshape(-1, 12)
+        self.rows = np.repeat(rows, 12, axis=1).ravel()
+        self.cols = np.tile(rows, (1, 12)).ravel()
+
+    def deformation(self, x):
+        ds = np.einsum("eij->eji", x[self.t[:, 1:]] - x[self.t[:, :1]])
+        return ds @ self.dm_inv
+
+    def forces(self, x):
+        f = self.deformation(x)
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))
+        p = MU * (f - fit) + LAM * lnj[:, None, None] * fit
+        # f_a = -V P grad_a
+        fe = -self.vol[:, None, None] * np.einsum("eij,eaj->eai", p, self.grad)
+        out = np.zeros((self.n, 3))
+        np.add.at(out, self.t, fe)
+        return out
+
+    def stiffness(self, x):
+        """K = -df/dx (12 x 12 per element from dP along each node-direction)."""
+        f = self.deformation(x)
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))
+        ke = np.zeros((len(self.t), 12, 12))
+        for b in range(4):
+            for d in range(3):
+                # dF for a unit move of node b along d: e_d grad_b^T.
+                df = np.zeros_like(f)
+                df[:, d, :] = self.grad[:, b, :]
+                tr = np.einsum("eij,eij->e", fit, df)
+                dp = (
+                    MU * df
+                    + (MU - LAM * lnj)[:, None, None] * fit @ df.transpose(0, 2, 1) @ fit
+                    + LAM * tr[:, None, None] * fit
+                )
+                col = self.vol[:, None, None] * np.einsum("eij,eaj->eai", dp, self.grad)
+                ke[:, :, 3 * b + d] = col.reshape(-1, 12)
+        k = scipy.sparse.coo_matrix((ke.ravel(), (self.rows, self.cols)), shape=(3 * self.n,) * 2)
+        return k.tocsr()
+
+
+def step(model, mass, free, x, v):
+    """One Backward-Euler step by Newton on v1: M (v1 - v) = dt (f(x + dt v1) + M g)."""
+    v1 = v.copy()
+    m3 = np.repeat(mass, 3)
+    for _ in range(50):
+        x1 = x + DT * v1
+        r = (m3 * (v1 - v).ravel()) - DT * (model.forces(x1) + mass[:, None] * GRAVITY).ravel()
+        a = scipy.sparse.diags(m3) + DT * DT * model.stiffness(x1)
+        a = a[free][:, free]
+        dv = np.zeros(3 * len(x))
+        dv[free] = scipy.sparse.linalg.spsolve(a.tocsc(), -r[free])
+        v1 = v1 + dv.reshape(-1, 3)
+        # Converged when the update is at rounding level of the velocities.
+        if np.linalg.norm(dv) <= 1e-12 * np.linalg.norm(v1) + 1e-16:
+            return x + DT * v1, v1
+    raise RuntimeError("Newton did not converge")
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("out", type=pathlib.Path)
+    parser.add_argument("--mesh", default="assets/meshes/torus.msh")
+    args = parser.parse_args()
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    x0, tets = mesh(args.mesh)
+    model = NeoHookean(x0, tets)
+    mass = np.zeros(len(x0))
+    np.add.at(mass, tets, np.repeat(RHO * model.vol[:, None] / 4, 4, axis=1))
+    # Clamp a patch at the largest x (a ring on a nail; a bar held at one end).
+    lo, hi = x0.min(0), x0.max(0)
+    clamped = np.flatnonzero(x0[:, 0] >= hi[0] - 0.1 * (hi[0] - lo[0]))
+    free = np.ones(3 * len(x0), dtype=bool)
+    free[(3 * clamped[:, None] + np.arange(3)).ravel()] = False
+    rng = np.random.default_rng(2026)
+    centre = x0.mean(0)
+    np.save(out / "vertices.npy", x0)
+    np.save(out / "tets.npy", tets)
+    np.save(out / "clamped.npy", clamped.astype(np.int64))
+    entries = []
+    for k in range(TRAJECTORIES):
+        # Each motion starts from rest shape with a random velocity field: a spin and a swing.
+        omega = rng.normal(size=3) * 2.0
+        v = np.cross(omega, x0 - centre) + rng.normal(size=3) * 0.3
+        v[clamped] = 0.0
+        x = x0.copy()
+        frames = [x.copy()]
+        for _ in range(STEPS):
+            x, v = step(model, mass, free, x, v)
+            frames.append(x.copy())
+        frames = np.array(frames)
+        rms = np.sqrt(np.mean((frames - x0) ** 2))
+        noisy = frames + 0.01 * rms * rng.normal(size=frames.shape)
+        noisy[:, clamped] = frames[:, clamped]
+        np.save(out / f"traj_{k}_x.npy", noisy)
+        entries.append(f'        (positions: "traj_{k}_x.npy", velocities: Derived),')
+        print(f"trajectory {k}: RMS displacement {rms:.3e} m, max {np.abs(frames - x0).max():.3e} m")
+    (out / "truth.txt").write_text(f"E {E}\nnu {NU}\nmu {MU}\nlambda {LAM}\n")
+    (out / "model.ron").write_text(
+        f"""// The model to learn: the outside data's mesh and clamp, a wrong guess of E and nu.
+Scene(
+    name: "outside",
+    mesh: Arrays(vertices: "vertices.npy", tets: "tets.npy"),
+    material: NeoHookean(Young(e: 1.3e5, nu: 0.3)),
+    density: {RHO},
+    constraints: [(select: File("clamped.npy"), motion: Fixed)],
+    integrator: (newton: (rel: 1e-10, abs: 1e-12)),
+    steps: {STEPS},
+)
+"""
+    )
+    listing = "\n".join(entries)
+    (out / "fit.ron").write_text(
+        f"""// Outside positions with 1 % noise and no velocities: E and nu by output error with the
+// rollout starts estimated.
+Experiment(
+    name: "outside_fit",
+    scene: "model.ron",
+    import: (
+        dt: {DT},
+        gravity: ({GRAVITY[0]}, {GRAVITY[1]}, {GRAVITY[2]}),
+        mass: Lumped,
+        trajectories: [
+{listing}
+        ],
+        split: (0.6, 0.2),
+    ),
+    task: FitMaterial(
+        output_error: Some((rollout: 10, max_iterations: 150, max_evaluations: 300, starts: Some(()))),
+    ),
+)
+"""
+    )
+
+
+if __name__ == "__main__":
+    main()
