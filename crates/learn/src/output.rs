@@ -1223,6 +1223,28 @@ mod tests {
         for v in clamped {
             assert!((0..4).all(|r| (0..3).all(|i| g[r * n + 3 * v + i] == 0.0)));
         }
+        drop(objective);
+        // An exactly known first state stays: its rollout's starts get no gradient (and
+        // no offset), the trajectory's later rollouts do.
+        let mut exact = train[0].clone();
+        exact.exact_start = true;
+        let trajectories = [&exact];
+        let objective = OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
+        let count = objective.num_start_parameters();
+        let o: Vec<f64> = (0..count).map(|_| 0.3 * scale * rng.normal()).collect();
+        let (_, _, g) = objective.evaluate_with_starts(&c[..2], Some(&o)).unwrap();
+        let (first, second) = g.split_at(count / 2);
+        assert!(first.iter().all(|v| *v == 0.0));
+        assert!(second.iter().any(|v| *v != 0.0));
+        let (loss, _) = objective.evaluate(&c[..2]).unwrap();
+        let mut moved = o.clone();
+        moved[..count / 2].iter_mut().for_each(|v| *v = 0.0);
+        let (l1, _, _) = objective.evaluate_with_starts(&c[..2], Some(&o)).unwrap();
+        let (l2, _, _) = objective
+            .evaluate_with_starts(&c[..2], Some(&moved))
+            .unwrap();
+        assert_eq!(l1, l2, "the first rollout's offsets are ignored");
+        assert!(l1 != loss);
     }
 
     /// A rollout step that converged only in halved substeps is not the step being fitted
