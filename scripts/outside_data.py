@@ -3,9 +3,13 @@ numpy/scipy (its own element math, its own Newton, nothing shared with deform), 
 mesh, with 1 % Gaussian position noise, written as the `.npy` arrays a user brings, plus the
 scene and experiment files that import them (docs/experiments.md, "Your own data").
 
-    python scripts/outside_data.py OUT [--mesh assets/meshes/torus.msh]
+    python scripts/outside_data.py OUT [--mesh assets/meshes/torus.msh] [--model stvk]
     cargo xtask experiment OUT/fit.ron --out OUT/fit       # E, nu from the noisy positions
     cargo xtask experiment OUT/select.ron --out OUT/select # which model made the clean ones
+
+`--model stvk` makes St. Venant-Kirchhoff data instead; on the torus's swing it inverts
+elements (StVK allows it), and the runner then refuses an ensemble with log-barrier members
+on those data, naming the trajectory, step and element.
 
 Needs numpy, scipy and meshio. The truth (E, nu) is written to OUT/truth.txt and is the
 scene's material, so the report measures against it; the fit starts from a wrong guess
@@ -40,6 +44,25 @@ def mesh(path):
 class NeoHookean:
     """Psi = mu/2 (|F|^2 - 3) - mu ln J + lambda/2 (ln J)^2 on linear tets."""
 
+    name = "NeoHookean"
+
+    @staticmethod
+    def piola(f):
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))
+        return MU * (f - fit) + LAM * lnj[:, None, None] * fit
+
+    @staticmethod
+    def dpiola(f, df):
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))
+        tr = np.einsum("eij,eij->e", fit, df)
+        return (
+            MU * df
+            + (MU - LAM * lnj)[:, None, None] * fit @ df.transpose(0, 2, 1) @ fit
+            + LAM * tr[:, None, None] * fit
+        )
+
     def __init__(self, x0, tets):
         self.t = tets
         dm = np.einsum("eij->eji", x0[tets[:, 1:]] - x0[tets[:, :1]])  # columns x_i - x_0
@@ -60,10 +83,7 @@ class NeoHookean:
         return ds @ self.dm_inv
 
     def forces(self, x):
-        f = self.deformation(x)
-        fit = np.linalg.inv(f).transpose(0, 2, 1)
-        lnj = np.log(np.linalg.det(f))
-        p = MU * (f - fit) + LAM * lnj[:, None, None] * fit
+        p = self.piola(self.deformation(x))
         # f_a = -V P grad_a
         fe = -self.vol[:, None, None] * np.einsum("eij,eaj->eai", p, self.grad)
         out = np.zeros((self.n, 3))
@@ -73,24 +93,40 @@ class NeoHookean:
     def stiffness(self, x):
         """K = -df/dx (12 x 12 per element from dP along each node-direction)."""
         f = self.deformation(x)
-        fit = np.linalg.inv(f).transpose(0, 2, 1)
-        lnj = np.log(np.linalg.det(f))
         ke = np.zeros((len(self.t), 12, 12))
         for b in range(4):
             for d in range(3):
                 # dF for a unit move of node b along d: e_d grad_b^T.
                 df = np.zeros_like(f)
                 df[:, d, :] = self.grad[:, b, :]
-                tr = np.einsum("eij,eij->e", fit, df)
-                dp = (
-                    MU * df
-                    + (MU - LAM * lnj)[:, None, None] * fit @ df.transpose(0, 2, 1) @ fit
-                    + LAM * tr[:, None, None] * fit
-                )
+                dp = self.dpiola(f, df)
                 col = self.vol[:, None, None] * np.einsum("eij,eaj->eai", dp, self.grad)
                 ke[:, :, 3 * b + d] = col.reshape(-1, 12)
         k = scipy.sparse.coo_matrix((ke.ravel(), (self.rows, self.cols)), shape=(3 * self.n,) * 2)
         return k.tocsr()
+
+
+class StVenantKirchhoff(NeoHookean):
+    """Psi = mu |E|^2 + lambda/2 (tr E)^2, E = (F^T F - I) / 2."""
+
+    name = "StVenantKirchhoff"
+
+    @staticmethod
+    def piola(f):
+        e = 0.5 * (f.transpose(0, 2, 1) @ f - np.eye(3))
+        tr = np.trace(e, axis1=1, axis2=2)
+        return f @ (2 * MU * e + LAM * tr[:, None, None] * np.eye(3))
+
+    @staticmethod
+    def dpiola(f, df):
+        e = 0.5 * (f.transpose(0, 2, 1) @ f - np.eye(3))
+        de = 0.5 * (f.transpose(0, 2, 1) @ df + df.transpose(0, 2, 1) @ f)
+        s = 2 * MU * e + LAM * np.trace(e, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+        ds = 2 * MU * de + LAM * np.trace(de, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+        return df @ s + f @ ds
+
+
+MODELS = {"neo-hookean": NeoHookean, "stvk": StVenantKirchhoff}
 
 
 def step(model, mass, free, x, v):
@@ -115,11 +151,13 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("out", type=pathlib.Path)
     parser.add_argument("--mesh", default="assets/meshes/torus.msh")
+    parser.add_argument("--model", choices=sorted(MODELS), default="neo-hookean")
+    parser.add_argument("--speed", type=float, default=1.0, help="scale of the initial velocities")
     args = parser.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     x0, tets = mesh(args.mesh)
-    model = NeoHookean(x0, tets)
+    model = MODELS[args.model](x0, tets)
     mass = np.zeros(len(x0))
     np.add.at(mass, tets, np.repeat(RHO * model.vol[:, None] / 4, 4, axis=1))
     # Clamp a patch at the largest x (a ring on a nail; a bar held at one end).
@@ -135,8 +173,8 @@ def main():
     entries = []
     for k in range(TRAJECTORIES):
         # Each motion starts from rest shape with a random velocity field: a spin and a swing.
-        omega = rng.normal(size=3) * 2.0
-        v = np.cross(omega, x0 - centre) + rng.normal(size=3) * 0.3
+        omega = rng.normal(size=3) * 2.0 * args.speed
+        v = np.cross(omega, x0 - centre) + rng.normal(size=3) * 0.3 * args.speed
         v[clamped] = 0.0
         x = x0.copy()
         frames = [x.copy()]
@@ -158,7 +196,7 @@ def main():
 Scene(
     name: "outside",
     mesh: Arrays(vertices: "vertices.npy", tets: "tets.npy"),
-    material: NeoHookean(Young(e: {E}, nu: {NU})),
+    material: {model.name}(Young(e: {E}, nu: {NU})),
     density: {RHO},
     constraints: [(select: File("clamped.npy"), motion: Fixed)],
     integrator: (newton: (rel: 1e-10, abs: 1e-12)),
