@@ -7,9 +7,10 @@ scene and experiment files that import them (docs/experiments.md, "Your own data
     cargo xtask experiment OUT/fit.ron --out OUT/fit       # E, nu from the noisy positions
     cargo xtask experiment OUT/select.ron --out OUT/select # which model made the clean ones
 
-`--model stvk` makes St. Venant-Kirchhoff data instead; on the torus's swing it inverts
-elements (StVK allows it), and the runner then refuses an ensemble with log-barrier members
-on those data, naming the trajectory, step and element.
+`--model stvk` makes St. Venant-Kirchhoff data instead (use `--speed 0.5`: faster spins
+invert elements beyond what its Newton converges through); its swing still inverts elements
+(StVK allows it), so model selection leaves out Neo-Hookean, whose energy is undefined
+there, saying where.
 
 Needs numpy, scipy and meshio. The truth (E, nu) is written to OUT/truth.txt and is the
 scene's material, so the report measures against it; the fit starts from a wrong guess

@@ -125,6 +125,13 @@ fn summary(fit: &OutputErrorFit) -> (usize, usize, f64, f64, &Termination) {
 }
 
 fn select_model(r: &SelectModelReport, md: &mut String) -> Result<()> {
+    for e in &r.ensemble.excluded {
+        writeln!(
+            md,
+            "{} is left out: the data leave its domain (trajectory {}, step {}, element {}: det F = {:.3e}), so it cannot have made them.\n",
+            e.model, e.trajectory, e.step, e.element, e.det
+        )?;
+    }
     md.push_str(
         "| member | effective mu | effective lambda | energy share (test) |\n|---|---|---|---|\n",
     );

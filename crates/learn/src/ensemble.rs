@@ -91,13 +91,33 @@ impl FittedMember {
     }
 }
 
+/// A candidate model left out of an ensemble because the data leave its domain.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Excluded {
+    /// The model.
+    pub model: Member,
+    /// Where first: trajectory (of the train, then the evaluation trajectories), step,
+    /// element and its `det F` (e.g. an inverted element, which a log-barrier model's
+    /// energy does not define).
+    pub trajectory: usize,
+    /// The step.
+    pub step: usize,
+    /// The element.
+    pub element: usize,
+    /// Its `det F`.
+    pub det: f64,
+}
+
 /// The fitted ensemble.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EnsembleFit {
-    /// The members, in the order of `names`.
+    /// The members, in the order of `names` (without the excluded ones).
     pub members: Vec<FittedMember>,
     /// Relative equation-error residual.
     pub relative_residual: f64,
+    /// Candidates whose energy the data leave undefined (they cannot have made the data).
+    #[serde(default)]
+    pub excluded: Vec<Excluded>,
 }
 
 impl EnsembleFit {
@@ -120,12 +140,49 @@ impl EnsembleFit {
     }
 }
 
+/// Where the states of `trajectories` first leave `member`'s domain, if they do.
+fn first_outside(
+    mesh: &TetMesh,
+    member: Member,
+    trajectories: &[&Trajectory],
+) -> Result<Option<Excluded>, FitError> {
+    let Some(model) = model_of(member, 1.0, 1.0) else {
+        return Ok(None);
+    };
+    for (trajectory, t) in trajectories.iter().enumerate() {
+        for (step, x) in t.x.iter().enumerate() {
+            if x.len() != 3 * mesh.num_vertices() {
+                return Err(FitError::Data {
+                    index: trajectory,
+                    reason: format!("states must have {} values", 3 * mesh.num_vertices()),
+                });
+            }
+            for element in 0..mesh.num_tets() {
+                let f = mesh.deformation_gradient(element, x);
+                if !deform_materials::Material::admissible(&model, &f) {
+                    let det = f.determinant();
+                    return Ok(Some(Excluded {
+                        model: member,
+                        trajectory,
+                        step,
+                        element,
+                        det,
+                    }));
+                }
+            }
+        }
+    }
+    Ok(None)
+}
+
 /// Fits an ensemble of the models `names` to `train` with the equation
 /// error, using `scene`'s mesh, constraints and integrator options; reports energy shares on
-/// the states of `evaluate`.
+/// the states of `evaluate`. A candidate whose energy the data leave undefined (a
+/// log-barrier model on data with an inverted element) cannot have made them: it is left
+/// out and listed in [`EnsembleFit::excluded`].
 ///
 /// # Errors
-/// [`FitError`].
+/// [`FitError`]; [`FitError::NoData`] when every candidate is excluded.
 pub fn fit_ensemble(
     scene: &Scene,
     origin: &Path,
@@ -133,6 +190,20 @@ pub fn fit_ensemble(
     train: &[&Trajectory],
     evaluate: &[&Trajectory],
 ) -> Result<EnsembleFit, FitError> {
+    let mesh = scene.build_mesh(origin)?;
+    let all: Vec<&Trajectory> = train.iter().chain(evaluate).copied().collect();
+    let mut excluded = Vec::new();
+    let mut kept = Vec::new();
+    for &n in names {
+        match first_outside(&mesh, n, &all)? {
+            Some(e) => excluded.push(e),
+            None => kept.push(n),
+        }
+    }
+    if kept.is_empty() {
+        return Err(FitError::NoData);
+    }
+    let names = &kept[..];
     // Any positive starting moduli: the equation error only uses the term split.
     let start = Moduli::Lame {
         mu: 1.0,
@@ -164,6 +235,7 @@ pub fn fit_ensemble(
     Ok(EnsembleFit {
         members,
         relative_residual: fit.relative_residual,
+        excluded,
     })
 }
 

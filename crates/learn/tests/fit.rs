@@ -1213,3 +1213,51 @@ fn estimated_rollout_starts_remove_the_bias_of_noisy_starts() {
     assert!(e1 + nu1 < e0 + nu0);
     assert!(correction.unwrap() > 0.0);
 }
+
+/// A candidate whose energy the data leave undefined (Neo-Hookean's log barrier on a state
+/// with an inverted element) cannot have made them: left out with where, not an error.
+#[test]
+fn an_ensemble_leaves_out_models_the_data_leave_undefined() {
+    use deform_learn::Member;
+    let mut s = scene("", "Beam(1)");
+    s.material = ron::from_str("StVenantKirchhoff(Young(e: 1e5, nu: 0.3))").unwrap();
+    let mut data = make(&s, 3, 4);
+    let mesh = s.build_mesh(Path::new("test")).unwrap();
+    // Push one free vertex of element 5 through its opposite face at the last step.
+    let tet = mesh.tets()[5];
+    let built = s.build(Path::new("test")).unwrap();
+    let free = *tet
+        .iter()
+        .find(|&&v| !built.integrator.dofs().is_constrained(v))
+        .unwrap();
+    let others: Vec<usize> = tet.iter().copied().filter(|&v| v != free).collect();
+    let last = data.trajectories[0].x.len() - 1;
+    let x = &mut data.trajectories[0].x[last];
+    let p = |x: &[f64], v: usize| nalgebra::Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+    let centroid = (p(x, others[0]) + p(x, others[1]) + p(x, others[2])) / 3.0;
+    let mirrored = 2.0 * centroid - p(x, free);
+    x[3 * free..3 * free + 3].copy_from_slice(mirrored.as_slice());
+    let train = data.split(Split::Train);
+    let fit = deform_learn::fit_ensemble(
+        &s,
+        Path::new("test"),
+        &[Member::NeoHookean, Member::StVenantKirchhoff],
+        &train,
+        &train,
+    )
+    .unwrap();
+    assert_eq!(fit.excluded.len(), 1, "{:?}", fit.excluded);
+    let e = &fit.excluded[0];
+    assert_eq!(
+        (e.model, e.trajectory, e.step),
+        (Member::NeoHookean, 0, last)
+    );
+    assert!(e.det <= 0.0);
+    assert_eq!(fit.members.len(), 1);
+    assert_eq!(fit.members[0].model, Member::StVenantKirchhoff);
+    // Every candidate outside: no data for any.
+    assert!(
+        deform_learn::fit_ensemble(&s, Path::new("test"), &[Member::NeoHookean], &train, &train)
+            .is_err()
+    );
+}

@@ -122,8 +122,14 @@ pub fn run(
     };
     let mut models = Vec::new();
     for &member in members {
-        let (single, _) = fit_models(&[member], &cx.data.split(Split::Validation))?;
-        let (validation, test) = evaluate(single.spec());
+        // A model the data leave undefined cannot have made them.
+        let outside = ensemble.excluded.iter().any(|e| e.model == member);
+        let (validation, test) = if outside {
+            (f64::INFINITY, f64::INFINITY)
+        } else {
+            let (single, _) = fit_models(&[member], &cx.data.split(Split::Validation))?;
+            evaluate(single.spec())
+        };
         models.push(ModelErrors {
             member: Some(member),
             validation,
