@@ -356,6 +356,12 @@ impl Dataset {
             .collect()
     }
 
+    /// The indices of the trajectories of one split.
+    pub fn indices(&self, split: Split) -> impl Iterator<Item = usize> + Clone + '_ {
+        let metas = self.meta.trajectories.iter().enumerate();
+        metas.filter(move |(_, m)| m.split == split).map(|(k, _)| k)
+    }
+
     /// `scene` starting where trajectory `k` starts: the initial conditions that generated
     /// it, or, for an imported trajectory (which has none), its first state.
     pub fn scene_of(&self, k: usize, scene: &Scene) -> Scene {

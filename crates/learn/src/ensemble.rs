@@ -140,15 +140,15 @@ impl EnsembleFit {
     }
 }
 
-/// Where the states of `trajectories` first leave `member`'s domain, if they do.
-fn first_outside(
+/// The candidates among `names` whose domain the states of `trajectories` leave, each
+/// with where it first happens (each element's `F` computed once for all candidates).
+fn outside_domains(
     mesh: &TetMesh,
-    member: Member,
+    names: &[Member],
     trajectories: &[&Trajectory],
-) -> Result<Option<Excluded>, FitError> {
-    let Some(model) = model_of(member, 1.0, 1.0) else {
-        return Ok(None);
-    };
+) -> Result<Vec<Excluded>, FitError> {
+    let models: Vec<Option<Model>> = names.iter().map(|&n| model_of(n, 1.0, 1.0)).collect();
+    let mut found: Vec<Option<Excluded>> = vec![None; names.len()];
     for (trajectory, t) in trajectories.iter().enumerate() {
         for (step, x) in t.x.iter().enumerate() {
             if x.len() != 3 * mesh.num_vertices() {
@@ -159,20 +159,22 @@ fn first_outside(
             }
             for element in 0..mesh.num_tets() {
                 let f = mesh.deformation_gradient(element, x);
-                if !deform_materials::Material::admissible(&model, &f) {
-                    let det = f.determinant();
-                    return Ok(Some(Excluded {
-                        model: member,
-                        trajectory,
-                        step,
-                        element,
-                        det,
-                    }));
+                for (m, model) in models.iter().enumerate() {
+                    let Some(model) = model else { continue };
+                    if found[m].is_none() && !deform_materials::Material::admissible(model, &f) {
+                        found[m] = Some(Excluded {
+                            model: names[m],
+                            trajectory,
+                            step,
+                            element,
+                            det: f.determinant(),
+                        });
+                    }
                 }
             }
         }
     }
-    Ok(None)
+    Ok(found.into_iter().flatten().collect())
 }
 
 /// Fits an ensemble of the models `names` to `train` with the equation
@@ -192,14 +194,12 @@ pub fn fit_ensemble(
 ) -> Result<EnsembleFit, FitError> {
     let mesh = scene.build_mesh(origin)?;
     let all: Vec<&Trajectory> = train.iter().chain(evaluate).copied().collect();
-    let mut excluded = Vec::new();
-    let mut kept = Vec::new();
-    for &n in names {
-        match first_outside(&mesh, n, &all)? {
-            Some(e) => excluded.push(e),
-            None => kept.push(n),
-        }
-    }
+    let excluded = outside_domains(&mesh, names, &all)?;
+    let kept: Vec<Member> = names
+        .iter()
+        .copied()
+        .filter(|n| !excluded.iter().any(|e| e.model == *n))
+        .collect();
     if kept.is_empty() {
         return Err(FitError::NoData);
     }

@@ -117,14 +117,14 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             VelocitySource::Initial(p) => Velocities::Initial(p),
             VelocitySource::Derived => Velocities::Derived,
         };
-        let mut trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
-        trajectory.exact_start = t.exact_start;
         if t.exact_start && t.velocities == VelocitySource::Derived {
             return Err(DatasetError::Inconsistent(format!(
                 "{}: exact_start with Derived velocities: the first frame, which has no velocity, is dropped",
                 t.positions.display()
             )));
         }
+        let mut trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
+        trajectory.exact_start = t.exact_start;
         let found = trajectory.x[0].len() / 3;
         if found != vertices {
             return Err(DatasetError::Inconsistent(format!(

@@ -756,10 +756,11 @@ struct LogProblem<'p, 'a> {
     start: Vec<f64>,
     /// The bounds.
     lower: Vec<f64>,
-    /// Number of start-offset parameters (0 without estimated starts).
-    offsets: usize,
-    /// Position and velocity offsets per unit of their parameters.
-    scale: (f64, f64),
+    /// The optimiser's starting point ([`LogProblem::parameters`]).
+    p0: Vec<f64>,
+    /// The offset per unit of each start-offset parameter (empty without estimated starts):
+    /// the data's motion per step for positions, that over `dt` for velocities.
+    units: Vec<f64>,
     /// The last loss and gradient (in `p`) of a point that simulated, which a trial point
     /// that does not simulate falls back on.
     last_good: RefCell<Option<(f64, Vec<f64>)>>,
@@ -778,36 +779,38 @@ const MAX_LOG_DISTANCE: f64 = 13.815510557964274;
 impl LogProblem<'_, '_> {
     fn new<'p, 'a>(objective: &'p OutputError<'a>, start: &[f64]) -> LogProblem<'p, 'a> {
         let offsets = objective.num_start_parameters();
-        let x = if offsets > 0 {
-            objective.motion_scale()
+        let units = if offsets > 0 {
+            // Per rollout, the positions then the velocities of every DOF.
+            let n = objective.sim.borrow().assembly().num_dofs();
+            let x = objective.motion_scale();
+            let v = x / objective.sim.borrow().options().dt;
+            let rollout = [vec![x; n], vec![v; n]].concat();
+            rollout.repeat(offsets / (2 * n))
         } else {
-            1.0
+            Vec::new()
         };
-        LogProblem {
+        let mut problem = LogProblem {
             objective,
             start: start.to_vec(),
             lower: objective.bounds(),
-            offsets,
-            scale: (x, x / objective.sim.borrow().options().dt),
+            p0: Vec::new(),
+            units,
             last_good: RefCell::new(None),
-        }
+        };
+        let off = |i: usize| (problem.start[i] - problem.lower[i]).abs().ln();
+        let mut p0: Vec<f64> = problem.active().map(off).collect();
+        p0.resize(p0.len() + problem.units.len(), 0.0);
+        problem.p0 = p0;
+        problem
     }
 
     /// The start offsets of parameters `p` (`None` without estimated starts).
     fn start_offsets(&self, p: &[f64]) -> Option<Vec<f64>> {
-        if self.offsets == 0 {
+        if self.units.is_empty() {
             return None;
         }
-        let q = &p[p.len() - self.offsets..];
-        let n = self.offsets / self.objective.rollouts().len() / 2;
-        let unit = |i: usize| {
-            if (i / n).is_multiple_of(2) {
-                self.scale.0
-            } else {
-                self.scale.1
-            }
-        };
-        Some(q.iter().enumerate().map(|(i, v)| v * unit(i)).collect())
+        let q = &p[p.len() - self.units.len()..];
+        Some(q.iter().zip(&self.units).map(|(v, u)| v * u).collect())
     }
 
     /// Loss and gradient in `p`; at a point that cannot be simulated, a loss far above the
@@ -815,10 +818,9 @@ impl LogProblem<'_, '_> {
     fn evaluate(&self, p: &[f64]) -> Result<(f64, Vec<f64>), FitError> {
         let c = self.coefficients(p);
         let offsets = self.start_offsets(p);
-        let p0 = self.parameters();
-        let coefficients = p0.len() - self.offsets;
+        let coefficients = self.p0.len() - self.units.len();
         let far = p.iter().any(|v| !v.is_finite())
-            || (p.iter().zip(&p0).take(coefficients))
+            || (p.iter().zip(&self.p0).take(coefficients))
                 .any(|(p, q)| (p - q).abs() > MAX_LOG_DISTANCE);
         let evaluated = if far {
             Err(FitError::Coefficients {
@@ -834,12 +836,8 @@ impl LogProblem<'_, '_> {
                     .active()
                     .map(|i| g[i] * (c[i] - self.lower[i]))
                     .collect();
-                if let Some(o) = &offsets {
-                    // d offset / d q is the offset's unit.
-                    let units = self.start_offsets(&vec![1.0; p.len()]).unwrap_or_default();
-                    g.extend(gs.iter().zip(&units).map(|(g, u)| g * u));
-                    debug_assert_eq!(o.len(), gs.len());
-                }
+                // d offset / d q is the offset's unit.
+                g.extend(gs.iter().zip(&self.units).map(|(g, u)| g * u));
                 *self.last_good.borrow_mut() = Some((loss, g.clone()));
                 Ok((loss, g))
             }
@@ -864,18 +862,15 @@ impl LogProblem<'_, '_> {
 
     /// The optimiser's starting point: the coefficients, and the data's starts.
     fn parameters(&self) -> Vec<f64> {
-        let off = |i: usize| (self.start[i] - self.lower[i]).abs().ln();
-        let mut p: Vec<f64> = self.active().map(off).collect();
-        p.resize(p.len() + self.offsets, 0.0);
-        p
+        self.p0.clone()
     }
 
     /// The RMS position offset of the free DOFs' starts at `p` (m).
     fn start_correction(&self, p: &[f64]) -> Option<f64> {
         let o = self.start_offsets(p)?;
-        let rollouts = self.objective.rollouts().len();
-        let n = self.offsets / rollouts / 2;
         let sim = self.objective.sim.borrow();
+        let n = sim.assembly().num_dofs();
+        let rollouts = o.len() / (2 * n);
         let free = (0..n).filter(|i| !sim.dofs().is_constrained(i / 3)).count();
         let sum: f64 = o
             .chunks(2 * n)
@@ -1047,7 +1042,7 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
     let problem = LogProblem::new(objective, initial);
     // Estimated starts add thousands of coupled parameters: a longer memory converges in
     // about half the iterations (measured: 140 instead of 280 on the n = 1 beam).
-    let memory = if problem.offsets > 0 { 20 } else { 7 };
+    let memory = if problem.units.is_empty() { 7 } else { 20 };
     let solver = LBFGS::new(MoreThuenteLineSearch::new(), memory)
         .with_tolerance_grad(options.tolerance)
         .and_then(|s| s.with_tolerance_cost(0.0))

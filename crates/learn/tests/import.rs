@@ -161,33 +161,26 @@ fn meshes_and_constraints_from_arrays() {
         clamped
     );
     // Bad arrays are refused naming the file.
+    let build_error = || {
+        Scene::load(&path)
+            .unwrap()
+            .build(&path)
+            .err()
+            .unwrap()
+            .to_string()
+    };
     npy::write(&dir.path().join("tets.npy"), &[2, 3], &tets[..6]).unwrap();
-    let e = Scene::load(&path)
-        .unwrap()
-        .build(&path)
-        .err()
-        .unwrap()
-        .to_string();
+    let e = build_error();
     assert!(e.contains("tets.npy") && e.contains("shape"), "{e}");
     npy::write(&dir.path().join("tets.npy"), &[mesh.num_tets(), 4], &tets).unwrap();
     npy::write(&dir.path().join("clamped.npy"), &[1], &[1e6]).unwrap();
-    let e = Scene::load(&path)
-        .unwrap()
-        .build(&path)
-        .err()
-        .unwrap()
-        .to_string();
+    let e = build_error();
     assert!(
         e.contains("clamped.npy") && e.contains("out of range"),
         "{e}"
     );
     npy::write(&dir.path().join("clamped.npy"), &[1], &[0.5]).unwrap();
-    let e = Scene::load(&path)
-        .unwrap()
-        .build(&path)
-        .err()
-        .unwrap()
-        .to_string();
+    let e = build_error();
     assert!(e.contains("clamped.npy") && e.contains("integer"), "{e}");
 }
 

@@ -294,11 +294,7 @@ pub fn run(
     let origin = cx.experiment.scene.as_path();
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
     let variant = |k: usize| cx.data.scene_of(k, &cx.scene);
-    // Indices of the trajectories of a split.
-    let of_split = |split: Split| {
-        let metas = cx.data.meta.trajectories.iter().enumerate();
-        metas.filter(move |(_, m)| m.split == split).map(|(k, _)| k)
-    };
+    let of_split = |split: Split| cx.data.indices(split);
     // Counterfactual logs from the training trajectories' initial conditions.
     let train = of_split(Split::Train).count();
     observer.start(Stage::SolverData, (train * steps) as u64);

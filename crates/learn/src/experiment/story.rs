@@ -228,9 +228,7 @@ pub fn run(
 
     // 3. Solver selection on the tuned model's own Newton systems.
     let steps = train.first().map_or(0, |t| t.steps());
-    // Indices of the training trajectories.
-    let train_index = (0..cx.data.trajectories.len())
-        .filter(|&k| cx.data.meta.trajectories[k].split == Split::Train);
+    let train_index = cx.data.indices(Split::Train);
     let runs: Vec<Run<'_>> = train_index
         .clone()
         .map(|k| (cx.data.scene_of(k, &tuned_scene), origin, steps))
