@@ -225,6 +225,8 @@ pub struct Integrator {
     options: IntegratorOptions,
     /// `M g`.
     gravity_forces: Vec<f64>,
+    /// Per-vertex lumped-mass scales and the mesh's own masses they multiply, when set.
+    mass_scale: Option<(Vec<f64>, Vec<f64>)>,
     k: CsMat<f64>,
     a: CsMat<f64>,
     a_free: ReducedMatrix,
@@ -400,6 +402,7 @@ impl Integrator {
             dofs,
             options,
             gravity_forces,
+            mass_scale: None,
             k,
             a,
             a_free,
@@ -442,7 +445,73 @@ impl Integrator {
     /// As [`IntegratorOptions::validate`].
     pub fn set_options(&mut self, options: IntegratorOptions) -> Result<(), IntegratorError> {
         options.validate()?;
+        if options.mass != self.options.mass {
+            return Err(IntegratorError::Invalid {
+                field: "mass",
+                reason: "the kind of mass matrix is fixed when the integrator is built".into(),
+            });
+        }
+        let gravity_changed = options.gravity != self.options.gravity;
         self.options = options;
+        if gravity_changed {
+            self.update_gravity_forces()?;
+        }
+        Ok(())
+    }
+
+    /// Scales each vertex's lumped mass by `scale[v]` (finite, > 0; one per vertex), or
+    /// restores the mesh's masses with `None`: a learned coarse model's mass distribution.
+    /// Gravity forces follow the masses. The total mass is whatever the scales make it.
+    ///
+    /// # Errors
+    /// [`IntegratorError::Invalid`] for a consistent mass matrix, a wrong length or a scale
+    /// that is not finite and positive (naming the vertex).
+    pub fn set_mass_scale(&mut self, scale: Option<&[f64]>) -> Result<(), IntegratorError> {
+        let invalid = |reason: String| IntegratorError::Invalid {
+            field: "mass_scale",
+            reason,
+        };
+        let Mass::Lumped(current) = &self.mass else {
+            return Err(invalid("needs the lumped mass".into()));
+        };
+        if let Some(scale) = scale {
+            check_mass_scale(scale, current.len()).map_err(invalid)?;
+        }
+        let own = match self.mass_scale.take() {
+            Some((_, own)) => own,
+            None => current.clone(),
+        };
+        match scale {
+            Some(scale) => {
+                self.mass = Mass::Lumped(own.iter().zip(scale).map(|(m, s)| m * s).collect());
+                self.mass_scale = Some((scale.to_vec(), own));
+            }
+            None => self.mass = Mass::Lumped(own),
+        }
+        self.update_gravity_forces()
+    }
+
+    /// The per-vertex mass scales set by [`Integrator::set_mass_scale`].
+    pub fn mass_scale(&self) -> Option<&[f64]> {
+        self.mass_scale.as_ref().map(|(s, _)| s.as_slice())
+    }
+
+    /// The mesh's own (unscaled) lumped vertex masses, or the row sums of the consistent
+    /// mass.
+    pub fn unscaled_vertex_masses(&self) -> Vec<f64> {
+        match &self.mass_scale {
+            Some((_, own)) => own.clone(),
+            None => self.asm.vertex_masses(&self.mass),
+        }
+    }
+
+    /// `M g` for the current mass and gravity.
+    fn update_gravity_forces(&mut self) -> Result<(), IntegratorError> {
+        let g: Vec<f64> = (0..self.asm.num_dofs())
+            .map(|i| self.options.gravity[i % 3])
+            .collect();
+        self.asm
+            .mass_apply(&self.mass, &g, &mut self.gravity_forces)?;
         Ok(())
     }
 
@@ -1333,6 +1402,17 @@ impl FailedSolve {
             error: Some(self.error.to_string()),
             distance: f64::INFINITY,
         }
+    }
+}
+
+/// Why per-vertex mass scales cannot be used (see [`Integrator::set_mass_scale`]).
+fn check_mass_scale(scale: &[f64], vertices: usize) -> Result<(), String> {
+    if scale.len() != vertices {
+        return Err(format!("{} scales for {vertices} vertices", scale.len()));
+    }
+    match scale.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+        Some(v) => Err(format!("vertex {v}: {} must be finite and > 0", scale[v])),
+        None => Ok(()),
     }
 }
 

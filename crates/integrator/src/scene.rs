@@ -127,6 +127,10 @@ pub struct Scene {
     /// (`Model::term_coefficients`: `mu, lambda` for a single model).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coefficients: Option<PathBuf>,
+    /// Learned per-vertex scales of the lumped mass: an `.npy` of shape (vertices,),
+    /// relative to the scene file (see [`Integrator::set_mass_scale`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mass_scale: Option<PathBuf>,
     /// Mass density (kg/m^3).
     pub density: f64,
     /// Boundary conditions.
@@ -197,6 +201,19 @@ fn coefficient_field(model: &Model, file: &Path, tets: usize) -> Result<Material
         .map_err(|e| format!("{} (one group per element): {e}", file.display()))
 }
 
+/// The per-vertex mass scales of `file`, one per vertex.
+fn read_mass_scale(file: &Path, vertices: usize) -> Result<Vec<f64>, String> {
+    let a = deform_fs::npy::read(file).map_err(|e| e.to_string())?;
+    if a.shape != [vertices] {
+        let shape = &a.shape;
+        return Err(format!(
+            "{}: shape {shape:?}, expected [{vertices}] (one scale per vertex)",
+            file.display()
+        ));
+    }
+    Ok(a.data)
+}
+
 /// Refuses a simulation of `vertices` and `tets` that cannot fit in memory.
 fn fits(origin: &Path, vertices: usize, tets: usize) -> Result<(), SceneError> {
     let needed = memory::simulation_lower_bound(vertices, tets);
@@ -244,10 +261,13 @@ impl Scene {
         let mut scene = Self::parse(&text, path)?;
         let dir = path.parent().unwrap_or(Path::new("."));
         scene.mesh.resolve_paths(dir);
-        if let Some(file) = &mut scene.coefficients
-            && file.is_relative()
+        for file in [&mut scene.coefficients, &mut scene.mass_scale]
+            .into_iter()
+            .flatten()
         {
-            *file = dir.join(&*file);
+            if file.is_relative() {
+                *file = dir.join(&*file);
+            }
         }
         for c in &mut scene.constraints {
             c.select.resolve_paths(dir);
@@ -404,6 +424,13 @@ impl Scene {
             .policy(policy)
             .build()
             .map_err(|e| invalid("integrator", e.to_string()))?;
+        if let Some(file) = &self.mass_scale {
+            let scale = read_mass_scale(file, mesh.num_vertices())
+                .map_err(|reason| invalid("mass_scale", reason))?;
+            integrator
+                .set_mass_scale(Some(&scale))
+                .map_err(|e| invalid("mass_scale", format!("{}: {e}", file.display())))?;
+        }
         let state = self
             .initial_state(&mesh, &mut integrator)
             .map_err(|e| invalid("initial", e))?;

@@ -98,6 +98,64 @@ fn free_fall_is_exact() {
 }
 
 #[test]
+fn scaled_masses_carry_gravity_with_them_and_are_validated() {
+    let mesh = beam();
+    let mut s = sim(
+        &mesh,
+        vec![],
+        IntegratorOptions::default(),
+        "Fixed(Direct())",
+    );
+    let own = s.assembly().vertex_masses(s.mass());
+    let scale: Vec<f64> = (0..mesh.num_vertices())
+        .map(|v| 0.5 + (v % 7) as f64 / 4.0)
+        .collect();
+    s.set_mass_scale(Some(&scale)).unwrap();
+    assert_eq!(s.mass_scale(), Some(scale.as_slice()));
+    assert_eq!(s.unscaled_vertex_masses(), own);
+    let scaled = s.assembly().vertex_masses(s.mass());
+    for v in 0..own.len() {
+        assert_eq!(scaled[v], own[v] * scale[v]);
+        assert_eq!(s.gravity_forces()[3 * v + 2], scaled[v] * -9.81);
+    }
+    // Free fall stays exact: gravity scales with the mass it pulls.
+    let mut state = s.rest_state();
+    let x0 = state.x.clone();
+    let dt = s.options().dt;
+    for _ in 0..3 {
+        s.step(&mut state).unwrap();
+    }
+    for i in (2..state.x.len()).step_by(3) {
+        assert!((state.v[i] + 3.0 * dt * 9.81).abs() < 1e-9, "v[{i}]");
+        assert!((state.x[i] - x0[i] + 6.0 * dt * dt * 9.81).abs() < 1e-9);
+    }
+    // Changed gravity is applied to the scaled masses.
+    let mut options = s.options().clone();
+    options.gravity = [1.0, 0.0, 0.0];
+    s.set_options(options.clone()).unwrap();
+    assert_eq!(s.gravity_forces()[3], scaled[1]);
+    assert_eq!(s.gravity_forces()[5], 0.0);
+    // Bad scales are refused naming the vertex and leave the masses as they were.
+    let mut bad = scale.clone();
+    bad[3] = f64::NAN;
+    let e = s.set_mass_scale(Some(&bad)).unwrap_err().to_string();
+    assert!(e.contains("mass_scale") && e.contains("vertex 3"), "{e}");
+    let e = s.set_mass_scale(Some(&scale[1..])).unwrap_err().to_string();
+    assert!(e.contains("vertices"), "{e}");
+    assert_eq!(s.mass_scale(), Some(scale.as_slice()));
+    // None restores the mesh's own masses exactly.
+    s.set_mass_scale(None).unwrap();
+    assert_eq!(s.mass_scale(), None);
+    assert_eq!(s.assembly().vertex_masses(s.mass()), own);
+    // The kind of mass is fixed; a consistent mass has no per-vertex scales.
+    options.mass = deform_integrator::MassKind::Consistent;
+    assert!(s.set_options(options.clone()).is_err());
+    let mut c = sim(&mesh, vec![], options, "Fixed(Direct())");
+    let e = c.set_mass_scale(Some(&scale)).unwrap_err().to_string();
+    assert!(e.contains("lumped"), "{e}");
+}
+
+#[test]
 fn momentum_is_conserved_and_energy_is_dissipated_without_external_forces() {
     let mesh = beam();
     let options = IntegratorOptions {

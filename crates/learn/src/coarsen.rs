@@ -139,7 +139,9 @@ pub fn coarsen(
 
 /// Saves a learned model as a scene a user keeps and runs (`cargo xtask simulate`):
 /// `dir/NAME.ron` is `scene` with its coefficient field in `dir/NAME.coefficients.npy`
-/// (shape (tets, terms), see [`Scene::coefficients`]); a mesh read from a file is copied to
+/// (shape (tets, terms), see [`Scene::coefficients`]) and its per-vertex mass scales, when
+/// given, in `dir/NAME.mass_scale.npy` ([`Scene::mass_scale`]); a mesh read from a file is
+/// copied to
 /// `dir/NAME.msh` (binary, so coordinates survive bit for bit), a generated one stays a
 /// generator. Returns the files written, the scene file first.
 ///
@@ -149,11 +151,13 @@ pub fn coarsen(
 pub fn save_model(
     scene: &Scene,
     coefficients: &[f64],
+    mass_scale: Option<&[f64]>,
     dir: &Path,
 ) -> Result<Vec<PathBuf>, LearnError> {
     let origin = dir.join(format!("{}.ron", scene.name));
     let mut saved = scene.clone();
     saved.coefficients = None;
+    saved.mass_scale = None;
     let mesh = saved.build_mesh(&origin)?;
     let model = saved.material.build()?;
     let (tets, terms) = (mesh.num_tets(), model.term_coefficients().len());
@@ -165,6 +169,20 @@ pub fn save_model(
         return Err(LearnError::Scene(SceneError::Invalid {
             path: origin,
             field: "coefficients".into(),
+            reason,
+        }));
+    }
+    if let Some(scale) = mass_scale
+        && scale.len() != mesh.num_vertices()
+    {
+        let reason = format!(
+            "{} scales for {} vertices",
+            scale.len(),
+            mesh.num_vertices()
+        );
+        return Err(LearnError::Scene(SceneError::Invalid {
+            path: origin,
+            field: "mass_scale".into(),
             reason,
         }));
     }
@@ -191,6 +209,13 @@ pub fn save_model(
     npy::write(&path, &[tets, terms], coefficients).map_err(|e| io(&path, &e))?;
     written.push(path);
     saved.coefficients = Some(field.into());
+    if let Some(scale) = mass_scale {
+        let name = format!("{}.mass_scale.npy", scene.name);
+        let path = dir.join(&name);
+        npy::write(&path, &[scale.len()], scale).map_err(|e| io(&path, &e))?;
+        written.push(path);
+        saved.mass_scale = Some(name.into());
+    }
     let text =
         ron::ser::to_string_pretty(&saved, ron::ser::PrettyConfig::default().struct_names(true))
             .map_err(|e| io(&origin, &e))?;

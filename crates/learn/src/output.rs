@@ -169,6 +169,10 @@ pub struct OutputError<'a> {
     field: Option<Grouping>,
     /// The field's regularisation, when any.
     regularisation: Option<Regularisation>,
+    /// Per-vertex lumped-mass scales follow the material coefficients.
+    mass: bool,
+    /// The mesh's vertices (the number of mass scales).
+    vertices: usize,
     /// Rayleigh `alpha` and `gamma` are the last two coefficients.
     damping: bool,
     trajectories: Vec<&'a Trajectory>,
@@ -203,6 +207,8 @@ impl<'a> OutputError<'a> {
             base: base.clone(),
             field: None,
             regularisation: None,
+            mass: false,
+            vertices: sim.assembly().num_vertices(),
             damping: false,
             sim: RefCell::new(sim),
             trajectories: trajectories.to_vec(),
@@ -246,6 +252,22 @@ impl<'a> OutputError<'a> {
         self
     }
 
+    /// Also fits a scale of each vertex's lumped mass (positive; the total mass is not
+    /// held fixed, and is reported by [`Integrator::mass_scale`]): the coefficients gain one
+    /// per vertex after the material's. A coarse mesh lumps mass where the fine body does
+    /// not have it; the scales move it back. Through the same adjoint:
+    /// `dr/ds_v = m_v (v^n+1 - v^n + dt alpha v^n+1 - dt g)` at vertex `v`. The field's
+    /// `towards` weight also pulls `ln s_v` towards 0.
+    pub fn with_mass_scale(mut self) -> Self {
+        self.mass = true;
+        self
+    }
+
+    /// Number of mass scales (one per vertex, or none).
+    fn num_mass(&self) -> usize {
+        if self.mass { self.vertices } else { 0 }
+    }
+
     /// Number of material coefficients: terms times groups.
     fn num_material(&self) -> usize {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
@@ -264,9 +286,10 @@ impl<'a> OutputError<'a> {
         lower
     }
 
-    /// Number of coefficients: terms times groups, and 2 with damping.
+    /// Number of coefficients: terms times groups, a scale per vertex with the mass, and 2
+    /// with damping.
     pub fn num_coefficients(&self) -> usize {
-        self.num_material() + if self.damping { 2 } else { 0 }
+        self.num_material() + self.num_mass() + if self.damping { 2 } else { 0 }
     }
 
     /// The base material's coefficients in every group (and the integrator's damping): where
@@ -274,8 +297,12 @@ impl<'a> OutputError<'a> {
     pub fn uniform_start(&self) -> Vec<f64> {
         let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
         let mut c = term_coefficients(&self.base).repeat(groups);
+        let o = self.sim.borrow();
+        if self.mass {
+            let vertices = o.assembly().num_vertices();
+            c.extend(o.mass_scale().map_or(vec![1.0; vertices], <[f64]>::to_vec));
+        }
         if self.damping {
-            let o = self.sim.borrow();
             c.extend([o.options().alpha, o.options().gamma]);
         }
         c
@@ -286,13 +313,8 @@ impl<'a> OutputError<'a> {
     /// # Errors
     /// [`FitError::Coefficients`] for a wrong length or an invalid pair.
     pub fn materials(&self, c: &[f64]) -> Result<MaterialField, FitError> {
-        // With damping, its two coefficients come last.
-        let m = self.num_material();
-        let c = if self.damping {
-            &c[..m.min(c.len())]
-        } else {
-            c
-        };
+        // Mass scales and damping follow the material's coefficients.
+        let c = &c[..self.num_material().min(c.len())];
         match &self.field {
             None => field_of(&self.base, None, c),
             Some(g) => field_of(&self.base, Some(g.groups()), c),
@@ -381,7 +403,8 @@ impl<'a> OutputError<'a> {
             Some(g) => g.clone(),
             None => Grouping::global(sim.assembly()),
         };
-        let mut work = Adjoint::new(&sim, grouping, self.damping)?;
+        let unscaled = self.mass.then(|| sim.unscaled_vertex_masses());
+        let mut work = Adjoint::new(&sim, grouping, unscaled, self.damping)?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
         let mut grad = vec![0.0; c.len()];
@@ -459,6 +482,15 @@ impl<'a> OutputError<'a> {
         if let Some(r) = &self.regularisation {
             let terms = term_coefficients(&self.base);
             loss += r.add(&c[..m], &terms, &mut grad[..m]);
+            let v = self.num_mass();
+            if v > 0 && r.towards > 0.0 {
+                // ln s_v towards 0, as the material towards the base.
+                let w = r.towards / v as f64;
+                for (s, g) in c[m..m + v].iter().zip(&mut grad[m..m + v]) {
+                    loss += w * s.ln().powi(2);
+                    *g += 2.0 * w * s.ln() / s;
+                }
+            }
         }
         *self.evaluations.borrow_mut() += 1;
         (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
@@ -467,16 +499,25 @@ impl<'a> OutputError<'a> {
         Ok((loss, grad, start_grad))
     }
 
-    /// Puts coefficients `c` (material, then damping) into the integrator.
+    /// Puts coefficients `c` (material, mass scales, then damping) into the integrator.
     fn set_coefficients(&self, sim: &mut Integrator, c: &[f64]) -> Result<(), FitError> {
-        let m = self.num_material();
+        let (m, v) = (self.num_material(), self.num_mass());
+        let invalid = |reason: String| FitError::Coefficients {
+            coefficients: c.to_vec(),
+            reason,
+        };
+        if c.len() != self.num_coefficients() {
+            let expected = self.num_coefficients();
+            return Err(invalid(format!("expected {expected} coefficients")));
+        }
         sim.assembly_mut().set_materials(self.materials(c)?)?;
+        if self.mass {
+            sim.set_mass_scale(Some(&c[m..m + v]))
+                .map_err(|e| invalid(e.to_string()))?;
+        }
         if self.damping {
-            let Some(&[alpha, gamma]) = c.get(m..) else {
-                return Err(FitError::Coefficients {
-                    coefficients: c.to_vec(),
-                    reason: format!("expected {} coefficients", m + 2),
-                });
+            let Some(&[alpha, gamma]) = c.get(m + v..) else {
+                return Err(invalid(format!("expected {} coefficients", m + v + 2)));
             };
             let mut options = sim.options().clone();
             (options.alpha, options.gamma) = (alpha, gamma);
@@ -609,12 +650,19 @@ struct Adjoint {
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
+    /// The unscaled vertex masses when the gradient has mass scales (after the material's).
+    unscaled: Option<Vec<f64>>,
     /// The gradient ends with `alpha, gamma`.
     damping: bool,
 }
 
 impl Adjoint {
-    fn new(sim: &Integrator, grouping: Grouping, damping: bool) -> Result<Self, FitError> {
+    fn new(
+        sim: &Integrator,
+        grouping: Grouping,
+        unscaled: Option<Vec<f64>>,
+        damping: bool,
+    ) -> Result<Self, FitError> {
         let a = sim.assembly().stiffness_matrix();
         Ok(Self {
             kmat: sim.assembly().stiffness_matrix(),
@@ -622,6 +670,7 @@ impl Adjoint {
             a,
             mass: sim.mass().clone(),
             grouping,
+            unscaled,
             damping,
         })
     }
@@ -693,6 +742,21 @@ impl Adjoint {
             };
             for ((gj, f), kv) in grad.iter_mut().zip(&jf).zip(&jk) {
                 *gj += dt * (f - gamma * kv);
+            }
+            if let Some(own) = &self.unscaled {
+                // dL/ds_v = -lambda_v . m_v (v^k+1 - v^k + dt alpha v^k+1 - dt g).
+                let (prev, g) = (&r.states[k].v, sim.options().gravity);
+                let scales = &mut grad[jf.len()..jf.len() + own.len()];
+                for (v, (gs, m)) in scales.iter_mut().zip(own).enumerate() {
+                    let dr: f64 = (0..3)
+                        .map(|d| {
+                            let i = 3 * v + d;
+                            let u = next.v[i];
+                            lambda[i] * (u - prev[i] + dt * alpha * u - dt * g[d])
+                        })
+                        .sum();
+                    *gs -= m * dr;
+                }
             }
             if self.damping {
                 // dL/dalpha = -dt lambda^T M v, dL/dgamma = -dt lambda^T K v (K as above).
@@ -995,6 +1059,9 @@ pub struct Field {
     pub initial: Option<Vec<f64>>,
     /// The penalty on the field.
     pub regularisation: Regularisation,
+    /// Also fit a scale of each vertex's lumped mass (after the material coefficients; see
+    /// [`OutputError::with_mass_scale`]).
+    pub mass: bool,
     /// Also fit Rayleigh `alpha, gamma` (the last two coefficients; see
     /// [`OutputError::with_damping`]).
     pub damping: bool,
@@ -1019,6 +1086,11 @@ pub fn fit_output_error_field(
         objective.with_field(&field.labels)?
     };
     let objective = objective.with_regularisation(field.regularisation.clone());
+    let objective = if field.mass {
+        objective.with_mass_scale()
+    } else {
+        objective
+    };
     let objective = if field.damping {
         objective.with_damping()
     } else {

@@ -112,9 +112,19 @@ fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
             index: (0..tets as u32).collect(),
         };
         sim.integrator.assembly_mut().set_materials(field).unwrap();
-        let path = deform_learn::coarsen::save_model(&scene, &c, &dir.path().join("saved"))
-            .unwrap()[0]
-            .clone();
+        // Learned mass scales too.
+        let scale: Vec<f64> = (0..sim.mesh.num_vertices())
+            .map(|_| rng.range(0.5, 2.0))
+            .collect();
+        sim.integrator.set_mass_scale(Some(&scale)).unwrap();
+        let saved = dir.path().join("saved");
+        let written = deform_learn::coarsen::save_model(&scene, &c, Some(&scale), &saved).unwrap();
+        assert!(
+            written
+                .iter()
+                .any(|p| p.ends_with(format!("{name}.mass_scale.npy")))
+        );
+        let path = written[0].clone();
         let loaded = Scene::load(&path).unwrap();
         let mut back = loaded.build(&path).unwrap();
         let options = RunOptions::steps(5);
@@ -129,8 +139,11 @@ fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
         assert_eq!(sim.state.x, back.state.x, "{name}");
         assert_eq!(sim.state.v, back.state.v, "{name}");
         // A field of the wrong size is refused naming the field.
-        let e = deform_learn::coarsen::save_model(&scene, &c[1..], dir.path()).unwrap_err();
+        let e = deform_learn::coarsen::save_model(&scene, &c[1..], None, dir.path()).unwrap_err();
         assert!(e.to_string().contains("coefficients"), "{e}");
+        let e = deform_learn::coarsen::save_model(&scene, &c, Some(&scale[1..]), dir.path())
+            .unwrap_err();
+        assert!(e.to_string().contains("mass_scale"), "{e}");
     }
 }
 

@@ -1088,6 +1088,76 @@ fn the_damping_gradient_equals_finite_differences() {
 }
 
 #[test]
+fn the_mass_scale_gradient_equals_finite_differences() {
+    // A scale per vertex's lumped mass, through the same adjoint, with a per-element field,
+    // mass damping and gravity (both of which enter dr/ds), and the pull of ln s towards 0.
+    let s = scene("alpha: 0.4", "Beam(1)");
+    let data = make(&s, 1, 4);
+    let mut sim = s.build(Path::new("test")).unwrap().integrator;
+    let (tets, vertices) = (sim.assembly().num_elements(), sim.assembly().num_vertices());
+    let labels: Vec<u32> = (0..tets as u32).collect();
+    let (free, fixed): (Vec<usize>, Vec<usize>) =
+        (0..vertices).partition(|&v| !sim.dofs().is_constrained(v));
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 4,
+        velocity_weight: 0.5,
+        ..Default::default()
+    };
+    let regularisation = deform_learn::Regularisation {
+        towards: 0.2,
+        ..Default::default()
+    };
+    let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_field(&labels)
+        .unwrap()
+        .with_regularisation(regularisation)
+        .with_mass_scale()
+        .with_damping();
+    let m = 2 * tets;
+    assert_eq!(objective.num_coefficients(), m + vertices + 2);
+    let start = objective.uniform_start();
+    assert!(start[m..m + vertices].iter().all(|&s| s == 1.0));
+    let mut rng = deform_learn::rng::Rng::new(11);
+    let c: Vec<f64> = start.iter().map(|c| c * rng.range(0.7, 1.4)).collect();
+    let (_, grad) = objective.evaluate(&c).unwrap();
+    // An element, free vertices and alpha.
+    assert!(!fixed.is_empty() && free.len() > fixed.len());
+    let mut checked = vec![
+        0,
+        m + free[0],
+        m + free[free.len() / 2],
+        m + free[free.len() - 1],
+    ];
+    checked.push(m + vertices);
+    for j in checked {
+        let h = 1e-5 * c[j].abs();
+        let (mut cp, mut cm) = (c.clone(), c.clone());
+        cp[j] += h;
+        cm[j] -= h;
+        let fd =
+            (objective.evaluate(&cp).unwrap().0 - objective.evaluate(&cm).unwrap().0) / (2.0 * h);
+        assert!(
+            (grad[j] - fd).abs() <= 1e-4 * fd.abs(),
+            "coefficient {j}: {} vs {fd}",
+            grad[j]
+        );
+    }
+    // A constrained vertex's scale changes nothing but the penalty.
+    let fixed = fixed[0];
+    let mut cp = c.clone();
+    cp[m + fixed] *= 1.5;
+    let penalty = |s: f64| 0.2 / vertices as f64 * s.ln().powi(2);
+    let moved = objective.evaluate(&cp).unwrap().0 - objective.evaluate(&c).unwrap().0;
+    let expected = penalty(cp[m + fixed]) - penalty(c[m + fixed]);
+    assert!((moved - expected).abs() <= 1e-12, "{moved} vs {expected}");
+    drop(objective);
+    // The fitted scales are left in the integrator.
+    assert_eq!(sim.mass_scale(), Some(&c[m..m + vertices]));
+}
+
+#[test]
 fn a_volume_only_member_is_kept_through_stage_two() {
     // Fixed corotated is corotated's shear term plus stable Neo-Hookean's volume term: on
     // its data, stage 1 over those two gives the corotated member mu only and the stable

@@ -206,6 +206,7 @@ struct Settings<'a> {
     regions: u32,
     regularisation: &'a [f64],
     damping: bool,
+    mass_scale: bool,
     options: OutputErrorOptions,
 }
 
@@ -226,6 +227,7 @@ pub fn run(
         regions,
         regularisation,
         damping,
+        mass_scale,
         output_error,
     } = &cx.experiment.task
     else {
@@ -247,6 +249,7 @@ pub fn run(
         regions: *regions,
         regularisation,
         damping: *damping,
+        mass_scale: *mass_scale,
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -296,12 +299,34 @@ struct Fitted {
     coefficients: Vec<f64>,
     /// Its integrator options (with the fitted damping).
     options: IntegratorOptions,
+    /// Its per-vertex mass scales, when fitted.
+    mass_scale: Option<Vec<f64>>,
     /// The coarse mesh.
     mesh: TetMesh,
 }
 
-/// A fitted model in an integrator: its materials and options.
-type FittedModel = (MaterialField, IntegratorOptions);
+/// A fitted model in an integrator: its materials, options and mass scales.
+type FittedModel = (MaterialField, IntegratorOptions, Option<Vec<f64>>);
+
+/// Puts a fitted model into `sim`.
+fn restore(
+    sim: &mut Integrator,
+    (materials, options, mass): &FittedModel,
+) -> Result<(), LearnError> {
+    set_materials(sim, materials.clone())?;
+    sim.set_options(options.clone())?;
+    Ok(sim.set_mass_scale(mass.as_deref())?)
+}
+
+/// The fitted model in `sim`.
+fn fitted_model(sim: &Integrator) -> FittedModel {
+    let mass = sim.mass_scale().map(<[f64]>::to_vec);
+    (
+        sim.assembly().materials().clone(),
+        sim.options().clone(),
+        mass,
+    )
+}
 
 /// The untuned, homogeneous, per-region and per-element rows on the coarse data, and the
 /// per-element model.
@@ -326,6 +351,7 @@ fn run_case(
         labels,
         initial: None,
         regularisation,
+        mass: false,
         damping: settings.damping,
     };
     let whole = field(Vec::new(), Regularisation::default());
@@ -336,11 +362,7 @@ fn run_case(
         CoarseModel::Homogeneous,
         Some(summary),
     )?);
-    let homogeneous = (sim.assembly().materials().clone(), sim.options().clone());
-    let reset = |sim: &mut Integrator| -> Result<(), LearnError> {
-        set_materials(sim, homogeneous.0.clone())?;
-        Ok(sim.set_options(homogeneous.1.clone())?)
-    };
+    let homogeneous = fitted_model(&sim);
     let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
     rows.push(measure(
@@ -357,40 +379,35 @@ fn run_case(
     let mut best: Option<(f64, f64, Vec<f64>, FitSummary, FittedModel)> = None;
     let (mut evaluations, mut seconds) = (0, 0.0);
     for &w in settings.regularisation {
-        reset(&mut sim)?;
+        restore(&mut sim, &homogeneous)?;
         let r = Regularisation {
             towards: w,
             smooth: w,
             neighbours: neighbours.clone(),
         };
-        let (c, summary) = fit(
-            &mut sim,
-            &train,
-            &field(labels.clone(), r),
-            settings,
-            observer,
-        )?;
+        let per_element = Field {
+            mass: settings.mass_scale,
+            ..field(labels.clone(), r)
+        };
+        let (c, summary) = fit(&mut sim, &train, &per_element, settings, observer)?;
         let e = mean_error(&mean_rollout_errors(&mut sim, &validation)?);
         tried.push((w, e));
         (evaluations, seconds) = (evaluations + summary.evaluations, seconds + summary.seconds);
         if best.as_ref().is_none_or(|b| e < b.0) {
-            let model = (sim.assembly().materials().clone(), sim.options().clone());
-            best = Some((e, w, c, summary, model));
+            best = Some((e, w, c, summary, fitted_model(&sim)));
         }
     }
-    let (_, chosen, mut c, mut summary, (materials, options)) =
-        best.expect("validated: at least one weight");
+    let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
-    set_materials(&mut sim, materials)?;
-    sim.set_options(options)?;
+    restore(&mut sim, &model)?;
     rows.push(measure(
         &mut sim,
         &test,
         CoarseModel::PerElement,
         Some(summary),
     )?);
-    // The term coefficients, without alpha and gamma.
-    c.truncate(c.len() - if settings.damping { 2 } else { 0 });
+    // The term coefficients, without the mass scales, alpha and gamma.
+    c.truncate(labels.len() * homogeneous.0.max_terms());
     let case = CoarsenCase {
         dt_factor,
         dt: sim.options().dt,
@@ -403,6 +420,7 @@ fn run_case(
     let fitted = Fitted {
         coefficients: c,
         options: sim.options().clone(),
+        mass_scale: model.2,
         mesh,
     };
     Ok((case, fitted))
@@ -519,7 +537,12 @@ fn save_case(
         integrator: fitted.options.clone(),
         ..scene.clone()
     };
-    let written = save_model(&model, &fitted.coefficients, out)?;
+    let written = save_model(
+        &model,
+        &fitted.coefficients,
+        fitted.mass_scale.as_deref(),
+        out,
+    )?;
     let mesh = &fitted.mesh;
     let terms = fitted.coefficients.len() / mesh.num_tets().max(1);
     let column = |j: usize| -> Vec<f64> {

@@ -133,6 +133,10 @@ pub enum Task {
         /// dissipation is not a stiffness; gamma may go negative down to `-dt / 2`).
         #[serde(default = "yes")]
         damping: bool,
+        /// Also fit a scale of each vertex's lumped mass with the per-element field (the
+        /// total mass is not held; the report gives it).
+        #[serde(default)]
+        mass_scale: bool,
         /// Options of every output-error fit.
         output_error: OutputErrorOptions,
     },
