@@ -6,12 +6,14 @@
 //! runner offers is a library function here: [`experiment::run`] runs an experiment file
 //! and returns a typed report; [`compare`] measures policies on whole simulations;
 //! [`rollout`] holds the one definition of the rollout error; [`coarsen`] carries a fine
-//! model's trajectories onto a coarse mesh, so a cheap model learns from an accurate one.
+//! model's trajectories onto a coarse mesh, so a cheap model learns from an accurate one, with
+//! coefficient fields per element, per region or smooth ([`basis`]).
 //!
 //! Datasets live on disk as RON metadata plus `.npy` arrays ([`dataset`], [`npy`]), made by a
 //! base model or imported from elsewhere ([`import`]); every
 //! random choice comes from a seeded generator ([`rng`]) so a dataset regenerates bit for bit.
 
+pub mod basis;
 pub mod coarsen;
 pub mod compare;
 pub mod dataset;

@@ -39,6 +39,7 @@ use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
 use sprs::CsMat;
 
+use crate::basis::Basis;
 use crate::dataset::{Trajectory, state_at};
 use crate::fit::FitError;
 
@@ -167,6 +168,8 @@ pub struct OutputError<'a> {
     base: Model,
     /// Which elements share coefficients (`None`: one set for the whole mesh).
     field: Option<Grouping>,
+    /// A smooth field instead: coefficients are weights of these functions.
+    basis: Option<Basis>,
     /// The field's regularisation, when any.
     regularisation: Option<Regularisation>,
     /// Per-vertex lumped-mass scales follow the material coefficients.
@@ -206,6 +209,7 @@ impl<'a> OutputError<'a> {
         Ok(Self {
             base: base.clone(),
             field: None,
+            basis: None,
             regularisation: None,
             mass: false,
             vertices: sim.assembly().num_vertices(),
@@ -232,6 +236,25 @@ impl<'a> OutputError<'a> {
         let grouping = Grouping::from_labels(self.sim.borrow().assembly(), labels)
             .map_err(|e| FitError::Invalid(format!("field labels: {e}")))?;
         self.field = Some(grouping);
+        Ok(self)
+    }
+
+    /// Fits a smooth field instead: per term, the weights of `basis`'s functions (ordered by
+    /// function, then term; see [`crate::basis`]). The per-element gradient of the adjoint
+    /// pass is contracted with the basis.
+    ///
+    /// # Errors
+    /// [`FitError::Invalid`] when the basis was made for another mesh.
+    pub fn with_basis(mut self, basis: Basis) -> Result<Self, FitError> {
+        let elements = self.sim.borrow().assembly().num_elements();
+        if basis.num_elements() != elements {
+            return Err(FitError::Invalid(format!(
+                "a basis over {} elements for a mesh of {elements}",
+                basis.num_elements()
+            )));
+        }
+        self.field = None;
+        self.basis = Some(basis);
         Ok(self)
     }
 
@@ -268,10 +291,18 @@ impl<'a> OutputError<'a> {
         if self.mass { self.vertices } else { 0 }
     }
 
-    /// Number of material coefficients: terms times groups.
+    /// Number of coefficient sets: groups, basis functions, or 1.
+    fn num_sets(&self) -> usize {
+        match (&self.basis, &self.field) {
+            (Some(b), _) => b.num_functions(),
+            (None, Some(g)) => g.num_groups(),
+            (None, None) => 1,
+        }
+    }
+
+    /// Number of material coefficients: terms times sets.
     fn num_material(&self) -> usize {
-        let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
-        term_coefficients(&self.base).len() * groups
+        term_coefficients(&self.base).len() * self.num_sets()
     }
 
     /// The bound each coefficient keeps its side of: 0 (a term coefficient keeps its sign,
@@ -295,8 +326,7 @@ impl<'a> OutputError<'a> {
     /// The base material's coefficients in every group (and the integrator's damping): where
     /// a field fit starts.
     pub fn uniform_start(&self) -> Vec<f64> {
-        let groups = self.field.as_ref().map_or(1, Grouping::num_groups);
-        let mut c = term_coefficients(&self.base).repeat(groups);
+        let mut c = term_coefficients(&self.base).repeat(self.num_sets());
         let o = self.sim.borrow();
         if self.mass {
             let vertices = o.assembly().num_vertices();
@@ -315,9 +345,14 @@ impl<'a> OutputError<'a> {
     pub fn materials(&self, c: &[f64]) -> Result<MaterialField, FitError> {
         // Mass scales and damping follow the material's coefficients.
         let c = &c[..self.num_material().min(c.len())];
-        match &self.field {
-            None => field_of(&self.base, None, c),
-            Some(g) => field_of(&self.base, Some(g.groups()), c),
+        match (&self.basis, &self.field) {
+            (Some(b), _) => {
+                let elements: Vec<u32> = (0..b.num_elements() as u32).collect();
+                let terms = term_coefficients(&self.base).len();
+                field_of(&self.base, Some(&elements), &b.expand(c, terms))
+            }
+            (None, None) => field_of(&self.base, None, c),
+            (None, Some(g)) => field_of(&self.base, Some(g.groups()), c),
         }
     }
 
@@ -399,15 +434,20 @@ impl<'a> OutputError<'a> {
         let m = self.num_material();
         let mut sim = self.sim.borrow_mut();
         self.set_coefficients(&mut sim, c)?;
-        let grouping = match &self.field {
-            Some(g) => g.clone(),
-            None => Grouping::global(sim.assembly()),
+        let grouping = match (&self.basis, &self.field) {
+            (Some(_), _) => Grouping::per_element(sim.assembly()),
+            (None, Some(g)) => g.clone(),
+            (None, None) => Grouping::global(sim.assembly()),
         };
+        // The adjoint's gradient is per group (per element for a basis, contracted below).
+        let terms = term_coefficients(&self.base).len();
+        let per_group = terms * grouping.num_groups();
+        let raw_len = c.len() - m + per_group;
         let unscaled = self.mass.then(|| sim.unscaled_vertex_masses());
         let mut work = Adjoint::new(&sim, grouping, unscaled, self.damping)?;
         let mut solver = self.solver.borrow_mut();
         let (mut num, mut den) = (0.0, 0.0);
-        let mut grad = vec![0.0; c.len()];
+        let mut grad = vec![0.0; raw_len];
         let dt = sim.options().dt;
         let wv = self.options.velocity_weight * dt * dt;
         let n = sim.assembly().num_dofs();
@@ -474,6 +514,11 @@ impl<'a> OutputError<'a> {
         }
         if den <= 0.0 {
             return Err(FitError::NoData);
+        }
+        if let Some(b) = &self.basis {
+            let mut weights = b.contract(&grad[..per_group], terms);
+            weights.extend_from_slice(&grad[per_group..]);
+            grad = weights;
         }
         let mut loss = num / den;
         for gj in grad.iter_mut().chain(&mut start_grad) {
@@ -1054,6 +1099,8 @@ pub struct Field {
     /// The label of each element; empty: one set for the whole mesh (the material stays
     /// uniform).
     pub labels: Vec<u32>,
+    /// A smooth field instead of labels (see [`OutputError::with_basis`]).
+    pub basis: Option<Basis>,
     /// Where the fit starts (by increasing label, then term); `None`: the integrator's
     /// uniform material in every group.
     pub initial: Option<Vec<f64>>,
@@ -1080,10 +1127,10 @@ pub fn fit_output_error_field(
     progress: impl FnMut(usize, f64),
 ) -> Result<OutputErrorFit, FitError> {
     let objective = OutputError::new(sim, trajectories, options, progress)?;
-    let objective = if field.labels.is_empty() {
-        objective
-    } else {
-        objective.with_field(&field.labels)?
+    let objective = match (&field.basis, field.labels.is_empty()) {
+        (Some(b), _) => objective.with_basis(b.clone())?,
+        (None, true) => objective,
+        (None, false) => objective.with_field(&field.labels)?,
     };
     let objective = objective.with_regularisation(field.regularisation.clone());
     let objective = if field.mass {

@@ -975,6 +975,63 @@ fn output_error_gradient_of_coefficient_fields_equals_finite_differences() {
 }
 
 #[test]
+fn the_smooth_field_gradient_equals_finite_differences() {
+    // The third kind of field: weights of trilinear hat functions over the rest shape.
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 1, 4);
+    let built = s.build(Path::new("test")).unwrap();
+    let (mesh, mut sim) = (built.mesh, built.integrator);
+    let basis = deform_learn::basis::Basis::hat(&mesh, [3, 2, 1]).unwrap();
+    let trajectories = data.split(Split::Train);
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 2,
+        velocity_weight: 0.5,
+        ..Default::default()
+    };
+    let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_basis(basis.clone())
+        .unwrap();
+    assert_eq!(objective.num_coefficients(), 2 * 6);
+    let mut rng = deform_learn::rng::Rng::new(7);
+    let w: Vec<f64> = objective
+        .uniform_start()
+        .iter()
+        .map(|c| c * rng.range(0.5, 1.5))
+        .collect();
+    let (loss, grad) = objective.evaluate(&w).unwrap();
+    assert!(loss > 0.0);
+    for j in 0..w.len() {
+        let h = 1e-5 * w[j];
+        let (mut wp, mut wm) = (w.clone(), w.clone());
+        wp[j] += h;
+        wm[j] -= h;
+        let fd =
+            (objective.evaluate(&wp).unwrap().0 - objective.evaluate(&wm).unwrap().0) / (2.0 * h);
+        assert!(
+            (grad[j] - fd).abs() <= 1e-4 * fd.abs(),
+            "weight {j}: {} vs {fd}",
+            grad[j]
+        );
+    }
+    // It is the per-element gradient at the expanded field, contracted with the basis.
+    let per_element = basis.expand(&w, 2);
+    drop(objective);
+    let uniform = deform_assembly::MaterialField::Uniform(s.material.build().unwrap());
+    sim.assembly_mut().set_materials(uniform).unwrap();
+    let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
+    let elements = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
+        .unwrap()
+        .with_field(&labels)
+        .unwrap();
+    let (element_loss, g) = elements.evaluate(&per_element).unwrap();
+    assert!((element_loss - loss).abs() <= 1e-12 * loss);
+    for (a, b) in basis.contract(&g, 2).iter().zip(&grad) {
+        assert!((a - b).abs() <= 1e-10 * b.abs().max(1e-12), "{a} vs {b}");
+    }
+}
+
+#[test]
 fn a_regularised_field_gradient_equals_finite_differences() {
     let s = scene("", "Beam(1)");
     let data = make(&s, 1, 3);

@@ -349,6 +349,7 @@ fn run_case(
     }
     let field = |labels: Vec<u32>, regularisation| Field {
         labels,
+        basis: None,
         initial: None,
         regularisation,
         mass: false,
