@@ -14,6 +14,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::basis::Basis;
 use crate::dataset::Trajectory;
 
 /// Options of the equation-error fit.
@@ -235,15 +236,82 @@ pub fn fit_equation_error(
     options: EquationErrorOptions,
 ) -> Result<EquationErrorFit, FitError> {
     let asm = sim.assembly();
-    let dt = sim.options().dt;
     let grouping = if options.by_region {
         Grouping::by_region(asm)
     } else {
         Grouping::global(asm)
     };
+    equation_error(sim, trajectories, &grouping, None, options)
+}
+
+/// How a coefficient field is laid out over the elements.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FieldLayout {
+    /// One set of term coefficients per distinct label (one label per element: the element
+    /// index for a per-element field, a region, a cluster), by increasing label.
+    Labels(Vec<u32>),
+    /// Weights of smooth basis functions.
+    Smooth(Basis),
+}
+
+/// Stage 1 of a coefficient field ([`fit_equation_error`] with `layout` instead of
+/// `options.by_region`): the equation error is linear in a per-element field too, so one
+/// least-squares solve gives every element's coefficients. Each column of the system
+/// touches one element's vertices: the normal equations are accumulated row by row over
+/// the non-zeros; the (non-negative) solve is dense in the number of coefficients (fine for
+/// coarse meshes of some hundreds of elements). `groups` of the result are the labels, or
+/// the basis functions' indices.
+///
+/// # Errors
+/// [`FitError`], and [`FitError::Invalid`] for labels or a basis of another mesh.
+pub fn fit_equation_error_field(
+    sim: &Integrator,
+    trajectories: &[&Trajectory],
+    layout: &FieldLayout,
+    options: EquationErrorOptions,
+) -> Result<EquationErrorFit, FitError> {
+    let asm = sim.assembly();
+    let invalid = |e: String| FitError::Invalid(format!("field layout: {e}"));
+    match layout {
+        FieldLayout::Labels(labels) => {
+            let grouping =
+                Grouping::from_labels(asm, labels).map_err(|e| invalid(e.to_string()))?;
+            equation_error(sim, trajectories, &grouping, None, options)
+        }
+        FieldLayout::Smooth(basis) => {
+            if basis.num_elements() != asm.num_elements() {
+                let n = (basis.num_elements(), asm.num_elements());
+                return Err(invalid(format!(
+                    "a basis over {} elements, {} in the mesh",
+                    n.0, n.1
+                )));
+            }
+            let grouping = Grouping::per_element(asm);
+            equation_error(sim, trajectories, &grouping, Some(basis), options)
+        }
+    }
+}
+
+/// The equation-error fit of coefficients per group of `grouping`, or per function of
+/// `basis` (with the per-element grouping).
+fn equation_error(
+    sim: &Integrator,
+    trajectories: &[&Trajectory],
+    grouping: &Grouping,
+    basis: Option<&Basis>,
+    options: EquationErrorOptions,
+) -> Result<EquationErrorFit, FitError> {
+    let asm = sim.assembly();
+    let dt = sim.options().dt;
     let terms = asm.materials().max_terms();
-    let nc = terms * grouping.num_groups();
+    let sets = basis.map_or(grouping.num_groups(), Basis::num_functions);
+    let nc = terms * sets;
     let p = if options.damping { 2 * nc + 1 } else { nc };
+    // A row of the term Jacobian in the field's coefficients.
+    let in_field = |row: &[f64]| match basis {
+        Some(b) => b.contract(row, terms),
+        None => row.to_vec(),
+    };
     let n = asm.num_dofs();
     let free = sim.dofs().free_dofs();
     let mass = sim.mass();
@@ -266,10 +334,16 @@ pub fn fit_equation_error(
                 step: step + 1,
                 source,
             };
-            let jf = asm.term_forces(x1, &grouping).map_err(fail)?;
-            // Columns of A (full length, restricted below), and b.
-            let mut cols: Vec<Vec<f64>> = (0..nc)
-                .map(|j| jf.column(j).iter().map(|v| dt * v).collect())
+            let jf = asm.term_forces(x1, grouping).map_err(fail)?;
+            let per_group = jf.num_columns();
+            // Rows of A on the free DOFs, as (column, value) non-zeros, and b.
+            let mut rows: Vec<Vec<(usize, f64)>> = free
+                .iter()
+                .map(|&i| {
+                    let row = in_field(&jf.data[i * per_group..(i + 1) * per_group]);
+                    let nz = row.into_iter().enumerate().filter(|(_, v)| *v != 0.0);
+                    nz.map(|(j, v)| (j, dt * v)).collect()
+                })
                 .collect();
             let mut b = vec![0.0; n];
             let dv: Vec<f64> = v1.iter().zip(v0).map(|(a, b)| a - b).collect();
@@ -281,12 +355,14 @@ pub fn fit_equation_error(
             asm.mass_apply(mass, v1, &mut mv).map_err(fail)?;
             if options.damping {
                 let jk = asm
-                    .term_stiffness_products(x1, v1, &grouping)
+                    .term_stiffness_products(x1, v1, grouping)
                     .map_err(fail)?;
-                for j in 0..nc {
-                    cols.push(jk.column(j).iter().map(|v| -dt * v).collect());
+                for (row, &i) in rows.iter_mut().zip(free) {
+                    let k = in_field(&jk.data[i * per_group..(i + 1) * per_group]);
+                    let nz = k.into_iter().enumerate().filter(|(_, v)| *v != 0.0);
+                    row.extend(nz.map(|(j, v)| (nc + j, -dt * v)));
+                    row.push((2 * nc, -dt * mv[i]));
                 }
-                cols.push(mv.iter().map(|v| -dt * v).collect());
             } else {
                 // Known damping moves to the right-hand side, with the model's own K.
                 if gamma0 != 0.0 || alpha0 != 0.0 {
@@ -301,14 +377,12 @@ pub fn fit_equation_error(
                     }
                 }
             }
-            // Accumulate the normal equations on the free DOFs.
-            for a in 0..p {
-                h[a] += free.iter().map(|&i| cols[a][i] * b[i]).sum::<f64>();
-                for c in a..p {
-                    let v: f64 = free.iter().map(|&i| cols[a][i] * cols[c][i]).sum();
-                    g[(a, c)] += v;
-                    if a != c {
-                        g[(c, a)] += v;
+            // Accumulate the normal equations on the free DOFs, over each row's non-zeros.
+            for (row, &i) in rows.iter().zip(free) {
+                for &(a, va) in row {
+                    h[a] += va * b[i];
+                    for &(c, vc) in row {
+                        g[(a, c)] += va * vc;
                     }
                 }
             }
@@ -346,7 +420,10 @@ pub fn fit_equation_error(
     Ok(EquationErrorFit {
         coefficients,
         terms,
-        groups: grouping.labels().to_vec(),
+        groups: match basis {
+            Some(b) => (0..b.num_functions() as u32).collect(),
+            None => grouping.labels().to_vec(),
+        },
         alpha,
         gamma,
         relative_residual: (residual2 / bb.max(f64::MIN_POSITIVE)).sqrt(),

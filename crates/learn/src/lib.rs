@@ -36,7 +36,10 @@ pub use dataset::{
 };
 pub use ensemble::{EnsembleFit, FittedMember, Member, fit_ensemble, refine_ensemble};
 pub use error::LearnError;
-pub use fit::{EquationErrorFit, EquationErrorOptions, FitError, Unusable, fit_equation_error};
+pub use fit::{
+    EquationErrorFit, EquationErrorOptions, FieldLayout, FitError, Unusable, fit_equation_error,
+    fit_equation_error_field,
+};
 pub use output::{
     Field, OutputError, OutputErrorFit, OutputErrorOptions, Regularisation, Termination,
     face_neighbours, field_of, fit_output_error, fit_output_error_field, term_coefficients,
