@@ -413,7 +413,10 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     for c in &r.cases {
         let models: Vec<CoarseModel> = c.rows.iter().map(|row| row.model).collect();
         use CoarseModel::*;
-        assert_eq!(models, [Fine, Untuned, Homogeneous, PerRegion, PerElement]);
+        assert_eq!(
+            models,
+            [Fine, Untuned, Homogeneous, PerRegion, Smooth, PerElement]
+        );
         // The test motions: 8 fine steps, so 8 / k coarse steps and the initial state.
         assert!(
             c.rows
@@ -426,7 +429,7 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
         // loss starts at the homogeneous fit's final loss and only goes down.
         let homogeneous = c.row(Homogeneous).unwrap().fit.as_ref().unwrap();
         assert!(homogeneous.losses.1 < homogeneous.losses.0);
-        for model in [PerRegion, PerElement] {
+        for model in [PerRegion, Smooth, PerElement] {
             let fit = c.row(model).unwrap().fit.as_ref().unwrap();
             let (start, end) = fit.losses;
             assert!(

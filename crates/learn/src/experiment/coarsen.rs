@@ -16,6 +16,7 @@ use deform_mesh::io::Vtu;
 use serde::{Deserialize, Serialize};
 
 use super::{Context, ExperimentObserver, Series, Stage, Task};
+use crate::basis::Basis;
 use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
 use crate::dataset::{Dataset, Split, Trajectory, generate};
 use crate::error::LearnError;
@@ -35,6 +36,8 @@ pub enum CoarseModel {
     Homogeneous,
     /// A Lame pair per region.
     PerRegion,
+    /// A smooth field: weights of a few basis functions over the rest shape.
+    Smooth,
     /// A Lame pair per coarse element.
     PerElement,
 }
@@ -47,6 +50,7 @@ impl CoarseModel {
             CoarseModel::Untuned => "untuned coarse",
             CoarseModel::Homogeneous => "homogeneous fit",
             CoarseModel::PerRegion => "per-region fit",
+            CoarseModel::Smooth => "smooth-field fit",
             CoarseModel::PerElement => "per-element fit",
         }
     }
@@ -207,6 +211,7 @@ struct Settings<'a> {
     regularisation: &'a [f64],
     damping: bool,
     mass_scale: bool,
+    smooth: Option<[usize; 3]>,
     options: OutputErrorOptions,
 }
 
@@ -228,6 +233,7 @@ pub fn run(
         regularisation,
         damping,
         mass_scale,
+        smooth,
         output_error,
     } = &cx.experiment.task
     else {
@@ -250,6 +256,7 @@ pub fn run(
         regularisation,
         damping: *damping,
         mass_scale: *mass_scale,
+        smooth: *smooth,
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -328,8 +335,8 @@ fn fitted_model(sim: &Integrator) -> FittedModel {
     )
 }
 
-/// The untuned, homogeneous, per-region and per-element rows on the coarse data, and the
-/// per-element model.
+/// The untuned, homogeneous, per-region, smooth (when asked) and per-element rows on the
+/// coarse data, and the per-element model.
 fn run_case(
     (data, tests, dt_factor): (&Dataset, &Dataset, usize),
     settings: &Settings<'_>,
@@ -372,6 +379,16 @@ fn run_case(
         CoarseModel::PerRegion,
         Some(summary),
     )?);
+    if let Some(nodes) = settings.smooth {
+        restore(&mut sim, &homogeneous)?;
+        let smooth = Field {
+            basis: Some(Basis::hat(&mesh, nodes)?),
+            ..field(Vec::new(), Regularisation::default())
+        };
+        let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
+        let row = measure(&mut sim, &test, CoarseModel::Smooth, Some(summary))?;
+        rows.push(row);
+    }
     // Per element: each weight from the homogeneous fit; the best on validation is kept,
     // with the model it left in `sim`.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();

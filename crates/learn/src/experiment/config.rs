@@ -137,6 +137,10 @@ pub enum Task {
         /// total mass is not held; the report gives it).
         #[serde(default)]
         mass_scale: bool,
+        /// Also fit a smooth field: trilinear hat functions with these node counts along
+        /// x, y and z over the rest shape (see [`crate::basis`]), a row of its own.
+        #[serde(default)]
+        smooth: Option<[usize; 3]>,
         /// Options of every output-error fit.
         output_error: OutputErrorOptions,
     },
