@@ -117,8 +117,13 @@ fn crate_dependencies_match_the_architecture_doc() {
         "crates/assembly",
     ]
     .into_iter()
-    .chain(["crates/integrator", "crates/learn", "xtask", "tests"])
-    {
+    .chain([
+        "crates/integrator",
+        "crates/learn",
+        "crates/python",
+        "xtask",
+        "tests",
+    ]) {
         let manifest = root().join(dir).join("Cargo.toml");
         let text = std::fs::read_to_string(&manifest).unwrap();
         let name = text

@@ -9,6 +9,7 @@ mod mesh;
 mod plots;
 mod render;
 mod simulate;
+mod test;
 
 use clap::{Parser, Subcommand};
 
@@ -34,6 +35,9 @@ enum Task {
     Experiment(experiment::ExperimentArgs),
     /// Run a scene (RON): progress bar, .vtu/.pvd frames, per-step CSV, summary.
     Simulate(simulate::SimulateArgs),
+    /// Every test: `cargo test --workspace`, then the Python module built into a virtual
+    /// environment (target/pyvenv) and pytest.
+    Test(test::TestArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -44,6 +48,7 @@ fn main() -> std::process::ExitCode {
         Task::Bench(task) => bench::run(task),
         Task::Demo(args) => demo::run(args),
         Task::Experiment(args) => experiment::run(args).map(|_| ()),
+        Task::Test(args) => test::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

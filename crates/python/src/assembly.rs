@@ -1,0 +1,165 @@
+//! `deform.Assembly`: energy, forces and the stiffness matrix of a mesh and material at given
+//! positions, and its mass matrices; sparse matrices leave as CSR triplets.
+
+use std::sync::Mutex;
+
+use deform_assembly::{Mass, MaterialField, Tangent};
+use numpy::PyArrayDyn;
+use pyo3::prelude::*;
+use sprs::CsMat;
+
+use crate::arrays::{array, values};
+use crate::errors;
+use crate::materials::Material;
+use crate::mesh::Mesh;
+
+/// `m` as a `scipy.sparse.csr_matrix` (its arrays copied once into numpy's).
+pub fn csr<'py>(py: Python<'py>, m: &CsMat<f64>) -> PyResult<Bound<'py, PyAny>> {
+    let m = if m.is_csr() { m.clone() } else { m.to_csr() };
+    let indptr: Vec<i64> = m.indptr().raw_storage().iter().map(|&i| i as i64).collect();
+    let indices: Vec<i64> = m.indices().iter().map(|&i| i as i64).collect();
+    let (nnz, rows) = (m.nnz(), indptr.len());
+    let triplet = (
+        array(py, m.data().to_vec(), &[nnz])?,
+        array(py, indices, &[nnz])?,
+        array(py, indptr, &[rows])?,
+    );
+    let kwargs = pyo3::types::PyDict::new(py);
+    kwargs.set_item("shape", m.shape())?;
+    py.import("scipy.sparse")?
+        .getattr("csr_matrix")?
+        .call((triplet,), Some(&kwargs))
+}
+
+/// Energy, forces and stiffness of a mesh with one material.
+#[pyclass(module = "deform._deform", name = "Assembly", frozen)]
+pub struct Assembly {
+    inner: Mutex<deform_assembly::Assembly>,
+    mesh: deform_mesh::TetMesh,
+}
+
+/// Positions from an (V, 3) or (3V,) array, flattened.
+fn positions(x: &Bound<'_, PyAny>) -> PyResult<(Vec<f64>, Vec<usize>)> {
+    let (data, shape) = values("x", x)?;
+    Ok((data.to_vec(), shape))
+}
+
+impl Assembly {
+    /// The assembly, locked. Taken only with the GIL released (inside `detach`) or for
+    /// quick work, so that a Python thread waiting for it never holds the GIL that the
+    /// holder needs back.
+    fn lock(&self) -> std::sync::MutexGuard<'_, deform_assembly::Assembly> {
+        self.inner.lock().expect("not poisoned")
+    }
+}
+
+#[pymethods]
+impl Assembly {
+    /// The assembly of `mesh` with `material` on every element.
+    #[new]
+    fn new(mesh: &Mesh, material: &Material) -> PyResult<Self> {
+        let field = MaterialField::Uniform(material.model.clone());
+        let asm = deform_assembly::Assembly::new(&mesh.mesh, field).map_err(errors::assembly)?;
+        Ok(Self {
+            inner: Mutex::new(asm),
+            mesh: mesh.mesh.clone(),
+        })
+    }
+
+    /// The elastic energy at positions `x` ((V, 3) or (3V,)).
+    fn energy(&self, py: Python<'_>, x: Bound<'_, PyAny>) -> PyResult<f64> {
+        let (x, _) = positions(&x)?;
+        py.detach(|| self.lock().energy(&x))
+            .map_err(errors::assembly)
+    }
+
+    /// The elastic forces `-dE/dx` at `x`, in `x`'s shape.
+    fn forces<'py>(
+        &self,
+        py: Python<'py>,
+        x: Bound<'_, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (x, shape) = positions(&x)?;
+        let mut f = vec![0.0; x.len()];
+        py.detach(|| self.lock().forces(&x, &mut f))
+            .map_err(errors::assembly)?;
+        array(py, f, &shape)
+    }
+
+    /// The stiffness matrix `K = d2E/dx2` at `x` (3V x 3V, symmetric) as a
+    /// `scipy.sparse.csr_matrix`; `project=True` projects each element's `dP/dF` to positive
+    /// semi-definite.
+    #[pyo3(signature = (x, project = false))]
+    fn stiffness<'py>(
+        &self,
+        py: Python<'py>,
+        x: Bound<'_, PyAny>,
+        project: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let (x, _) = positions(&x)?;
+        let tangent = if project {
+            Tangent::Projected
+        } else {
+            Tangent::Exact
+        };
+        let k = py
+            .detach(|| {
+                let mut asm = self.lock();
+                let mut k = asm.stiffness_matrix();
+                asm.stiffness(&x, tangent, &mut k).map(|()| k)
+            })
+            .map_err(errors::assembly)?;
+        csr(py, &k)
+    }
+
+    /// Lumped vertex masses `rho W / 4` per element corner: (V,).
+    fn lumped_mass<'py>(
+        &self,
+        py: Python<'py>,
+        density: f64,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        check_density(density)?;
+        let m = self.mesh.lumped_mass(density);
+        let n = m.len();
+        array(py, m, &[n])
+    }
+
+    /// The mass matrix (3V x 3V) as a `scipy.sparse.csr_matrix`: lumped (diagonal) or
+    /// consistent.
+    #[pyo3(signature = (density, lumped = true))]
+    fn mass_matrix<'py>(
+        &self,
+        py: Python<'py>,
+        density: f64,
+        lumped: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        check_density(density)?;
+        let asm = self.lock();
+        let mass = if lumped {
+            Mass::lumped(&self.mesh, density)
+        } else {
+            Mass::consistent(&self.mesh, density, asm.pattern())
+        };
+        // 1 M + 0 K on K's pattern.
+        let k = asm.stiffness_matrix();
+        let mut m = asm.stiffness_matrix();
+        asm.combine(1.0, &mass, 0.0, &k, &mut m)
+            .map_err(errors::assembly)?;
+        csr(py, &m)
+    }
+}
+
+fn check_density(density: f64) -> PyResult<()> {
+    if density.is_finite() && density > 0.0 {
+        Ok(())
+    } else {
+        Err(errors::assembly(format!(
+            "density {density} must be finite and > 0"
+        )))
+    }
+}
+
+/// Adds the assembly class to the module.
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Assembly>()
+}

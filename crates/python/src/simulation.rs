@@ -1,0 +1,266 @@
+//! `deform.Scene` and `deform.Simulation`: scenes from RON files or text, stepped by Backward
+//! Euler with Newton and the scene's solver policy; the state is numpy arrays, reports are
+//! plain Python data.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use deform_integrator::{Integrator, Scene as RustScene, State, StepReport};
+use numpy::PyArrayDyn;
+use pyo3::prelude::*;
+
+use crate::arrays::{array, values};
+use crate::errors;
+use crate::mesh::Mesh;
+
+/// A simulation scene: mesh, material, constraints, time stepping, solver policy.
+#[pyclass(module = "deform._deform", name = "Scene", frozen)]
+pub struct Scene {
+    pub scene: RustScene,
+    /// Where relative paths of the scene are resolved from (its file).
+    pub origin: PathBuf,
+}
+
+#[pymethods]
+impl Scene {
+    /// Loads a scene file (RON; unknown fields are refused).
+    #[staticmethod]
+    fn load(path: PathBuf) -> PyResult<Self> {
+        let scene = RustScene::load(&path).map_err(errors::scene)?;
+        Ok(Self {
+            scene,
+            origin: path,
+        })
+    }
+
+    /// A scene from RON text; relative paths in it are resolved from `origin` (a file path
+    /// whose folder holds them; default: the current folder).
+    #[staticmethod]
+    #[pyo3(signature = (text, origin = PathBuf::from("scene.ron")))]
+    fn from_ron(text: &str, origin: PathBuf) -> PyResult<Self> {
+        let mut scene = RustScene::parse(text, &origin).map_err(errors::scene)?;
+        let dir = origin.parent().unwrap_or(Path::new(".")).to_path_buf();
+        scene.mesh.resolve_paths(&dir);
+        scene.validate(&origin).map_err(errors::scene)?;
+        Ok(Self { scene, origin })
+    }
+
+    /// The scene as RON text.
+    fn to_ron(&self) -> PyResult<String> {
+        let pretty = ron::ser::PrettyConfig::default().struct_names(true);
+        ron::ser::to_string_pretty(&self.scene, pretty).map_err(errors::scene)
+    }
+
+    /// Its name.
+    #[getter]
+    fn name(&self) -> String {
+        self.scene.name.clone()
+    }
+
+    /// The number of steps it asks for.
+    #[getter]
+    fn steps(&self) -> usize {
+        self.scene.steps
+    }
+
+    /// The time step (s).
+    #[getter]
+    fn dt(&self) -> f64 {
+        self.scene.integrator.dt
+    }
+
+    /// Builds its mesh.
+    fn mesh(&self) -> PyResult<Mesh> {
+        let mesh = self.scene.build_mesh(&self.origin).map_err(errors::scene)?;
+        Ok(Mesh { mesh })
+    }
+}
+
+/// The integrator and its state.
+struct Running {
+    integrator: Integrator,
+    state: State,
+    mesh: deform_mesh::TetMesh,
+}
+
+/// A running simulation of a scene.
+#[pyclass(module = "deform._deform", name = "Simulation", frozen)]
+pub struct Simulation {
+    inner: Mutex<Running>,
+}
+
+impl Simulation {
+    /// The integrator and state, locked: for long work only with the GIL released, and
+    /// never across a Python callback (which may read the state).
+    fn lock(&self) -> std::sync::MutexGuard<'_, Running> {
+        self.inner.lock().expect("not poisoned")
+    }
+
+    /// One step with the GIL released.
+    fn step_detached(&self, py: Python<'_>) -> PyResult<(StepReport, f64)> {
+        py.detach(|| {
+            let mut running = self.lock();
+            let Running {
+                integrator, state, ..
+            } = &mut *running;
+            integrator.step(state).map(|r| (r, state.t))
+        })
+        .map_err(errors::simulation)
+    }
+}
+
+/// A state vector from a (V, 3) or (3V,) array of `n` values.
+fn state_values(name: &str, a: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<f64>> {
+    let (data, shape) = values::<f64>(name, a)?;
+    if data.len() != n {
+        return Err(errors::simulation(format!(
+            "{name}: shape {shape:?}, expected ({}, 3) or ({n},)",
+            n / 3
+        )));
+    }
+    if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+        return Err(pyo3::exceptions::PyValueError::new_err(format!(
+            "{name}: non-finite value at vertex {}, component {}",
+            i / 3,
+            i % 3
+        )));
+    }
+    Ok(data.to_vec())
+}
+
+#[pymethods]
+impl Simulation {
+    /// Builds the scene's mesh, materials, constraints and initial state.
+    #[new]
+    fn new(py: Python<'_>, scene: &Scene) -> PyResult<Self> {
+        let built = py
+            .detach(|| scene.scene.build(&scene.origin))
+            .map_err(errors::scene)?;
+        Ok(Self {
+            inner: Mutex::new(Running {
+                integrator: built.integrator,
+                state: built.state,
+                mesh: built.mesh,
+            }),
+        })
+    }
+
+    /// One Backward-Euler step; returns its report (Newton iterations, solver choices,
+    /// residuals, energy, time) as a dict. Raises `SimulationError` when the step fails,
+    /// leaving the state as it was.
+    fn step<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let (report, _) = self.step_detached(py)?;
+        report_dict(py, &report)
+    }
+
+    /// `steps` steps; `callback(report)` after each (return `False` to stop early). Returns
+    /// a summary dict: steps, newton_iterations, linear_iterations, seconds, t.
+    #[pyo3(signature = (steps, callback = None))]
+    fn run<'py>(
+        &self,
+        py: Python<'py>,
+        steps: usize,
+        callback: Option<Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let (mut done, mut newton, mut linear, mut seconds) = (0usize, 0usize, 0usize, 0.0);
+        let mut t = self.lock().state.t;
+        for _ in 0..steps {
+            let (report, now) = self.step_detached(py)?;
+            t = now;
+            done += 1;
+            newton += report.newton_iterations();
+            linear += report.linear_iterations();
+            seconds += report.seconds;
+            if let Some(cb) = &callback {
+                let go_on = cb.call1((report_dict(py, &report)?,))?;
+                if go_on.is(pyo3::types::PyBool::new(py, false)) {
+                    break;
+                }
+            }
+        }
+        let summary = pyo3::types::PyDict::new(py);
+        summary.set_item("steps", done)?;
+        summary.set_item("newton_iterations", newton)?;
+        summary.set_item("linear_iterations", linear)?;
+        summary.set_item("seconds", seconds)?;
+        summary.set_item("t", t)?;
+        Ok(summary.into_any())
+    }
+
+    /// Positions (V, 3); settable (a (V, 3) or (3V,) array).
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let running = self.lock();
+        let n = running.state.x.len();
+        array(py, running.state.x.clone(), &[n / 3, 3])
+    }
+
+    #[setter]
+    fn set_x(&self, x: Bound<'_, PyAny>) -> PyResult<()> {
+        let mut running = self.lock();
+        running.state.x = state_values("x", &x, running.state.x.len())?;
+        Ok(())
+    }
+
+    /// Velocities (V, 3); settable.
+    #[getter]
+    fn v<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let running = self.lock();
+        let n = running.state.v.len();
+        array(py, running.state.v.clone(), &[n / 3, 3])
+    }
+
+    #[setter]
+    fn set_v(&self, v: Bound<'_, PyAny>) -> PyResult<()> {
+        let mut running = self.lock();
+        running.state.v = state_values("v", &v, running.state.v.len())?;
+        Ok(())
+    }
+
+    /// Simulated time (s).
+    #[getter]
+    fn t(&self) -> f64 {
+        self.lock().state.t
+    }
+
+    /// The time step (s).
+    #[getter]
+    fn dt(&self) -> f64 {
+        self.lock().integrator.options().dt
+    }
+
+    /// The mesh.
+    #[getter]
+    fn mesh(&self) -> Mesh {
+        Mesh {
+            mesh: self.lock().mesh.clone(),
+        }
+    }
+
+    /// Vertex indices held by constraints, (C,) int64.
+    #[getter]
+    fn constrained<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<i64>>> {
+        let c: Vec<i64> = self
+            .lock()
+            .integrator
+            .dofs()
+            .constrained_vertices()
+            .into_iter()
+            .map(|v| v as i64)
+            .collect();
+        let n = c.len();
+        array(py, c, &[n])
+    }
+}
+
+/// A step report as a dict.
+fn report_dict<'py>(py: Python<'py>, report: &StepReport) -> PyResult<Bound<'py, PyAny>> {
+    pythonize::pythonize(py, report).map_err(errors::simulation)
+}
+
+/// Adds the scene and simulation classes to the module.
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Scene>()?;
+    m.add_class::<Simulation>()?;
+    Ok(())
+}

@@ -1,0 +1,93 @@
+//! `cargo xtask test`: the whole test suite, Rust and Python, on a fresh machine with only
+//! Rust and Python 3 installed. Runs `cargo test --workspace`, then makes a virtual
+//! environment (`target/pyvenv`, once), installs the Python test requirements from the
+//! package index (`python/requirements-test.txt`), builds the `deform` module into it with
+//! maturin and runs pytest on `python/tests`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Context, Result, bail};
+
+/// Arguments of `cargo xtask test`.
+#[derive(Debug, clap::Args)]
+pub struct TestArgs {
+    /// Only the Python suite (skip `cargo test --workspace`).
+    #[arg(long)]
+    python_only: bool,
+    /// Only the Rust suite.
+    #[arg(long, conflicts_with = "python_only")]
+    rust_only: bool,
+    /// The Python that makes the virtual environment.
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// Arguments passed on to pytest (after `--`).
+    #[arg(last = true)]
+    pytest: Vec<String>,
+}
+
+/// The workspace root.
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask sits in the workspace")
+        .to_path_buf()
+}
+
+/// Runs `cmd`, failing with what it was when it fails.
+fn run_command(mut cmd: Command, what: &str) -> Result<()> {
+    eprintln!("==> {what}");
+    let status = cmd
+        .status()
+        .with_context(|| format!("{what}: could not start {:?}", cmd.get_program()))?;
+    if !status.success() {
+        bail!("{what} failed ({status})");
+    }
+    Ok(())
+}
+
+/// Runs the suites.
+pub fn run(args: TestArgs) -> Result<()> {
+    let root = root();
+    if !args.python_only {
+        let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+        let mut cmd = Command::new(cargo);
+        cmd.current_dir(&root).args(["test", "--workspace"]);
+        run_command(cmd, "Rust tests: cargo test --workspace")?;
+    }
+    if args.rust_only {
+        return Ok(());
+    }
+    let venv = root.join("target").join("pyvenv");
+    let bin = venv.join("bin");
+    if !bin.join("python").exists() {
+        let mut cmd = Command::new(&args.python);
+        cmd.args(["-m", "venv"]).arg(&venv);
+        run_command(cmd, "making the virtual environment target/pyvenv")?;
+    }
+    let python = bin.join("python");
+    let mut cmd = Command::new(&python);
+    cmd.args([
+        "-m",
+        "pip",
+        "install",
+        "--quiet",
+        "--disable-pip-version-check",
+        "-r",
+    ])
+    .arg(root.join("python").join("requirements-test.txt"));
+    run_command(cmd, "installing the Python test requirements (pip)")?;
+    // maturin builds the module with cargo (dev profile: shares the Rust tests' build) and
+    // installs it into the environment.
+    let mut cmd = Command::new(bin.join("maturin"));
+    cmd.current_dir(&root)
+        .env("VIRTUAL_ENV", &venv)
+        .args(["develop", "--quiet", "--manifest-path"])
+        .arg(root.join("crates").join("python").join("Cargo.toml"));
+    run_command(cmd, "building the deform module (maturin develop)")?;
+    let mut cmd = Command::new(&python);
+    cmd.current_dir(&root)
+        .args(["-m", "pytest", "-q", "python/tests"])
+        .args(&args.pytest);
+    run_command(cmd, "Python tests: pytest python/tests")
+}
