@@ -1,8 +1,67 @@
 """Experiments run from Python return deform's report as Python data."""
 
+import numpy as np
 import pytest
 
 import deform
+
+SCENE = """Scene(
+    name: "fit",
+    mesh: Beam(1),
+    material: NeoHookean(Young(e: {e}, nu: {nu})),
+    density: 1000.0,
+    constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+    integrator: (dt: 0.01, newton: (rel: 1e-11, abs: 1e-13)),
+    steps: 1,
+)"""
+
+
+def record(sim, steps, kick):
+    """A trajectory made in Python: a velocity kick, then free motion under gravity."""
+    sim.v = kick
+    xs, vs = [sim.x], [sim.v]
+    for _ in range(steps):
+        sim.step()
+        xs.append(sim.x)
+        vs.append(sim.v)
+    return np.stack(xs), np.stack(vs)
+
+
+def test_a_material_fit_on_data_made_in_python():
+    truth = deform.Simulation(deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4)))
+    rng = np.random.default_rng(3)
+    free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
+    trajectories = []
+    for _ in range(3):
+        kick = np.zeros_like(truth.v)
+        kick[free] = rng.normal(0, 0.5, (len(free), 3))
+        truth.x = truth.mesh.vertices
+        x, v = record(truth, 8, kick)
+        trajectories.append(deform.Trajectory(x, 0.01, velocities=v))
+    assert trajectories[0].steps == 8 and np.array_equal(trajectories[0].x[0], truth.mesh.vertices)
+    guess = deform.Scene.from_ron(SCENE.format(e=3e5, nu=0.3))
+    fit = deform.fit_material(guess, trajectories, rollout=4, max_iterations=20)
+    assert abs(fit["E"] / 1e5 - 1) < 1e-6 and abs(fit["nu"] / 0.4 - 1) < 1e-6
+    assert fit["stage1"]["relative_residual"] < 1e-6
+    assert fit["stage2"]["loss"] <= fit["stage2"]["initial_loss"]
+    # Stage 1 alone, and positions only (velocities derived, the first frame dropped).
+    derived = deform.Trajectory(trajectories[0].x, 0.01)
+    assert derived.steps == 7
+    alone = deform.fit_material(guess, [derived], rollout=0)
+    assert alone["stage2"] is None and abs(alone["E"] / 1e5 - 1) < 1e-3
+
+
+def test_bad_trajectories_raise():
+    x = np.zeros((3, 4, 3))
+    with pytest.raises(deform.LearnError, match="positions: shape"):
+        deform.Trajectory(x[:, :, :2], 0.01)
+    x[1, 2, 0] = np.nan
+    with pytest.raises(deform.LearnError, match="step 1, vertex 2"):
+        deform.Trajectory(x, 0.01)
+    with pytest.raises(deform.LearnError, match="v0: shape"):
+        deform.Trajectory(np.zeros((3, 4, 3)), 0.01, v0=np.zeros((5, 3)))
+    with pytest.raises(deform.LearnError, match="dt"):
+        deform.Trajectory(np.zeros((3, 4, 3)), -1.0)
 
 
 def test_an_experiment_returns_its_report(assets, tmp_path):

@@ -9,7 +9,7 @@
 
 use std::path::{Path, PathBuf};
 
-use deform_fs::npy;
+use deform_fs::npy::{self, Array};
 use deform_integrator::{MassKind, Scene};
 use serde::{Deserialize, Serialize};
 
@@ -172,13 +172,12 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
     })
 }
 
-/// Rejects a non-finite value of an array of `frame` values per step, naming the file, step
-/// and vertex.
-fn finite(path: &Path, data: &[f64], frame: usize) -> Result<(), DatasetError> {
+/// Rejects a non-finite value of an array of `frame` values per step, naming the array
+/// (its file), step and vertex.
+fn finite(name: &str, data: &[f64], frame: usize) -> Result<(), DatasetError> {
     match data.iter().position(|v| !v.is_finite()) {
         Some(i) => Err(DatasetError::Inconsistent(format!(
-            "{}: non-finite value at step {}, vertex {}",
-            path.display(),
+            "{name}: non-finite value at step {}, vertex {}",
             i / frame,
             (i % frame) / 3
         ))),
@@ -200,6 +199,18 @@ pub enum Velocities<'a> {
     Derived,
 }
 
+/// Velocities of a trajectory given as arrays (see [`trajectory_from_arrays`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ArrayVelocities<'a> {
+    /// Every step's, of the positions' shape.
+    All(&'a Array),
+    /// Only the initial velocity, (vertices, 3); the others follow from Backward Euler's
+    /// own relation and the first frame is kept.
+    Initial(&'a Array),
+    /// None: the first frame is dropped.
+    Derived,
+}
+
 /// Trajectories made elsewhere: positions per step as `.npy` of shape (steps + 1, vertices,
 /// 3) (any float or integer dtype numpy writes), with the velocities `velocities` says.
 ///
@@ -211,10 +222,48 @@ pub fn import_trajectory(
     dt: f64,
 ) -> Result<Trajectory, DatasetError> {
     let a = npy::read(positions)?;
+    let read_v;
+    let v = match velocities {
+        Velocities::File(path) => {
+            read_v = (npy::read(path)?, path);
+            (ArrayVelocities::All(&read_v.0), Some(read_v.1))
+        }
+        Velocities::Initial(path) => {
+            read_v = (npy::read(path)?, path);
+            (ArrayVelocities::Initial(&read_v.0), Some(read_v.1))
+        }
+        Velocities::Derived => (ArrayVelocities::Derived, None),
+    };
+    let names = (
+        positions.display().to_string(),
+        v.1.map(|p| p.display().to_string()),
+    );
+    trajectory_from_arrays((&names.0, names.1.as_deref()), &a, v.0, dt)
+}
+
+/// [`import_trajectory`] of arrays in memory (positions (steps + 1, vertices, 3), flat C
+/// order); `names` name the positions and velocities in errors (file paths, or what the
+/// caller calls them).
+///
+/// # Errors
+/// [`DatasetError::Inconsistent`] naming the array, step and vertex.
+pub fn trajectory_from_arrays(
+    names: (&str, Option<&str>),
+    a: &Array,
+    velocities: ArrayVelocities<'_>,
+    dt: f64,
+) -> Result<Trajectory, DatasetError> {
+    let (positions, v_name) = (names.0, names.1.unwrap_or("velocities"));
     if a.shape.len() != 3 || a.shape[2] != 3 || a.shape[0] < 2 || a.shape[1] == 0 {
         return Err(DatasetError::Inconsistent(format!(
-            "{}: shape {:?}, expected (steps + 1 >= 2, vertices >= 1, 3)",
-            positions.display(),
+            "{positions}: shape {:?}, expected (steps + 1 >= 2, vertices >= 1, 3)",
+            a.shape
+        )));
+    }
+    if a.data.len() != a.shape.iter().product::<usize>() {
+        return Err(DatasetError::Inconsistent(format!(
+            "{positions}: {} values for shape {:?}",
+            a.data.len(),
             a.shape
         )));
     }
@@ -226,35 +275,32 @@ pub fn import_trajectory(
     let frame = 3 * a.shape[1];
     finite(positions, &a.data, frame)?;
     let x: Vec<Vec<f64>> = a.data.chunks(frame).map(<[f64]>::to_vec).collect();
-    let read = |path: &Path, shape: &[usize]| -> Result<Vec<f64>, DatasetError> {
-        let b = npy::read(path)?;
-        if b.shape != shape {
+    let checked = |b: &Array, shape: &[usize]| -> Result<Vec<f64>, DatasetError> {
+        if b.shape != shape || b.data.len() != shape.iter().product::<usize>() {
             return Err(DatasetError::Inconsistent(format!(
-                "{}: shape {:?}, expected {shape:?} (as the positions {})",
-                path.display(),
-                b.shape,
-                positions.display()
+                "{v_name}: shape {:?}, expected {shape:?} (as the positions {positions})",
+                b.shape
             )));
         }
-        finite(path, &b.data, frame)?;
-        Ok(b.data)
+        finite(v_name, &b.data, frame)?;
+        Ok(b.data.clone())
     };
     let derived = |n: usize| -> Vec<f64> {
         let (a, b) = (&x[n], &x[n - 1]);
         a.iter().zip(b).map(|(a, b)| (a - b) / dt).collect()
     };
     let v = match velocities {
-        Velocities::File(path) => {
-            let data = read(path, &a.shape)?;
+        ArrayVelocities::All(b) => {
+            let data = checked(b, &a.shape)?;
             data.chunks(frame).map(<[f64]>::to_vec).collect()
         }
-        Velocities::Initial(path) => {
-            let v0 = read(path, &a.shape[1..])?;
+        ArrayVelocities::Initial(b) => {
+            let v0 = checked(b, &a.shape[1..])?;
             std::iter::once(v0)
                 .chain((1..x.len()).map(derived))
                 .collect()
         }
-        Velocities::Derived => {
+        ArrayVelocities::Derived => {
             let v = (1..x.len()).map(derived).collect();
             return Ok(Trajectory {
                 x: x[1..].to_vec(),

@@ -1,12 +1,163 @@
-//! `deform.Experiment`: experiment files (dataset, fit, model selection, solver learning,
-//! coarsening) run by deform's library, returning the typed report as Python data.
+//! Learning from Python: trajectories from numpy arrays (`deform.Trajectory`), the material
+//! fit in both stages (`deform.fit_material`), and experiment files (`deform.Experiment`:
+//! dataset, fit, model selection, solver learning, coarsening) run by deform's library, each
+//! returning deform's typed report as Python data.
 
 use std::path::PathBuf;
 
 use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
+use deform_learn::import::{ArrayVelocities, trajectory_from_arrays};
+use deform_learn::npy::Array;
+use deform_learn::{
+    EquationErrorOptions, OutputErrorOptions, fit_equation_error, fit_output_error,
+    term_coefficients,
+};
+use numpy::PyArrayDyn;
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
+use crate::arrays::{array, values};
 use crate::errors;
+use crate::simulation::Scene;
+
+/// A trajectory: positions and velocities at every step.
+#[pyclass(module = "deform._deform", name = "Trajectory", frozen)]
+pub struct Trajectory {
+    trajectory: deform_learn::Trajectory,
+}
+
+/// An array argument as deform's array type.
+fn as_array(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Array> {
+    let (data, shape) = values::<f64>(name, obj)?;
+    Ok(Array { shape, data })
+}
+
+#[pymethods]
+impl Trajectory {
+    /// From `positions` (steps + 1, V, 3) and `velocities` of the same shape, or only the
+    /// initial velocity `v0` (V, 3) (the others follow from Backward Euler's relation
+    /// `v^n+1 = (x^n+1 - x^n) / dt`), or neither (the first frame is then dropped).
+    #[new]
+    #[pyo3(signature = (positions, dt, velocities = None, v0 = None))]
+    fn new(
+        positions: &Bound<'_, PyAny>,
+        dt: f64,
+        velocities: Option<&Bound<'_, PyAny>>,
+        v0: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        let x = as_array("positions", positions)?;
+        let (v, name) = match (velocities, v0) {
+            (Some(v), None) => (Some(as_array("velocities", v)?), "velocities"),
+            (None, Some(v)) => (Some(as_array("v0", v)?), "v0"),
+            (None, None) => (None, "velocities"),
+            (Some(_), Some(_)) => {
+                return Err(errors::learn("give velocities or v0, not both"));
+            }
+        };
+        let velocities = match (&v, velocities.is_some()) {
+            (Some(a), true) => ArrayVelocities::All(a),
+            (Some(a), false) => ArrayVelocities::Initial(a),
+            (None, _) => ArrayVelocities::Derived,
+        };
+        let trajectory = trajectory_from_arrays(("positions", Some(name)), &x, velocities, dt)
+            .map_err(errors::learn)?;
+        Ok(Self { trajectory })
+    }
+
+    /// Number of steps (pairs of consecutive states).
+    #[getter]
+    fn steps(&self) -> usize {
+        self.trajectory.steps()
+    }
+
+    /// Positions (steps + 1, V, 3).
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        stack(py, &self.trajectory.x)
+    }
+
+    /// Velocities (steps + 1, V, 3).
+    #[getter]
+    fn v<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        stack(py, &self.trajectory.v)
+    }
+}
+
+/// Frames of `3V` values as a (frames, V, 3) array.
+fn stack<'py>(py: Python<'py>, frames: &[Vec<f64>]) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    let v = frames.first().map_or(0, |f| f.len() / 3);
+    array(py, frames.concat(), &[frames.len(), v, 3])
+}
+
+/// Fits the scene's material (its Lame pair, and Rayleigh damping with `damping`) to
+/// `trajectories`: stage 1 by equation error, then (with `rollout > 0`) stage 2 by output
+/// error on `rollout`-step rollouts with adjoint gradients (L-BFGS, `max_iterations`),
+/// from stage 1's estimate when it is a material, else from the scene's. Returns a dict:
+/// `stage1` and `stage2` (deform's fit reports) and the fitted `E`, `nu`, `mu`, `lam`.
+#[pyfunction]
+#[pyo3(signature = (scene, trajectories, *, damping = false, rollout = 10, max_iterations = 40))]
+fn fit_material<'py>(
+    py: Python<'py>,
+    scene: &Scene,
+    trajectories: Vec<PyRef<'py, Trajectory>>,
+    damping: bool,
+    rollout: usize,
+    max_iterations: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    let data: Vec<&deform_learn::Trajectory> = trajectories.iter().map(|t| &t.trajectory).collect();
+    let built = scene.scene.build(&scene.origin).map_err(errors::scene)?;
+    let mut sim = built.integrator;
+    let (stage1, stage2) = py
+        .detach(|| {
+            let options = EquationErrorOptions {
+                damping,
+                ..Default::default()
+            };
+            let stage1 = fit_equation_error(&sim, &data, options)?;
+            if rollout == 0 {
+                return Ok((stage1, None));
+            }
+            let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
+                unreachable!("a scene's material without coefficients is uniform")
+            };
+            let start = match stage1.unusable() {
+                None => stage1.coefficients.clone(),
+                Some(_) => term_coefficients(model),
+            };
+            let options = OutputErrorOptions {
+                rollout,
+                max_iterations,
+                ..Default::default()
+            };
+            let fit = fit_output_error(&mut sim, &data, &start, options, |_, _| {})?;
+            Ok((stage1, Some(fit)))
+        })
+        .map_err(|e: deform_learn::FitError| errors::learn(e))?;
+    let out = PyDict::new(py);
+    let c = stage2
+        .as_ref()
+        .map_or(&stage1.coefficients, |f| &f.coefficients);
+    if let [mu, lam] = c[..] {
+        out.set_item("mu", mu)?;
+        out.set_item("lam", lam)?;
+        if let Ok(l) = deform_materials::Lame::try_new(mu, lam) {
+            let (e, nu) = l.to_young();
+            out.set_item("E", e)?;
+            out.set_item("nu", nu)?;
+        }
+    }
+    out.set_item("stage1", to_python(py, &stage1)?)?;
+    match &stage2 {
+        Some(f) => out.set_item("stage2", to_python(py, f)?)?,
+        None => out.set_item("stage2", py.None())?,
+    }
+    Ok(out.into_any())
+}
+
+/// A report as Python data.
+fn to_python<'py, T: serde::Serialize>(py: Python<'py>, v: &T) -> PyResult<Bound<'py, PyAny>> {
+    pythonize::pythonize(py, v).map_err(errors::learn)
+}
 
 /// An experiment file.
 #[pyclass(module = "deform._deform", name = "Experiment", frozen)]
@@ -31,7 +182,7 @@ impl Experiment {
         let report = py
             .detach(|| run(e, out.as_deref(), &mut NoProgress))
             .map_err(errors::learn)?;
-        pythonize::pythonize(py, &report).map_err(errors::learn)
+        to_python(py, &report)
     }
 
     /// Its name.
@@ -43,5 +194,8 @@ impl Experiment {
 
 /// Adds the experiment class to the module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_class::<Experiment>()
+    m.add_class::<Experiment>()?;
+    m.add_class::<Trajectory>()?;
+    m.add_function(wrap_pyfunction!(fit_material, m)?)?;
+    Ok(())
 }

@@ -25,8 +25,10 @@ from ._deform import (  # noqa: F401
     SceneError,
     Simulation,
     SimulationError,
+    Trajectory,
     beam,
     box_mesh,
+    fit_material,
     read_mesh,
 )
 
@@ -53,7 +55,9 @@ __all__ = [
     "SceneError",
     "Simulation",
     "SimulationError",
+    "Trajectory",
     "beam",
     "box_mesh",
+    "fit_material",
     "read_mesh",
 ]

@@ -107,3 +107,27 @@ class Experiment:
     def run(self, out: Optional[_Path] = None) -> dict[str, Any]: ...
     @property
     def name(self) -> str: ...
+
+class Trajectory:
+    def __init__(
+        self,
+        positions: _Floats,
+        dt: float,
+        velocities: Optional[_Floats] = None,
+        v0: Optional[_Floats] = None,
+    ) -> None: ...
+    @property
+    def steps(self) -> int: ...
+    @property
+    def x(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def v(self) -> npt.NDArray[np.float64]: ...
+
+def fit_material(
+    scene: Scene,
+    trajectories: list[Trajectory],
+    *,
+    damping: bool = False,
+    rollout: int = 10,
+    max_iterations: int = 40,
+) -> dict[str, Any]: ...
