@@ -374,6 +374,41 @@ impl Dataset {
         s
     }
 
+    /// One dataset of several made by the same base model (the parts of a sweep over seeds,
+    /// generated apart): their trajectories in order, renamed `traj_000`, `traj_001`, ...;
+    /// the first part's seed.
+    ///
+    /// # Errors
+    /// [`DatasetError::Inconsistent`] naming the first part that differs from the first in
+    /// scene, time step, vertex count or noise, or for no parts.
+    pub fn merge(parts: Vec<Dataset>) -> Result<Dataset, DatasetError> {
+        let mut parts = parts.into_iter();
+        let Some(mut out) = parts.next() else {
+            return Err(DatasetError::Inconsistent("no datasets to merge".into()));
+        };
+        for (k, part) in parts.enumerate() {
+            let (a, b) = (&out.meta, &part.meta);
+            let differs = [
+                (a.scene != b.scene, "scene"),
+                (a.dt != b.dt, "time step"),
+                (a.vertices != b.vertices, "vertex count"),
+                (a.noise != b.noise, "noise"),
+            ];
+            if let Some((_, what)) = differs.iter().find(|(d, _)| *d) {
+                return Err(DatasetError::Inconsistent(format!(
+                    "dataset {} of the merge has another {what} than the first",
+                    k + 1
+                )));
+            }
+            out.meta.trajectories.extend(part.meta.trajectories);
+            out.trajectories.extend(part.trajectories);
+        }
+        for (i, m) in out.meta.trajectories.iter_mut().enumerate() {
+            m.name = format!("traj_{i:03}");
+        }
+        Ok(out)
+    }
+
     /// Keeps every `k`-th state of every trajectory: data of a fine time step seen at the
     /// coarse step `k dt` (the setting where a cheap model learns from an accurate one).
     ///

@@ -99,6 +99,47 @@ fn datasets_round_trip_through_disk_and_split_by_trajectory() {
 }
 
 #[test]
+fn datasets_of_one_model_merge_in_order_and_others_are_refused() {
+    let s = scene("", "Beam(1)");
+    let part = |seed| {
+        let spec = DatasetSpec::new(2, 3, seed);
+        generate(&s, Path::new("test"), &spec, |_, _| {}).unwrap()
+    };
+    let (a, b) = (part(1), part(2));
+    let merged = Dataset::merge(vec![a.clone(), b.clone()]).unwrap();
+    assert_eq!(merged.trajectories.len(), 4);
+    assert_eq!(&merged.trajectories[..2], &a.trajectories[..]);
+    assert_eq!(&merged.trajectories[2..], &b.trajectories[..]);
+    let names: Vec<&str> = merged
+        .meta
+        .trajectories
+        .iter()
+        .map(|m| m.name.as_str())
+        .collect();
+    assert_eq!(names, ["traj_000", "traj_001", "traj_002", "traj_003"]);
+    assert_eq!(
+        merged.meta.trajectories[2].initial,
+        b.meta.trajectories[0].initial
+    );
+    // It saves and loads like any dataset.
+    let dir = tempfile::tempdir().unwrap();
+    merged.save(dir.path()).unwrap();
+    assert_eq!(Dataset::load(dir.path()).unwrap(), merged);
+    let mut other = scene("", "Beam(1)");
+    other.density = 2000.0;
+    let c = generate(
+        &other,
+        Path::new("test"),
+        &DatasetSpec::new(1, 3, 3),
+        |_, _| {},
+    )
+    .unwrap();
+    let e = Dataset::merge(vec![a, c]).unwrap_err().to_string();
+    assert!(e.contains("dataset 1") && e.contains("scene"), "{e}");
+    assert!(Dataset::merge(Vec::new()).is_err());
+}
+
+#[test]
 fn noise_free_data_give_the_lame_pair_back() {
     let s = scene("", "Beam(1)");
     let data = make(&s, 3, 15);

@@ -5,12 +5,13 @@
 
 use std::path::PathBuf;
 
+use deform_learn::dataset::generate;
 use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
 use deform_learn::import::{ArrayVelocities, trajectory_from_arrays};
 use deform_learn::npy::Array;
 use deform_learn::{
-    EquationErrorOptions, OutputErrorOptions, fit_equation_error, fit_output_error,
-    term_coefficients,
+    DatasetSpec, EquationErrorOptions, OutputErrorOptions, Variations, fit_equation_error,
+    fit_output_error, term_coefficients,
 };
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
@@ -159,6 +160,152 @@ fn to_python<'py, T: serde::Serialize>(py: Python<'py>, v: &T) -> PyResult<Bound
     pythonize::pythonize(py, v).map_err(errors::learn)
 }
 
+/// A dataset: trajectories of one base model (scene) with their metadata, saved as RON plus
+/// `.npy` (see docs/experiments.md). Picklable, so sweeps can make parts on other processes
+/// or machines (e.g. Dask) and merge them.
+#[pyclass(module = "deform._deform", name = "Dataset", frozen)]
+pub struct Dataset {
+    dataset: deform_learn::Dataset,
+}
+
+#[pymethods]
+impl Dataset {
+    /// `trajectories` simulations of `scene` of `steps` steps from initial conditions varied
+    /// by `seed` (uniform speed up to `speed` m/s, spin up to `spin` rad/s, stretch up to
+    /// `stretch` per axis), split into train / validation / test by `split`.
+    #[staticmethod]
+    #[pyo3(signature = (scene, trajectories, steps, seed, *, speed = 1.0, spin = 2.0, stretch = 0.1, split = (0.6, 0.2)))]
+    #[allow(clippy::too_many_arguments)]
+    fn generate(
+        py: Python<'_>,
+        scene: &Scene,
+        trajectories: usize,
+        steps: usize,
+        seed: u64,
+        speed: f64,
+        spin: f64,
+        stretch: f64,
+        split: (f64, f64),
+    ) -> PyResult<Self> {
+        let spec = DatasetSpec {
+            variations: Variations {
+                speed,
+                spin,
+                stretch,
+                rest: false,
+            },
+            split,
+            ..DatasetSpec::new(trajectories, steps, seed)
+        };
+        let dataset = py
+            .detach(|| generate(&scene.scene, &scene.origin, &spec, |_, _| {}))
+            .map_err(errors::learn)?;
+        Ok(Self { dataset })
+    }
+
+    /// Loads a saved dataset folder.
+    #[staticmethod]
+    fn load(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
+        let dataset = py
+            .detach(|| deform_learn::Dataset::load(&dir))
+            .map_err(errors::learn)?;
+        Ok(Self { dataset })
+    }
+
+    /// Saves it in folder `dir` (written atomically, file by file).
+    fn save(&self, py: Python<'_>, dir: PathBuf) -> PyResult<()> {
+        py.detach(|| self.dataset.save(&dir)).map_err(errors::learn)
+    }
+
+    /// One dataset of parts made by the same scene (a sweep over seeds): their trajectories
+    /// in order.
+    #[staticmethod]
+    fn merge(parts: Vec<PyRef<'_, Dataset>>) -> PyResult<Self> {
+        let parts = parts.iter().map(|p| p.dataset.clone()).collect();
+        let dataset = deform_learn::Dataset::merge(parts).map_err(errors::learn)?;
+        Ok(Self { dataset })
+    }
+
+    /// The trajectories (copies), in order.
+    #[getter]
+    fn trajectories(&self) -> Vec<Trajectory> {
+        let t = self.dataset.trajectories.iter().cloned();
+        t.map(|trajectory| Trajectory { trajectory }).collect()
+    }
+
+    /// The metadata (scene, seed, dt, each trajectory's split and initial conditions).
+    #[getter]
+    fn meta<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &self.dataset.meta)
+    }
+
+    fn __len__(&self) -> usize {
+        self.dataset.trajectories.len()
+    }
+
+    /// Pickling: the metadata's RON and the arrays' bytes.
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<(Bound<'py, PyAny>, (Vec<u8>,))> {
+        let from_bytes = py
+            .import("deform._deform")?
+            .getattr("Dataset")?
+            .getattr("_from_bytes")?;
+        Ok((from_bytes, (to_bytes(&self.dataset)?,)))
+    }
+
+    /// The inverse of pickling.
+    #[staticmethod]
+    fn _from_bytes(bytes: Vec<u8>) -> PyResult<Self> {
+        let dataset = from_bytes(&bytes).map_err(errors::learn)?;
+        Ok(Self { dataset })
+    }
+}
+
+/// The metadata's RON (its length first, 8 bytes) and every frame's positions, then
+/// velocities, as little-endian f64.
+fn to_bytes(d: &deform_learn::Dataset) -> PyResult<Vec<u8>> {
+    let meta = ron::to_string(&d.meta).map_err(errors::learn)?;
+    let mut out = (meta.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(meta.as_bytes());
+    for t in &d.trajectories {
+        for frame in t.x.iter().chain(&t.v) {
+            out.extend(frame.iter().flat_map(|v| v.to_le_bytes()));
+        }
+    }
+    Ok(out)
+}
+
+/// The inverse of [`to_bytes`].
+fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
+    let short = || "truncated dataset bytes".to_owned();
+    let len = u64::from_le_bytes(bytes.get(..8).ok_or_else(short)?.try_into().expect("8"));
+    let text = bytes.get(8..8 + len as usize).ok_or_else(short)?;
+    let text = std::str::from_utf8(text).map_err(|e| e.to_string())?;
+    let meta: deform_learn::DatasetMeta = ron::from_str(text).map_err(|e| e.to_string())?;
+    let mut values = bytes[8 + len as usize..]
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().expect("8")));
+    let n = 3 * meta.vertices;
+    let mut frames = |count: usize| -> Result<Vec<Vec<f64>>, String> {
+        (0..count)
+            .map(|_| {
+                let f: Vec<f64> = values.by_ref().take(n).collect();
+                if f.len() == n { Ok(f) } else { Err(short()) }
+            })
+            .collect()
+    };
+    let mut trajectories = Vec::new();
+    for m in &meta.trajectories {
+        let x = frames(m.steps + 1)?;
+        let v = frames(m.steps + 1)?;
+        trajectories.push(deform_learn::Trajectory {
+            x,
+            v,
+            exact_start: m.exact_start,
+        });
+    }
+    Ok(deform_learn::Dataset { meta, trajectories })
+}
+
 /// An experiment file.
 #[pyclass(module = "deform._deform", name = "Experiment", frozen)]
 pub struct Experiment {
@@ -196,6 +343,7 @@ impl Experiment {
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Experiment>()?;
     m.add_class::<Trajectory>()?;
+    m.add_class::<Dataset>()?;
     m.add_function(wrap_pyfunction!(fit_material, m)?)?;
     Ok(())
 }

@@ -15,6 +15,7 @@ released during assembly, steps and experiments, so Python threads can simulate 
 from ._deform import (  # noqa: F401
     Assembly,
     AssemblyError,
+    Dataset,
     Experiment,
     LearnError,
     Material,
@@ -44,6 +45,7 @@ MODELS = (
 __all__ = [
     "Assembly",
     "AssemblyError",
+    "Dataset",
     "Experiment",
     "LearnError",
     "MODELS",

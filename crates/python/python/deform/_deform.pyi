@@ -131,3 +131,27 @@ def fit_material(
     rollout: int = 10,
     max_iterations: int = 40,
 ) -> dict[str, Any]: ...
+
+class Dataset:
+    @staticmethod
+    def generate(
+        scene: Scene,
+        trajectories: int,
+        steps: int,
+        seed: int,
+        *,
+        speed: float = 1.0,
+        spin: float = 2.0,
+        stretch: float = 0.1,
+        split: tuple[float, float] = (0.6, 0.2),
+    ) -> Dataset: ...
+    @staticmethod
+    def load(dir: _Path) -> Dataset: ...
+    def save(self, dir: _Path) -> None: ...
+    @staticmethod
+    def merge(parts: list[Dataset]) -> Dataset: ...
+    @property
+    def trajectories(self) -> list[Trajectory]: ...
+    @property
+    def meta(self) -> dict[str, Any]: ...
+    def __len__(self) -> int: ...
