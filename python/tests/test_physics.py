@@ -67,8 +67,10 @@ def test_forces_are_minus_the_energy_gradient_and_k_their_jacobian(small_beam):
         assert np.isclose(-f.reshape(-1)[i], de, rtol=1e-6, atol=1e-6)
         df = (asm.forces(x + d) - asm.forces(x - d)).reshape(-1) / (2 * h)
         assert np.allclose(-k[:, i].toarray().ravel(), df, rtol=1e-5, atol=1e-4)
-    # The flat layout gives the same.
+    # The flat layout gives the same; so does the one-pass evaluation, bit for bit.
     assert np.array_equal(asm.forces(x.reshape(-1)), f.reshape(-1))
+    e1, f1, k1 = asm.evaluate(x)
+    assert e1 == asm.energy(x) and np.array_equal(f1, f) and (k1 != k).nnz == 0
 
 
 def test_mass_matrices_carry_the_mass(small_beam):

@@ -3,7 +3,7 @@
 
 use std::sync::Mutex;
 
-use deform_assembly::{Mass, MaterialField, Tangent};
+use deform_assembly::{Mass, MaterialField, Outputs, Tangent};
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
 use sprs::CsMat;
@@ -110,6 +110,38 @@ impl Assembly {
             })
             .map_err(errors::assembly)?;
         csr(py, &k)
+    }
+
+    /// Energy, forces and the stiffness matrix at `x` in one pass over the elements (the
+    /// fast way to get all three): `(energy, forces in x's shape, scipy CSR K)`.
+    #[pyo3(signature = (x, project = false))]
+    fn evaluate<'py>(
+        &self,
+        py: Python<'py>,
+        x: Bound<'_, PyAny>,
+        project: bool,
+    ) -> PyResult<(f64, Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyAny>)> {
+        let (x, shape) = positions(&x)?;
+        let tangent = if project {
+            Tangent::Projected
+        } else {
+            Tangent::Exact
+        };
+        let (energy, f, k) = py
+            .detach(|| {
+                let mut asm = self.lock();
+                let (mut energy, mut f) = (0.0, vec![0.0; x.len()]);
+                let mut k = asm.stiffness_matrix();
+                let out = Outputs {
+                    energy: Some(&mut energy),
+                    forces: Some(&mut f),
+                    stiffness: Some(&mut k),
+                    tangent,
+                };
+                asm.evaluate(&x, out).map(|()| (energy, f, k))
+            })
+            .map_err(errors::assembly)?;
+        Ok((energy, array(py, f, &shape)?, csr(py, &k)?))
     }
 
     /// Lumped vertex masses `rho W / 4` per element corner: (V,).
