@@ -76,3 +76,25 @@ def test_bad_scenes_raise(tmp_path):
         deform.Scene.from_ron(SCENE.replace("steps: 20,", "steps: 20, colour: 3,"))
     with pytest.raises(deform.SceneError):
         deform.Scene.load(tmp_path / "missing.ron")
+
+
+POLICIES = [
+    "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-12)))",
+    "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-12)))",
+    "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+    "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-12)), refactor_above: 6)",
+    "Fixed(MatrixFree(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12))))",
+]
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_every_solver_policy_gives_the_direct_solvers_trajectory(policy):
+    def run(text):
+        sim = deform.Simulation(deform.Scene.from_ron(text))
+        summary = sim.run(5)
+        return sim.x, summary
+
+    reference, _ = run(SCENE.replace("steps: 20,", "policy: Fixed(Direct()), steps: 20,"))
+    x, summary = run(SCENE.replace("steps: 20,", f"policy: {policy}, steps: 20,"))
+    assert summary["steps"] == 5
+    assert np.abs(x - reference).max() < 1e-6
