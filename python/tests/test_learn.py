@@ -51,6 +51,22 @@ def test_a_material_fit_on_data_made_in_python():
     assert alone["stage2"] is None and abs(alone["E"] / 1e5 - 1) < 1e-3
 
 
+def test_model_selection_finds_the_model_that_made_the_data():
+    stvk = SCENE.format(e=1e5, nu=0.4).replace("NeoHookean(Young", "StVenantKirchhoff(Young")
+    scene = deform.Scene.from_ron(stvk)
+    data = deform.Dataset.generate(scene, 3, 6, seed=5, speed=2.0, spin=4.0, stretch=0.3)
+    fit = deform.fit_ensemble(scene, data.trajectories)
+    shares = {m["model"]: m["energy_share"] for m in fit["members"]}
+    assert shares["StVenantKirchhoff"] > 0.99, shares
+    # Refined by output error from the kept members.
+    refined = deform.fit_ensemble(
+        scene, data.trajectories, models=["stvk", "neo_hookean"], rollout=3, max_iterations=5
+    )
+    assert "refined" in refined
+    with pytest.raises(deform.MaterialError, match="unknown model"):
+        deform.fit_ensemble(scene, data.trajectories, models=["rubber"])
+
+
 def test_bad_trajectories_raise():
     x = np.zeros((3, 4, 3))
     with pytest.raises(deform.LearnError, match="positions: shape"):

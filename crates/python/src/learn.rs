@@ -6,6 +6,7 @@
 use std::path::PathBuf;
 
 use deform_learn::dataset::generate;
+use deform_learn::ensemble::Member;
 use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
 use deform_learn::import::{ArrayVelocities, trajectory_from_arrays};
 use deform_learn::npy::Array;
@@ -153,6 +154,81 @@ fn fit_material<'py>(
         None => out.set_item("stage2", py.None())?,
     }
     Ok(out.into_any())
+}
+
+/// The ensemble member of a model name (as `Material` takes them).
+fn member(name: &str) -> PyResult<Member> {
+    Ok(match name {
+        "linear" => Member::LinearElastic,
+        "corotated" => Member::CorotatedLinear,
+        "fixed_corotated" => Member::FixedCorotated,
+        "stvk" => Member::StVenantKirchhoff,
+        "neo_hookean" => Member::NeoHookean,
+        "stable_neo_hookean" => Member::StableNeoHookean,
+        other => {
+            return Err(errors::material(format!(
+                "unknown model {other:?}; one of linear, corotated, fixed_corotated, stvk, neo_hookean, stable_neo_hookean"
+            )));
+        }
+    })
+}
+
+/// Model selection: a non-negative weighted ensemble of `models` (names as `Material`
+/// takes them; default all six) fitted to `train` by equation error, each member's share
+/// of the elastic energy measured on `evaluate` (default `train`); with `rollout > 0` the
+/// kept members are then refined by output error. Returns deform's ensemble report as a
+/// dict (members with their effective Lame pairs and energy shares, models the data leave
+/// undefined listed as excluded), with `refined` when refined.
+#[pyfunction]
+#[pyo3(signature = (scene, train, *, models = None, evaluate = None, rollout = 0, max_iterations = 40))]
+#[allow(clippy::too_many_arguments)]
+fn fit_ensemble<'py>(
+    py: Python<'py>,
+    scene: &Scene,
+    train: Vec<PyRef<'py, Trajectory>>,
+    models: Option<Vec<String>>,
+    evaluate: Option<Vec<PyRef<'py, Trajectory>>>,
+    rollout: usize,
+    max_iterations: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    let names: Vec<Member> = match models {
+        Some(m) => m.iter().map(|n| member(n)).collect::<PyResult<_>>()?,
+        None => Member::ALL.to_vec(),
+    };
+    let train: Vec<&deform_learn::Trajectory> = train.iter().map(|t| &t.trajectory).collect();
+    let evaluate: Vec<&deform_learn::Trajectory> = match &evaluate {
+        Some(e) => e.iter().map(|t| &t.trajectory).collect(),
+        None => train.clone(),
+    };
+    let (fit, refined) = py
+        .detach(|| {
+            let fit =
+                deform_learn::fit_ensemble(&scene.scene, &scene.origin, &names, &train, &evaluate)?;
+            if rollout == 0 {
+                return Ok((fit, None));
+            }
+            let options = OutputErrorOptions {
+                rollout,
+                max_iterations,
+                ..Default::default()
+            };
+            let (refined, _) = deform_learn::refine_ensemble(
+                &fit,
+                &scene.scene,
+                &scene.origin,
+                &train,
+                &evaluate,
+                options,
+                |_, _| {},
+            )?;
+            Ok((fit, Some(refined)))
+        })
+        .map_err(|e: deform_learn::FitError| errors::learn(e))?;
+    let out = to_python(py, &fit)?;
+    if let Some(r) = refined {
+        out.set_item("refined", to_python(py, &r)?)?;
+    }
+    Ok(out)
 }
 
 /// A report as Python data.
@@ -345,5 +421,6 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Trajectory>()?;
     m.add_class::<Dataset>()?;
     m.add_function(wrap_pyfunction!(fit_material, m)?)?;
+    m.add_function(wrap_pyfunction!(fit_ensemble, m)?)?;
     Ok(())
 }

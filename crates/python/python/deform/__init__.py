@@ -29,6 +29,7 @@ from ._deform import (  # noqa: F401
     Trajectory,
     beam,
     box_mesh,
+    fit_ensemble,
     fit_material,
     read_mesh,
 )
@@ -60,6 +61,7 @@ __all__ = [
     "Trajectory",
     "beam",
     "box_mesh",
+    "fit_ensemble",
     "fit_material",
     "read_mesh",
 ]

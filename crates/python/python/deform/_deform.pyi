@@ -158,3 +158,13 @@ class Dataset:
     @property
     def meta(self) -> dict[str, Any]: ...
     def __len__(self) -> int: ...
+
+def fit_ensemble(
+    scene: Scene,
+    train: list[Trajectory],
+    *,
+    models: Optional[list[str]] = None,
+    evaluate: Optional[list[Trajectory]] = None,
+    rollout: int = 0,
+    max_iterations: int = 40,
+) -> dict[str, Any]: ...
