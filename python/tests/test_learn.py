@@ -101,3 +101,18 @@ def test_bad_experiments_raise(tmp_path):
     bad.write_text("Experiment(name: 1)")
     with pytest.raises(deform.LearnError, match="bad.ron"):
         deform.Experiment.load(bad)
+
+
+def test_the_solver_policy_pipeline_runs_from_python():
+    # Logging every candidate on the training Newton systems, learning the policy and
+    # measuring it against the fixed solvers, Eisenstat-Walker and the hand schedule.
+    from conftest import ROOT
+
+    e = deform.Experiment.load(ROOT / "crates" / "learn" / "tests" / "data" / "select_solver.ron")
+    rows = e.run()["task"]["SelectSolver"]["cases"][0]["rows"]
+    contenders = [r["contender"] if isinstance(r["contender"], str) else next(iter(r["contender"])) for r in rows]
+    assert "Learned" in contenders and "EisenstatWalker" in contenders
+    learned = rows[contenders.index("Learned")]["measured"]
+    assert not learned["failed"] and learned["deterministic"] and learned["error"] < 1e-6
+    fixed = [r["measured"]["work"] for r, c in zip(rows, contenders) if c == "Fixed"]
+    assert learned["work"] <= min(fixed)
