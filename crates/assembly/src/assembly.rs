@@ -275,27 +275,63 @@ impl Assembly {
     /// model's domain, [`AssemblyError::NonFiniteElement`] naming the first element whose
     /// result is not finite. On error the outputs are left unspecified.
     pub fn evaluate(&mut self, x: &[f64], out: Outputs<'_>) -> Result<(), AssemblyError> {
-        check_positions("x", x, self.num_dofs())?;
-        if let Some(f) = &out.forces {
-            check_len("forces", f.len(), self.num_dofs())?;
-        }
         if let Some(k) = &out.stiffness
             && !self.has_pattern(k)
         {
             return Err(AssemblyError::PatternMismatch);
         }
+        let tangent = out.tangent;
+        let values = out.stiffness.map(|k| (k.data_mut(), tangent));
+        self.evaluate_parts(x, out.energy, out.forces, values)
+    }
+
+    /// [`Assembly::evaluate`] with K's values written to `values` (one per non-zero of
+    /// [`Assembly::stiffness_pattern`], in its order) instead of into a matrix: for callers
+    /// that own the value array, such as a numpy array handed to scipy.
+    ///
+    /// # Errors
+    /// As [`Assembly::evaluate`]; [`AssemblyError::DimensionMismatch`] for a `values` of
+    /// another length than the pattern's.
+    pub fn evaluate_values(
+        &mut self,
+        x: &[f64],
+        energy: Option<&mut f64>,
+        forces: Option<&mut [f64]>,
+        values: &mut [f64],
+        tangent: Tangent,
+    ) -> Result<(), AssemblyError> {
+        check_len("values", values.len(), self.geometry.indices.len())?;
+        self.evaluate_parts(x, energy, forces, Some((values, tangent)))
+    }
+
+    /// K's CSR pattern `(indptr, indices)` (full symmetric storage, sorted columns).
+    pub fn stiffness_pattern(&self) -> (&[usize], &[usize]) {
+        (&self.geometry.indptr, &self.geometry.indices)
+    }
+
+    fn evaluate_parts(
+        &mut self,
+        x: &[f64],
+        energy: Option<&mut f64>,
+        forces: Option<&mut [f64]>,
+        stiffness: Option<(&mut [f64], Tangent)>,
+    ) -> Result<(), AssemblyError> {
+        check_positions("x", x, self.num_dofs())?;
+        if let Some(f) = &forces {
+            check_len("forces", f.len(), self.num_dofs())?;
+        }
         let need = Need {
-            energy: out.energy.is_some(),
-            forces: out.forces.is_some(),
-            stiffness: out.stiffness.as_ref().map(|_| out.tangent),
+            energy: energy.is_some(),
+            forces: forces.is_some(),
+            stiffness: stiffness.as_ref().map(|(_, t)| *t),
         };
         self.work.resize(self.num_elements(), ElementOut::default());
         element_phase(&self.geometry, &self.materials, x, need, &mut self.work)?;
-        if let Some(e) = out.energy {
+        if let Some(e) = energy {
             *e = sum_energy(&self.work);
         }
-        match (out.forces, out.stiffness) {
-            (f, Some(k)) => gather_rows(&self.geometry, &self.work, k.data_mut(), f),
+        match (forces, stiffness) {
+            (f, Some((values, _))) => gather_rows(&self.geometry, &self.work, values, f),
             (Some(f), None) => gather_forces(&self.geometry, &self.work, f),
             (None, None) => {}
         }

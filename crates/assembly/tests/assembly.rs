@@ -626,3 +626,38 @@ fn a_field_from_term_coefficients_has_one_model_per_group_and_names_a_bad_one() 
         .unwrap_err();
     assert!(bad.to_string().contains("group 1"), "{bad}");
 }
+
+#[test]
+fn values_on_the_pattern_equal_the_matrix_bit_for_bit() {
+    let mesh = small_mesh();
+    let field = MaterialField::Uniform(model("NeoHookean(Young(e: 1e5, nu: 0.4))"));
+    let mut asm = Assembly::new(&mesh, field).unwrap();
+    let x = deformed(&mesh, 0.05);
+    let (mut e1, mut f1, mut k) = (0.0, vec![0.0; x.len()], asm.stiffness_matrix());
+    let out = Outputs {
+        energy: Some(&mut e1),
+        forces: Some(&mut f1),
+        stiffness: Some(&mut k),
+        tangent: Tangent::Projected,
+    };
+    asm.evaluate(&x, out).unwrap();
+    let (indptr, indices) = asm.stiffness_pattern();
+    assert_eq!((indptr, indices), (k.indptr().raw_storage(), k.indices()));
+    let mut values = vec![0.0; indices.len()];
+    let (mut e2, mut f2) = (0.0, vec![0.0; x.len()]);
+    asm.evaluate_values(
+        &x,
+        Some(&mut e2),
+        Some(&mut f2),
+        &mut values,
+        Tangent::Projected,
+    )
+    .unwrap();
+    assert_eq!((e1, &f1), (e2, &f2));
+    assert_eq!(values, k.data());
+    let mut short = vec![0.0; values.len() - 1];
+    let e = asm
+        .evaluate_values(&x, None, None, &mut short, Tangent::Exact)
+        .unwrap_err();
+    assert!(e.to_string().contains("values"), "{e}");
+}

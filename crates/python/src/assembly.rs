@@ -3,7 +3,7 @@
 
 use std::sync::Mutex;
 
-use deform_assembly::{Mass, MaterialField, Outputs, Tangent};
+use deform_assembly::{Mass, MaterialField, Tangent};
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
 use sprs::CsMat;
@@ -31,11 +31,58 @@ pub fn csr<'py>(py: Python<'py>, m: &CsMat<f64>) -> PyResult<Bound<'py, PyAny>> 
         .call((triplet,), Some(&kwargs))
 }
 
+/// K's CSR pattern as scipy takes it (32-bit indices where they fit), kept so that each
+/// matrix costs one copy of the pattern and none of the values.
+enum Pattern {
+    I32(Vec<i32>, Vec<i32>),
+    I64(Vec<i64>, Vec<i64>),
+}
+
+impl Pattern {
+    fn of(asm: &deform_assembly::Assembly) -> Self {
+        let (indptr, indices) = asm.stiffness_pattern();
+        if indices.len() < i32::MAX as usize {
+            let small = |v: &[usize]| v.iter().map(|&i| i as i32).collect();
+            Pattern::I32(small(indptr), small(indices))
+        } else {
+            let wide = |v: &[usize]| v.iter().map(|&i| i as i64).collect();
+            Pattern::I64(wide(indptr), wide(indices))
+        }
+    }
+
+    /// A `scipy.sparse.csr_matrix` of `values` on this pattern (`values` moved, not copied).
+    fn matrix<'py>(
+        &self,
+        py: Python<'py>,
+        values: Vec<f64>,
+        n: usize,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let nnz = values.len();
+        let data = array(py, values, &[nnz])?.into_any();
+        let (indices, indptr) = match self {
+            Pattern::I32(p, i) => (
+                array(py, i.clone(), &[nnz])?.into_any(),
+                array(py, p.clone(), &[n + 1])?.into_any(),
+            ),
+            Pattern::I64(p, i) => (
+                array(py, i.clone(), &[nnz])?.into_any(),
+                array(py, p.clone(), &[n + 1])?.into_any(),
+            ),
+        };
+        let kwargs = pyo3::types::PyDict::new(py);
+        kwargs.set_item("shape", (n, n))?;
+        py.import("scipy.sparse")?
+            .getattr("csr_matrix")?
+            .call(((data, indices, indptr),), Some(&kwargs))
+    }
+}
+
 /// Energy, forces and stiffness of a mesh with one material.
 #[pyclass(module = "deform._deform", name = "Assembly", frozen)]
 pub struct Assembly {
     inner: Mutex<deform_assembly::Assembly>,
     mesh: deform_mesh::TetMesh,
+    pattern: Pattern,
 }
 
 /// Positions from an (V, 3) or (3V,) array, flattened.
@@ -61,6 +108,7 @@ impl Assembly {
         let field = MaterialField::Uniform(material.model.clone());
         let asm = deform_assembly::Assembly::new(&mesh.mesh, field).map_err(errors::assembly)?;
         Ok(Self {
+            pattern: Pattern::of(&asm),
             inner: Mutex::new(asm),
             mesh: mesh.mesh.clone(),
         })
@@ -102,14 +150,15 @@ impl Assembly {
         } else {
             Tangent::Exact
         };
-        let k = py
+        let values = py
             .detach(|| {
                 let mut asm = self.lock();
-                let mut k = asm.stiffness_matrix();
-                asm.stiffness(&x, tangent, &mut k).map(|()| k)
+                let mut values = vec![0.0; asm.stiffness_pattern().1.len()];
+                asm.evaluate_values(&x, None, None, &mut values, tangent)
+                    .map(|()| values)
             })
             .map_err(errors::assembly)?;
-        csr(py, &k)
+        self.pattern.matrix(py, values, x.len())
     }
 
     /// Energy, forces and the stiffness matrix at `x` in one pass over the elements (the
@@ -127,21 +176,17 @@ impl Assembly {
         } else {
             Tangent::Exact
         };
-        let (energy, f, k) = py
+        let (energy, f, values) = py
             .detach(|| {
                 let mut asm = self.lock();
                 let (mut energy, mut f) = (0.0, vec![0.0; x.len()]);
-                let mut k = asm.stiffness_matrix();
-                let out = Outputs {
-                    energy: Some(&mut energy),
-                    forces: Some(&mut f),
-                    stiffness: Some(&mut k),
-                    tangent,
-                };
-                asm.evaluate(&x, out).map(|()| (energy, f, k))
+                let mut values = vec![0.0; asm.stiffness_pattern().1.len()];
+                asm.evaluate_values(&x, Some(&mut energy), Some(&mut f), &mut values, tangent)
+                    .map(|()| (energy, f, values))
             })
             .map_err(errors::assembly)?;
-        Ok((energy, array(py, f, &shape)?, csr(py, &k)?))
+        let k = self.pattern.matrix(py, values, x.len())?;
+        Ok((energy, array(py, f, &shape)?, k))
     }
 
     /// Lumped vertex masses `rho W / 4` per element corner: (V,).
