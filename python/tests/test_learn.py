@@ -116,3 +116,27 @@ def test_the_solver_policy_pipeline_runs_from_python():
     assert not learned["failed"] and learned["deterministic"] and learned["error"] < 1e-6
     fixed = [r["measured"]["work"] for r, c in zip(rows, contenders) if c == "Fixed"]
     assert learned["work"] <= min(fixed)
+
+
+def test_a_policy_learned_in_python_drives_a_simulation(tmp_path):
+    scene = deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4))
+    candidates = [
+        "Direct()",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-10))",
+        "Cg(tolerance: (rel: 1e-10, max_iterations: 2000))",
+    ]
+    data = deform.SolverData.collect(scene, candidates, steps=6)
+    assert len(data) >= 6
+    data.save(tmp_path / "solver_data")
+    assert len(deform.SolverData.load(tmp_path / "solver_data")) == len(data)
+    policy = deform.LearnedPolicy.train(data, young=1e5)
+    assert policy.name.startswith("learned")
+    learned, direct = (deform.Simulation(scene) for _ in range(2))
+    learned.set_policy(policy)
+    report = learned.step()
+    assert report["policy"].startswith("learned")
+    learned.run(4)
+    direct.run(5)
+    assert np.abs(learned.x - direct.x).max() < 1e-6
+    with pytest.raises(deform.LearnError, match="candidate"):
+        deform.SolverData.collect(scene, ["Gauss()"], steps=1)

@@ -13,6 +13,7 @@ mod errors;
 mod learn;
 mod materials;
 mod mesh;
+mod policy;
 mod simulation;
 
 /// The extension module.
@@ -24,5 +25,6 @@ fn _deform(m: &Bound<'_, PyModule>) -> PyResult<()> {
     assembly::register(m)?;
     simulation::register(m)?;
     learn::register(m)?;
+    policy::register(m)?;
     Ok(())
 }

@@ -187,6 +187,14 @@ impl Simulation {
         Ok(summary.into_any())
     }
 
+    /// Runs the next steps with a learned linear-solver policy (kept solvers stay, so
+    /// factorisations are reused).
+    fn set_policy(&self, policy: &crate::policy::LearnedPolicy) {
+        self.lock()
+            .integrator
+            .set_policy(Box::new(policy.policy.clone()));
+    }
+
     /// Positions (V, 3); settable (a (V, 3) or (3V,) array).
     #[getter]
     fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {

@@ -103,6 +103,7 @@ class Simulation:
     def mesh(self) -> Mesh: ...
     @property
     def constrained(self) -> npt.NDArray[np.int64]: ...
+    def set_policy(self, policy: LearnedPolicy) -> None: ...
 
 class Experiment:
     @staticmethod
@@ -168,3 +169,25 @@ def fit_ensemble(
     rollout: int = 0,
     max_iterations: int = 40,
 ) -> dict[str, Any]: ...
+
+class SolverData:
+    @staticmethod
+    def collect(scene: Scene, candidates: list[str], steps: int) -> SolverData: ...
+    @staticmethod
+    def load(dir: _Path) -> SolverData: ...
+    def save(self, dir: _Path) -> None: ...
+    def __len__(self) -> int: ...
+
+class LearnedPolicy:
+    @staticmethod
+    def train(
+        data: SolverData,
+        *,
+        young: float,
+        neighbours: int = 5,
+        min_success: float = 0.9,
+        factor_weight: float = 1.0,
+        forcing: Optional[tuple[float, float]] = None,
+    ) -> LearnedPolicy: ...
+    @property
+    def name(self) -> str: ...
