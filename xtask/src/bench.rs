@@ -175,8 +175,10 @@ fn step(args: StepArgs) -> Result<()> {
                 let seconds = last.elapsed().as_secs_f64();
                 let solve = report.solver_seconds();
                 let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
+                // The process's peak so far (it includes earlier policies' runs).
+                let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
                 println!(
-                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}}}"#,
+                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}}}"#,
                     report.step,
                     report.newton_iterations(),
                     report.linear_iterations(),

@@ -146,6 +146,10 @@ pub fn simulate(
         position[1],
         position[2],
     );
+    let peak = deform_mesh::memory::peak_rss_bytes().map_or("unknown".to_owned(), |b| {
+        format!("{:.1} MB", b as f64 / 1e6)
+    });
+    let text = format!("{text}peak memory (resident, whole process): {peak}\n");
     deform_fs::write_text(&out.join("summary.txt"), &text).map_err(fs_error)?;
     Ok(Simulation {
         out,

@@ -52,6 +52,18 @@ fn a_scene_runs_into_its_folder() {
     assert!(!out.join("frame_00001.vtu").exists());
     let summary = std::fs::read_to_string(out.join("summary.txt")).unwrap();
     assert!(summary.contains("steps: 4"), "{summary}");
+    // The measured peak memory, at least the mesh's own estimate where it can be read.
+    let line = summary
+        .lines()
+        .find(|l| l.starts_with("peak memory"))
+        .expect("summary has the peak memory");
+    if let Some(peak) = deform_mesh::memory::peak_rss_bytes() {
+        assert!(line.ends_with(" MB"), "{line}");
+        let mesh = deform_mesh::memory::mesh_bytes(20, 24);
+        assert!(peak > mesh, "{peak} vs {mesh}");
+    } else {
+        assert!(line.ends_with("unknown"), "{line}");
+    }
 }
 
 #[test]

@@ -20,6 +20,22 @@ pub fn available_bytes() -> Option<u64> {
     Some(limit.map_or(kib * 1024, |l| l.min(kib * 1024)))
 }
 
+/// The process's peak resident memory so far, in bytes (Linux: `VmHWM` of
+/// `/proc/self/status`); `None` where unknown. What a run measured, beside what
+/// [`simulation_lower_bound`] estimates.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kib * 1024)
+}
+
 /// Bytes of a [`crate::TetMesh`] with `vertices` and `tets` while it is built and validated:
 /// positions, connectivity, regions, `Dm^-1`, volumes and the face table of the conformity
 /// check.
