@@ -19,8 +19,7 @@ JSON lines and a table:
 import argparse
 import json
 import os
-import statistics
-import subprocess
+import sys
 import time
 
 import numpy as np
@@ -30,32 +29,12 @@ import scipy.sparse.linalg
 import deform
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+# The peer scripts' helpers: deform's runner, median timing, the benchmark state.
+sys.path.insert(0, os.path.join(ROOT, "bench", "peers"))
+from common import beam_state, median_time, xtask  # noqa: E402
+
 E_MOD, NU, RHO, DT = 1e6, 0.4, 1000.0, 0.01
 MU, LAM = E_MOD / (2 * (1 + NU)), E_MOD * NU / ((1 + NU) * (1 - 2 * NU))
-
-
-def median_time(f, repeats):
-    """Median wall time of `f()` over `repeats` calls, after one warm-up call."""
-    f()
-    samples = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f()
-        samples.append(time.perf_counter() - t)
-    return statistics.median(samples)
-
-
-def xtask(*args):
-    out = subprocess.run(
-        ["cargo", "xtask", *args], cwd=ROOT, check=True, capture_output=True, text=True
-    ).stdout
-    return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
-
-
-def beam_state(points):
-    """The deformed state of BENCHMARKS.md: X + (0.01 x z, 0.005 sin 3x, -0.1 x^2)."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    return np.stack([x + 0.01 * x * z, y + 0.005 * np.sin(3 * x), z - 0.1 * x * x], axis=1)
 
 
 class Pbat:

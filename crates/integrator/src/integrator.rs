@@ -386,11 +386,7 @@ impl Integrator {
             .flat_map(|c| c.vertices.iter().copied())
             .collect();
         let dofs = DofMap::new(mesh.num_vertices(), &constrained)?;
-        let g: Vec<f64> = (0..asm.num_dofs())
-            .map(|i| options.gravity[i % 3])
-            .collect();
-        let mut gravity_forces = vec![0.0; g.len()];
-        asm.mass_apply(&mass, &g, &mut gravity_forces)?;
+        let gravity_forces = gravity_forces(&asm, &mass, options.gravity)?;
         let k = asm.stiffness_matrix();
         let a = asm.stiffness_matrix();
         let a_free = dofs.reduced_matrix(&a)?;
@@ -507,11 +503,7 @@ impl Integrator {
 
     /// `M g` for the current mass and gravity.
     fn update_gravity_forces(&mut self) -> Result<(), IntegratorError> {
-        let g: Vec<f64> = (0..self.asm.num_dofs())
-            .map(|i| self.options.gravity[i % 3])
-            .collect();
-        self.asm
-            .mass_apply(&self.mass, &g, &mut self.gravity_forces)?;
+        self.gravity_forces = gravity_forces(&self.asm, &self.mass, self.options.gravity)?;
         Ok(())
     }
 
@@ -1403,6 +1395,18 @@ impl FailedSolve {
             distance: f64::INFINITY,
         }
     }
+}
+
+/// Gravity forces `M g`.
+fn gravity_forces(
+    asm: &Assembly,
+    mass: &Mass,
+    gravity: [f64; 3],
+) -> Result<Vec<f64>, AssemblyError> {
+    let g: Vec<f64> = (0..asm.num_dofs()).map(|i| gravity[i % 3]).collect();
+    let mut f = vec![0.0; g.len()];
+    asm.mass_apply(mass, &g, &mut f)?;
+    Ok(f)
 }
 
 /// Why per-vertex mass scales cannot be used (see [`Integrator::set_mass_scale`]).

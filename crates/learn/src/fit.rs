@@ -307,10 +307,17 @@ fn equation_error(
     let sets = basis.map_or(grouping.num_groups(), Basis::num_functions);
     let nc = terms * sets;
     let p = if options.damping { 2 * nc + 1 } else { nc };
-    // A row of the term Jacobian in the field's coefficients.
-    let in_field = |row: &[f64]| match basis {
-        Some(b) => b.contract(row, terms),
-        None => row.to_vec(),
+    // The non-zeros of row `i` of a term Jacobian in the field's coefficients, as
+    // `(offset + column, scale * value)`.
+    let nonzeros = |jacobian: &[f64], i: usize, offset: usize, scale: f64| {
+        let width = jacobian.len() / asm.num_dofs();
+        let row = &jacobian[i * width..(i + 1) * width];
+        let row = match basis {
+            Some(b) => std::borrow::Cow::Owned(b.contract(row, terms)),
+            None => std::borrow::Cow::Borrowed(row),
+        };
+        let nz = row.iter().enumerate().filter(|(_, v)| **v != 0.0);
+        nz.map(|(j, v)| (offset + j, scale * v)).collect::<Vec<_>>()
     };
     let n = asm.num_dofs();
     let free = sim.dofs().free_dofs();
@@ -335,16 +342,9 @@ fn equation_error(
                 source,
             };
             let jf = asm.term_forces(x1, grouping).map_err(fail)?;
-            let per_group = jf.num_columns();
             // Rows of A on the free DOFs, as (column, value) non-zeros, and b.
-            let mut rows: Vec<Vec<(usize, f64)>> = free
-                .iter()
-                .map(|&i| {
-                    let row = in_field(&jf.data[i * per_group..(i + 1) * per_group]);
-                    let nz = row.into_iter().enumerate().filter(|(_, v)| *v != 0.0);
-                    nz.map(|(j, v)| (j, dt * v)).collect()
-                })
-                .collect();
+            let mut rows: Vec<Vec<(usize, f64)>> =
+                free.iter().map(|&i| nonzeros(&jf.data, i, 0, dt)).collect();
             let mut b = vec![0.0; n];
             let dv: Vec<f64> = v1.iter().zip(v0).map(|(a, b)| a - b).collect();
             asm.mass_apply(mass, &dv, &mut b).map_err(fail)?;
@@ -358,9 +358,7 @@ fn equation_error(
                     .term_stiffness_products(x1, v1, grouping)
                     .map_err(fail)?;
                 for (row, &i) in rows.iter_mut().zip(free) {
-                    let k = in_field(&jk.data[i * per_group..(i + 1) * per_group]);
-                    let nz = k.into_iter().enumerate().filter(|(_, v)| *v != 0.0);
-                    row.extend(nz.map(|(j, v)| (nc + j, -dt * v)));
+                    row.extend(nonzeros(&jk.data, i, nc, -dt));
                     row.push((2 * nc, -dt * mv[i]));
                 }
             } else {

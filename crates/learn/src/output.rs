@@ -329,8 +329,10 @@ impl<'a> OutputError<'a> {
         let mut c = term_coefficients(&self.base).repeat(self.num_sets());
         let o = self.sim.borrow();
         if self.mass {
-            let vertices = o.assembly().num_vertices();
-            c.extend(o.mass_scale().map_or(vec![1.0; vertices], <[f64]>::to_vec));
+            c.extend(
+                o.mass_scale()
+                    .map_or(vec![1.0; self.vertices], <[f64]>::to_vec),
+            );
         }
         if self.damping {
             c.extend([o.options().alpha, o.options().gamma]);

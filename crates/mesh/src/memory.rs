@@ -5,15 +5,7 @@
 /// Bytes of memory available now (Linux: `MemAvailable` of `/proc/meminfo`, further bounded
 /// by a cgroup v2 limit); `None` where unknown, and then nothing is refused.
 pub fn available_bytes() -> Option<u64> {
-    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let kib: u64 = meminfo
-        .lines()
-        .find_map(|l| l.strip_prefix("MemAvailable:"))?
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse()
-        .ok()?;
+    let kib = proc_kib("/proc/meminfo", "MemAvailable:")?;
     let limit = std::fs::read_to_string("/sys/fs/cgroup/memory.max")
         .ok()
         .and_then(|s| s.trim().parse::<u64>().ok());
@@ -24,16 +16,15 @@ pub fn available_bytes() -> Option<u64> {
 /// `/proc/self/status`); `None` where unknown. What a run measured, beside what
 /// [`simulation_lower_bound`] estimates.
 pub fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let kib: u64 = status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))?
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse()
-        .ok()?;
-    Some(kib * 1024)
+    proc_kib("/proc/self/status", "VmHWM:").map(|kib| kib * 1024)
+}
+
+/// The value in kB of the line starting with `key` of a `/proc` file such as
+/// `/proc/meminfo` (`MemAvailable:   123456 kB`).
+fn proc_kib(file: &str, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(file).ok()?;
+    let value = text.lines().find_map(|l| l.strip_prefix(key))?;
+    value.trim().trim_end_matches("kB").trim().parse().ok()
 }
 
 /// Bytes of a [`crate::TetMesh`] with `vertices` and `tets` while it is built and validated:

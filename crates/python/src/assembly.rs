@@ -6,30 +6,11 @@ use std::sync::Mutex;
 use deform_assembly::{Mass, MaterialField, Tangent};
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
-use sprs::CsMat;
 
 use crate::arrays::{array, values};
 use crate::errors;
 use crate::materials::Material;
 use crate::mesh::Mesh;
-
-/// `m` as a `scipy.sparse.csr_matrix` (its arrays copied once into numpy's).
-pub fn csr<'py>(py: Python<'py>, m: &CsMat<f64>) -> PyResult<Bound<'py, PyAny>> {
-    let m = if m.is_csr() { m.clone() } else { m.to_csr() };
-    let indptr: Vec<i64> = m.indptr().raw_storage().iter().map(|&i| i as i64).collect();
-    let indices: Vec<i64> = m.indices().iter().map(|&i| i as i64).collect();
-    let (nnz, rows) = (m.nnz(), indptr.len());
-    let triplet = (
-        array(py, m.data().to_vec(), &[nnz])?,
-        array(py, indices, &[nnz])?,
-        array(py, indptr, &[rows])?,
-    );
-    let kwargs = pyo3::types::PyDict::new(py);
-    kwargs.set_item("shape", m.shape())?;
-    py.import("scipy.sparse")?
-        .getattr("csr_matrix")?
-        .call((triplet,), Some(&kwargs))
-}
 
 /// K's CSR pattern as scipy takes it (32-bit indices where they fit), kept so that each
 /// matrix costs one copy of the pattern and none of the values.
@@ -85,10 +66,18 @@ pub struct Assembly {
     pattern: Pattern,
 }
 
-/// Positions from an (V, 3) or (3V,) array, flattened.
+/// Positions from an (V, 3) or (3V,) array, flattened, and their shape.
 fn positions(x: &Bound<'_, PyAny>) -> PyResult<(Vec<f64>, Vec<usize>)> {
-    let (data, shape) = values("x", x)?;
-    Ok((data.to_vec(), shape))
+    values("x", x)
+}
+
+/// The exact tangent, or each element's projected to positive semi-definite.
+fn tangent(project: bool) -> Tangent {
+    if project {
+        Tangent::Projected
+    } else {
+        Tangent::Exact
+    }
 }
 
 impl Assembly {
@@ -145,11 +134,7 @@ impl Assembly {
         project: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
         let (x, _) = positions(&x)?;
-        let tangent = if project {
-            Tangent::Projected
-        } else {
-            Tangent::Exact
-        };
+        let tangent = tangent(project);
         let values = py
             .detach(|| {
                 let mut asm = self.lock();
@@ -171,11 +156,7 @@ impl Assembly {
         project: bool,
     ) -> PyResult<(f64, Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyAny>)> {
         let (x, shape) = positions(&x)?;
-        let tangent = if project {
-            Tangent::Projected
-        } else {
-            Tangent::Exact
-        };
+        let tangent = tangent(project);
         let (energy, f, values) = py
             .detach(|| {
                 let mut asm = self.lock();
@@ -222,7 +203,8 @@ impl Assembly {
         let mut m = asm.stiffness_matrix();
         asm.combine(1.0, &mass, 0.0, &k, &mut m)
             .map_err(errors::assembly)?;
-        csr(py, &m)
+        let (_, _, values) = m.into_raw_storage();
+        self.pattern.matrix(py, values, asm.num_dofs())
     }
 }
 

@@ -11,8 +11,8 @@ use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
 use deform_learn::import::{ArrayVelocities, trajectory_from_arrays};
 use deform_learn::npy::Array;
 use deform_learn::{
-    DatasetSpec, EquationErrorOptions, OutputErrorOptions, Variations, fit_equation_error,
-    fit_output_error, term_coefficients,
+    DatasetSpec, EquationErrorOptions, FitError, OutputErrorOptions, Variations,
+    fit_equation_error, fit_output_error, term_coefficients,
 };
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
@@ -20,6 +20,7 @@ use pyo3::types::PyDict;
 
 use crate::arrays::{array, values};
 use crate::errors;
+use crate::materials::member;
 use crate::simulation::Scene;
 
 /// A trajectory: positions and velocities at every step.
@@ -119,12 +120,13 @@ fn fit_material<'py>(
             if rollout == 0 {
                 return Ok((stage1, None));
             }
-            let deform_assembly::MaterialField::Uniform(model) = sim.assembly().materials() else {
-                unreachable!("a scene's material without coefficients is uniform")
-            };
             let start = match stage1.unusable() {
                 None => stage1.coefficients.clone(),
-                Some(_) => term_coefficients(model),
+                // The scene's own moduli (stage 2 refuses a scene with a coefficient field).
+                Some(_) => {
+                    let model = scene.scene.material.build();
+                    term_coefficients(&model.map_err(|e| FitError::Invalid(e.to_string()))?)
+                }
             };
             let options = OutputErrorOptions {
                 rollout,
@@ -134,7 +136,7 @@ fn fit_material<'py>(
             let fit = fit_output_error(&mut sim, &data, &start, options, |_, _| {})?;
             Ok((stage1, Some(fit)))
         })
-        .map_err(|e: deform_learn::FitError| errors::learn(e))?;
+        .map_err(|e: FitError| errors::learn(e))?;
     let out = PyDict::new(py);
     let c = stage2
         .as_ref()
@@ -154,23 +156,6 @@ fn fit_material<'py>(
         None => out.set_item("stage2", py.None())?,
     }
     Ok(out.into_any())
-}
-
-/// The ensemble member of a model name (as `Material` takes them).
-fn member(name: &str) -> PyResult<Member> {
-    Ok(match name {
-        "linear" => Member::LinearElastic,
-        "corotated" => Member::CorotatedLinear,
-        "fixed_corotated" => Member::FixedCorotated,
-        "stvk" => Member::StVenantKirchhoff,
-        "neo_hookean" => Member::NeoHookean,
-        "stable_neo_hookean" => Member::StableNeoHookean,
-        other => {
-            return Err(errors::material(format!(
-                "unknown model {other:?}; one of linear, corotated, fixed_corotated, stvk, neo_hookean, stable_neo_hookean"
-            )));
-        }
-    })
 }
 
 /// Model selection: a non-negative weighted ensemble of `models` (names as `Material`

@@ -1,6 +1,7 @@
 //! `deform.Material`: every energy model by name with Young's modulus and Poisson's ratio or
 //! the Lame pair, evaluated over arrays of deformation gradients.
 
+use deform_learn::ensemble::Member;
 use deform_materials::{Material as _, MaterialSpec, Model, Moduli};
 use nalgebra::Matrix3;
 use numpy::PyArrayDyn;
@@ -16,8 +17,29 @@ pub struct Material {
     pub model: Model,
 }
 
-/// The model names `Material` takes.
-const NAMES: &str = "linear, corotated, fixed_corotated, stvk, neo_hookean, stable_neo_hookean";
+/// The model names Python uses, and the models they are.
+const MODELS: [(&str, Member); 6] = [
+    ("linear", Member::LinearElastic),
+    ("corotated", Member::CorotatedLinear),
+    ("fixed_corotated", Member::FixedCorotated),
+    ("stvk", Member::StVenantKirchhoff),
+    ("neo_hookean", Member::NeoHookean),
+    ("stable_neo_hookean", Member::StableNeoHookean),
+];
+
+/// The model of a Python name (`Material`, `fit_ensemble`).
+pub fn member(name: &str) -> PyResult<Member> {
+    match MODELS.iter().find(|(n, _)| *n == name) {
+        Some((_, m)) => Ok(*m),
+        None => {
+            let names: Vec<&str> = MODELS.iter().map(|(n, _)| *n).collect();
+            Err(errors::material(format!(
+                "unknown model {name:?}; one of {}",
+                names.join(", ")
+            )))
+        }
+    }
+}
 
 impl Material {
     fn from_spec(spec: MaterialSpec) -> PyResult<Self> {
@@ -26,11 +48,26 @@ impl Material {
     }
 }
 
-/// Each `F` of a (N, 3, 3) array (row-major, `F[n, i, j]`).
-fn gradients(f: &Bound<'_, PyAny>) -> PyResult<Vec<Matrix3<f64>>> {
-    let (data, shape) = values("F", f)?;
-    check_shape("F", &shape, &[None, Some(3), Some(3)])?;
-    Ok(data.chunks(9).map(Matrix3::from_row_slice).collect())
+impl Material {
+    /// `per(model, F)` of each `F` of a (N, 3, 3) array (row-major, `F[n, i, j]`), with the
+    /// GIL released, as an array of shape (N, *tail).
+    fn per_gradient<'py, const W: usize>(
+        &self,
+        py: Python<'py>,
+        f: &Bound<'_, PyAny>,
+        tail: &[usize],
+        per: impl Fn(&Model, &Matrix3<f64>) -> [f64; W] + Send + Sync,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (data, shape) = values::<f64>("F", f)?;
+        check_shape("F", &shape, &[None, Some(3), Some(3)])?;
+        let model = &self.model;
+        let out: Vec<f64> = py.detach(|| {
+            data.chunks(9)
+                .flat_map(|f| per(model, &Matrix3::from_row_slice(f)))
+                .collect()
+        });
+        array(py, out, &[&[shape[0]], tail].concat())
+    }
 }
 
 #[pymethods]
@@ -56,23 +93,7 @@ impl Material {
                 ));
             }
         };
-        let spec = match model {
-            "linear" => MaterialSpec::LinearElastic(moduli),
-            "corotated" => MaterialSpec::CorotatedLinear {
-                moduli,
-                lagged_rotation: false,
-            },
-            "fixed_corotated" => MaterialSpec::FixedCorotated(moduli),
-            "stvk" => MaterialSpec::StVenantKirchhoff(moduli),
-            "neo_hookean" => MaterialSpec::NeoHookean(moduli),
-            "stable_neo_hookean" => MaterialSpec::StableNeoHookean(moduli),
-            other => {
-                return Err(errors::material(format!(
-                    "unknown model {other:?}; one of {NAMES}"
-                )));
-            }
-        };
-        Self::from_spec(spec)
+        Self::from_spec(member(model)?.spec(moduli))
     }
 
     /// A material from its RON text as scene files state it, e.g.
@@ -100,10 +121,7 @@ impl Material {
         py: Python<'py>,
         f: Bound<'_, PyAny>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let f = gradients(&f)?;
-        let model = &self.model;
-        let out: Vec<f64> = py.detach(|| f.iter().map(|f| model.psi(f)).collect());
-        array(py, out, &[f.len()])
+        self.per_gradient::<1>(py, &f, &[], |m, f| [m.psi(f)])
     }
 
     /// The first Piola-Kirchhoff stress `dPsi/dF` of each `F`: (N, 3, 3).
@@ -112,18 +130,11 @@ impl Material {
         py: Python<'py>,
         f: Bound<'_, PyAny>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let f = gradients(&f)?;
-        let model = &self.model;
-        let out: Vec<f64> = py.detach(|| {
-            f.iter()
-                .flat_map(|f| {
-                    let p = model.first_piola(f);
-                    // Row-major, as numpy stores it.
-                    (0..9).map(move |k| p[(k / 3, k % 3)])
-                })
-                .collect()
-        });
-        array(py, out, &[f.len(), 3, 3])
+        self.per_gradient::<9>(py, &f, &[3, 3], |m, f| {
+            let p = m.first_piola(f);
+            // Row-major, as numpy stores it.
+            std::array::from_fn(|k| p[(k / 3, k % 3)])
+        })
     }
 
     /// The tangent `dP/dF` of each `F`: (N, 9, 9) with `T[n, 3i+j, 3k+l] = dP_ij / dF_kl`
@@ -136,23 +147,16 @@ impl Material {
         f: Bound<'_, PyAny>,
         project: bool,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let f = gradients(&f)?;
-        let model = &self.model;
-        let out: Vec<f64> = py.detach(|| {
-            f.iter()
-                .flat_map(|f| {
-                    let t = if project {
-                        model.dp_df_projected(f)
-                    } else {
-                        model.dp_df(f)
-                    };
-                    // deform orders vec(F) column-major (3j + i); numpy row-major (3i + j).
-                    let col = |r: usize| 3 * (r % 3) + r / 3;
-                    (0..81).map(move |k| t[(col(k / 9), col(k % 9))])
-                })
-                .collect()
-        });
-        array(py, out, &[f.len(), 9, 9])
+        self.per_gradient::<81>(py, &f, &[9, 9], |m, f| {
+            let t = if project {
+                m.dp_df_projected(f)
+            } else {
+                m.dp_df(f)
+            };
+            // deform orders vec(F) column-major (3j + i); numpy row-major (3i + j).
+            let col = |r: usize| 3 * (r % 3) + r / 3;
+            std::array::from_fn(|k| t[(col(k / 9), col(k % 9))])
+        })
     }
 
     fn __repr__(&self) -> PyResult<String> {

@@ -125,7 +125,12 @@ fn state_values(name: &str, a: &Bound<'_, PyAny>, n: usize) -> PyResult<Vec<f64>
             i % 3
         )));
     }
-    Ok(data.to_vec())
+    Ok(data)
+}
+
+/// A state vector as a (V, 3) array.
+fn frame<'py>(py: Python<'py>, values: &[f64]) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    array(py, values.to_vec(), &[values.len() / 3, 3])
 }
 
 #[pymethods]
@@ -198,30 +203,29 @@ impl Simulation {
     /// Positions (V, 3); settable (a (V, 3) or (3V,) array).
     #[getter]
     fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let running = self.lock();
-        let n = running.state.x.len();
-        array(py, running.state.x.clone(), &[n / 3, 3])
+        frame(py, &self.lock().state.x)
     }
 
     #[setter]
     fn set_x(&self, x: Bound<'_, PyAny>) -> PyResult<()> {
-        let mut running = self.lock();
-        running.state.x = state_values("x", &x, running.state.x.len())?;
+        // Converted (Python code) before the state is locked.
+        let n = self.lock().state.x.len();
+        let x = state_values("x", &x, n)?;
+        self.lock().state.x = x;
         Ok(())
     }
 
     /// Velocities (V, 3); settable.
     #[getter]
     fn v<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let running = self.lock();
-        let n = running.state.v.len();
-        array(py, running.state.v.clone(), &[n / 3, 3])
+        frame(py, &self.lock().state.v)
     }
 
     #[setter]
     fn set_v(&self, v: Bound<'_, PyAny>) -> PyResult<()> {
-        let mut running = self.lock();
-        running.state.v = state_values("v", &v, running.state.v.len())?;
+        let n = self.lock().state.v.len();
+        let v = state_values("v", &v, n)?;
+        self.lock().state.v = v;
         Ok(())
     }
 
