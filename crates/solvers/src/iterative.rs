@@ -122,6 +122,12 @@ impl Iterative {
                 reason: "must be in (0, 2)",
             });
         }
+        if let Method::Pcg(PreconditionerSpec::Amg {
+            theta, smoother, ..
+        }) = method
+        {
+            crate::amg::validate(theta, smoother)?;
+        }
         Ok(Self {
             method,
             tolerance,
@@ -153,11 +159,14 @@ impl Iterative {
         self.refresh = true;
     }
 
-    /// How many `factorize` calls the current stale-Cholesky factor has been reused for
-    /// (`None` for other preconditioners or before the first factorisation).
+    /// How many `factorize` calls the current stale-Cholesky factor has been reused for, or
+    /// the current AMG hierarchy refreshed for (`None` for other preconditioners or before
+    /// the first set-up).
     pub fn preconditioner_age(&self) -> Option<usize> {
         match self.precond {
-            Some(Preconditioner::Cholesky { age, .. }) => Some(age),
+            Some(Preconditioner::Cholesky { age, .. } | Preconditioner::Amg { age, .. }) => {
+                Some(age)
+            }
             _ => None,
         }
     }
@@ -165,6 +174,15 @@ impl Iterative {
     /// The diagonal shift IC(0) needed to stay positive (0 for other preconditioners).
     pub fn preconditioner_shift(&self) -> f64 {
         self.precond.as_ref().map_or(0.0, Preconditioner::shift)
+    }
+
+    /// Rows of each level of the current AMG hierarchy, finest first (empty for other
+    /// preconditioners or before the first set-up).
+    pub fn amg_levels(&self) -> Vec<usize> {
+        match &self.precond {
+            Some(Preconditioner::Amg { amg, .. }) => amg.level_sizes(),
+            _ => Vec::new(),
+        }
     }
 
     fn jacobi(
@@ -342,6 +360,25 @@ impl LinearSolver for Iterative {
                             setup.analyzed = stats.analyzed;
                             setup.flops = stats.flops;
                             setup.factor_nnz = factor.factor_nnz();
+                        }
+                        Err(e) => {
+                            self.precond = None;
+                            return Err(e);
+                        }
+                    }
+                } else if let (PreconditionerSpec::Amg { max_age, .. }, false) = (spec, refresh)
+                    && let Some(Preconditioner::Amg { amg, age }) = &mut self.precond
+                    && *age < max_age
+                    && amg.nrows() == a.nrows()
+                {
+                    let csr = a.csr().ok_or(SolverError::Unsupported(
+                        "AMG needs an assembled CSR matrix",
+                    ))?;
+                    match amg.refresh(csr) {
+                        Ok(flops) => {
+                            *age += 1;
+                            setup.reused = true;
+                            setup.flops = flops;
                         }
                         Err(e) => {
                             self.precond = None;

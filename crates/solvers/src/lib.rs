@@ -38,6 +38,7 @@
 //! assert!(stats.relative_residual() <= 1e-8);
 //! ```
 
+mod amg;
 mod direct;
 mod error;
 mod iterative;
@@ -48,6 +49,7 @@ mod spec;
 mod split;
 mod stats;
 
+pub use amg::AmgSmoother;
 pub use direct::{Cholesky, Indefinite, Precision};
 pub use error::SolverError;
 pub use iterative::{Iterative, Method, Tolerance};

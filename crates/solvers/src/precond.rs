@@ -1,8 +1,10 @@
-//! Preconditioners for PCG: diagonal (Jacobi), 3x3 block Jacobi, SSOR, IC(0) and a stale
-//! sparse Cholesky factor.
+//! Preconditioners for PCG: diagonal (Jacobi), 3x3 block Jacobi, SSOR, IC(0), a stale
+//! sparse Cholesky factor and smoothed-aggregation algebraic multigrid.
 
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
+
+use crate::amg::{Amg, AmgSmoother};
 
 use crate::direct::{Cholesky, Indefinite, Precision};
 use crate::operator::{LinearOperator, for_each_entry};
@@ -42,6 +44,23 @@ pub enum PreconditionerSpec {
         #[serde(default)]
         precision: Precision,
     },
+    /// Smoothed-aggregation algebraic multigrid with the rigid-body modes of the nodes'
+    /// positions (given by `LinearSolver::set_coordinates`; translations only without them)
+    /// as near-null space; one V-cycle per application. Needs CSR.
+    Amg {
+        /// Strength-of-connection threshold in `[0, 1)` on the node blocks' Frobenius norms;
+        /// 0 (the default) makes every nonzero block strong.
+        #[serde(default)]
+        theta: f64,
+        /// The smoother on every level.
+        #[serde(default)]
+        smoother: AmgSmoother,
+        /// How many further `factorize` calls keep the hierarchy (aggregates and
+        /// prolongators) and only recompute its operators from the new matrix; 0 rebuilds
+        /// it every time.
+        #[serde(default)]
+        max_age: usize,
+    },
 }
 
 /// A set-up preconditioner: `z = M^-1 r`.
@@ -62,6 +81,11 @@ pub(crate) enum Preconditioner {
     /// A Cholesky factor and how many `factorize` calls have reused it.
     Cholesky {
         factor: Box<Cholesky>,
+        age: usize,
+    },
+    /// A multigrid hierarchy and how many `factorize` calls have refreshed it.
+    Amg {
+        amg: Box<Amg>,
         age: usize,
     },
 }
@@ -171,6 +195,21 @@ impl Preconditioner {
                 let stats = factor.factorize(a)?;
                 (Preconditioner::Cholesky { factor, age: 0 }, stats.flops)
             }
+            PreconditionerSpec::Amg {
+                theta, smoother, ..
+            } => {
+                let csr = a.csr().ok_or(SolverError::Unsupported(
+                    "AMG needs an assembled CSR matrix",
+                ))?;
+                let (amg, flops) = Amg::new(csr, coordinates, theta, smoother)?;
+                (
+                    Preconditioner::Amg {
+                        amg: Box::new(amg),
+                        age: 0,
+                    },
+                    flops,
+                )
+            }
         })
     }
 
@@ -231,6 +270,7 @@ impl Preconditioner {
                     .solve_in_place(z)
                     .expect("a held factor solves vectors of its size");
             }
+            Preconditioner::Amg { amg, .. } => amg.apply(a, r, z),
             Preconditioner::Ic0 { l, .. } => {
                 // L y = r (forward), then L^T z = y (backward, column sweep over L's rows).
                 let n = l.indptr.len() - 1;
@@ -263,6 +303,7 @@ impl Preconditioner {
             Preconditioner::Ssor { .. } => a.apply_flops() + 4 * n as u64,
             Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
             Preconditioner::Cholesky { factor, .. } => factor.solve_flops(),
+            Preconditioner::Amg { amg, .. } => amg.flops(a),
         }
     }
 

@@ -75,7 +75,8 @@ pub struct SetupStats {
     /// The symbolic analysis was (re)done, because the pattern was new.
     pub analyzed: bool,
     /// An earlier factor or preconditioner was kept instead of computing a new one (stale
-    /// Cholesky preconditioning).
+    /// Cholesky preconditioning), or an AMG hierarchy was kept with only its operators
+    /// recomputed.
     pub reused: bool,
     /// Deterministic work estimate of the set-up in floating-point operations.
     pub flops: u64,

@@ -7,8 +7,8 @@ use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
 use deform_mesh::topology::BlockPattern;
 use deform_solvers::{
-    Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, Precision, PreconditionerSpec,
-    SolverError, SolverSpec, Termination, Tolerance,
+    AmgSmoother, Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, Precision,
+    PreconditionerSpec, SolverError, SolverSpec, Termination, Tolerance,
 };
 use sprs::CsMat;
 
@@ -148,6 +148,7 @@ fn every_preconditioner_beats_plain_cg_and_all_solvers_agree() {
         PreconditionerSpec::BlockJacobi,
         PreconditionerSpec::Ssor { omega: 1.2 },
         PreconditionerSpec::Ic0,
+        AMG,
         PreconditionerSpec::StaleCholesky {
             precision: Default::default(),
             max_age: 0,
@@ -394,10 +395,13 @@ fn iterative_solves_do_not_depend_on_the_thread_count() {
         "Cg(tolerance: (rel: 1e-8))",
         "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8))",
         "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-8))",
+        "Pcg(preconditioner: Amg(), tolerance: (rel: 1e-8))",
     ] {
+        let points = coordinates(&mesh);
         let solve = |threads: usize| {
             on_threads(threads, || {
                 let mut s = ron::from_str::<SolverSpec>(spec).unwrap().build().unwrap();
+                s.set_coordinates(Some(&points));
                 s.factorize(&a).unwrap();
                 let mut x = vec![0.0; b.len()];
                 let stats = s.solve(&a, &b, &mut x).unwrap();
@@ -593,4 +597,128 @@ fn a_single_precision_stale_factor_preconditions_as_well_as_a_double_one() {
     for (d, s) in double.iter().zip(&single) {
         assert!(*s <= d + 2, "double {double:?}, single {single:?}");
     }
+}
+
+/// PCG with `spec` to 1e-8 on `a` after one set-up: (iterations, AMG levels, solution).
+fn amg_solve(
+    a: &CsMat<f64>,
+    coordinates: Option<&[[f64; 3]]>,
+    spec: PreconditionerSpec,
+) -> (usize, Vec<usize>, Vec<f64>) {
+    let mut s = pcg(spec);
+    s.set_coordinates(coordinates);
+    s.factorize(a).unwrap();
+    let b = rhs(a.rows());
+    let mut x = vec![0.0; b.len()];
+    let stats = s.solve(a, &b, &mut x).unwrap();
+    assert!(residual(a, &x, &b) < 1e-8);
+    (stats.iterations, s.amg_levels(), x)
+}
+
+const AMG: PreconditionerSpec = PreconditionerSpec::Amg {
+    theta: 0.0,
+    smoother: AmgSmoother::Chebyshev { degree: 2 },
+    max_age: 0,
+};
+
+#[test]
+fn amg_with_rigid_body_modes_keeps_iterations_flat_under_refinement() {
+    let mut iterations = Vec::new();
+    for cells in [6, 12] {
+        let mesh = beam(cells);
+        let a = newton_matrix(&mesh, &bent(&mesh, 0.01), 10.0);
+        let points = coordinates(&mesh);
+        let (rigid, levels, _) = amg_solve(&a, Some(&points), AMG);
+        let (translations, _, _) = amg_solve(&a, None, AMG);
+        let jacobi_smoothed = PreconditionerSpec::Amg {
+            theta: 0.0,
+            smoother: AmgSmoother::Jacobi { sweeps: 2 },
+            max_age: 0,
+        };
+        let (jacobi, _, _) = amg_solve(&a, Some(&points), jacobi_smoothed);
+        let (block_jacobi, _, _) = amg_solve(&a, None, PreconditionerSpec::BlockJacobi);
+        // Measured: 17 and 20 iterations; translations only 39 and 35; block Jacobi 367, 491.
+        assert!(levels.len() >= 2 && levels[0] == a.rows(), "{levels:?}");
+        assert!(levels.windows(2).all(|w| w[1] * 3 < w[0]), "{levels:?}");
+        assert!(rigid < translations, "{rigid} vs {translations}");
+        assert!(jacobi < 2 * rigid, "{jacobi} vs {rigid}");
+        assert!(10 * rigid < block_jacobi, "{rigid} vs {block_jacobi}");
+        iterations.push(rigid);
+    }
+    assert!(iterations[1] <= iterations[0] * 3 / 2, "{iterations:?}");
+}
+
+#[test]
+fn an_amg_hierarchy_is_refreshed_for_max_age_set_ups_then_rebuilt() {
+    let mesh = beam(8);
+    let points = coordinates(&mesh);
+    let spec = PreconditionerSpec::Amg {
+        theta: 0.0,
+        smoother: AmgSmoother::default(),
+        max_age: 2,
+    };
+    let mut s = pcg(spec);
+    s.set_coordinates(Some(&points));
+    let mut reused = Vec::new();
+    for k in 0..4 {
+        let a = newton_matrix(&mesh, &bent(&mesh, 0.01 * f64::from(k)), 10.0);
+        let setup = s.factorize(&a).unwrap();
+        reused.push((setup.reused, s.preconditioner_age()));
+        assert!(setup.flops > 0);
+        let b = rhs(a.rows());
+        let mut x = vec![0.0; b.len()];
+        let stats = s.solve(&a, &b, &mut x).unwrap();
+        assert!(residual(&a, &x, &b) < 1e-8);
+        // A refreshed hierarchy preconditions the new matrix as well as a new one would.
+        let (fresh, _, _) = amg_solve(&a, Some(&points), spec);
+        assert!(
+            stats.iterations <= fresh + 2,
+            "{} vs {fresh}",
+            stats.iterations
+        );
+    }
+    assert_eq!(
+        reused,
+        [
+            (false, Some(0)),
+            (true, Some(1)),
+            (true, Some(2)),
+            (false, Some(0))
+        ]
+    );
+    s.refresh();
+    let a = newton_matrix(&mesh, &bent(&mesh, 0.0), 10.0);
+    assert!(!s.factorize(&a).unwrap().reused);
+}
+
+#[test]
+fn bad_amg_parameters_are_refused_by_name() {
+    for (spec, field) in [
+        (
+            PreconditionerSpec::Amg {
+                theta: 1.0,
+                smoother: AmgSmoother::default(),
+                max_age: 0,
+            },
+            "theta",
+        ),
+        (
+            PreconditionerSpec::Amg {
+                theta: 0.0,
+                smoother: AmgSmoother::Chebyshev { degree: 0 },
+                max_age: 0,
+            },
+            "degree",
+        ),
+    ] {
+        let e = Iterative::try_new(Method::Pcg(spec), Tolerance::default()).unwrap_err();
+        assert!(
+            matches!(e, SolverError::InvalidParameter { field: f, .. } if f == field),
+            "{e:?}"
+        );
+    }
+    let spec: SolverSpec =
+        ron::from_str("Pcg(preconditioner: Amg(smoother: Jacobi(sweeps: 1)))").unwrap();
+    assert!(spec.build().is_ok());
+    assert!(ron::from_str::<SolverSpec>("Pcg(preconditioner: Amg(levels: 3))").is_err());
 }

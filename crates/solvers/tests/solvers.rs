@@ -36,6 +36,7 @@ fn all_specs(rel: f64, max_iterations: usize) -> Vec<String> {
         format!("Pcg(preconditioner: BlockJacobi, {tol})"),
         format!("Pcg(preconditioner: Ssor(omega: 1.2), {tol})"),
         format!("Pcg(preconditioner: Ic0, {tol})"),
+        format!("Pcg(preconditioner: Amg(), {tol})"),
     ]
 }
 
