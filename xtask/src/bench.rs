@@ -55,6 +55,10 @@ pub struct SolversArgs {
     /// Write the matrix here (Matrix Market, general real, full storage).
     #[arg(long)]
     pub export: Option<PathBuf>,
+    /// Write the free vertices' rest positions here (`.npy`, one row per 3 matrix rows), for
+    /// peers' rigid-body modes.
+    #[arg(long)]
+    pub export_coordinates: Option<PathBuf>,
     /// Repetitions (medians are reported).
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
@@ -130,10 +134,15 @@ fn solvers(args: SolversArgs) -> Result<()> {
             r#"{{"what": "solvers", "impl": "deform", "solver": "{name}", "dofs": {dofs}, {fields}}}"#
         );
     };
+    // The free vertices' rest positions: geometric nested dissection as in the integrator
+    // (`_graph` rows order from the matrix alone, what PARDISO gets) and AMG's rigid modes.
+    let coordinates = beam_free_coordinates(args.n);
+    if let Some(path) = &args.export_coordinates {
+        let flat: Vec<f64> = coordinates.iter().flatten().copied().collect();
+        deform_fs::npy::write(path, &[coordinates.len(), 3], &flat)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     if !args.no_direct {
-        // Geometric nested dissection as in the integrator; `_graph` rows order from the
-        // matrix alone (what PARDISO gets).
-        let coordinates = beam_free_coordinates(args.n);
         for t in time_direct(&a, &b, &coordinates, args.repeats)? {
             report(
                 t.name,
@@ -150,12 +159,15 @@ fn solvers(args: SolversArgs) -> Result<()> {
             );
         }
     }
-    for (name, iterations, t) in time_iterative(&a, &b, args.repeats)? {
+    for t in time_iterative(&a, &b, &coordinates, args.repeats)? {
         report(
-            name,
+            t.name,
             format!(
-                r#""iterations": {iterations}, "seconds": {t:.4}, "seconds_per_iteration": {:.3e}"#,
-                t / iterations.max(1) as f64
+                r#""iterations": {}, "setup": {:.4}, "seconds": {:.4}, "seconds_per_iteration": {:.3e}"#,
+                t.iterations,
+                t.setup,
+                t.seconds,
+                (t.seconds - t.setup) / t.iterations.max(1) as f64
             ),
         );
     }
