@@ -267,7 +267,7 @@ pub fn time_iterative(
 }
 
 /// The solver policies `cargo xtask bench step` compares, by name.
-pub const STEP_POLICIES: [(&str, &str); 9] = [
+pub const STEP_POLICIES: [(&str, &str); 11] = [
     ("direct", "Fixed(Direct())"),
     ("direct_one_thread", "Fixed(Direct(parallel: false))"),
     ("direct_mixed", "Fixed(Direct(precision: Mixed))"),
@@ -298,6 +298,16 @@ pub const STEP_POLICIES: [(&str, &str); 9] = [
     (
         "pcg_jacobi",
         "Fixed(Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+    ),
+    // Smoothed-aggregation AMG with the rest positions' rigid-body modes: a new hierarchy
+    // per Newton iteration, and one hierarchy refreshed with new values for 20 set-ups.
+    (
+        "pcg_amg",
+        "Fixed(Pcg(preconditioner: Amg(), tolerance: (rel: 1e-8)))",
+    ),
+    (
+        "pcg_amg_refresh",
+        "Fixed(Pcg(preconditioner: Amg(max_age: 20), tolerance: (rel: 1e-8)))",
     ),
 ];
 

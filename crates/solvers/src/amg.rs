@@ -120,6 +120,9 @@ struct Level {
     /// Prolongation to this level from the next one, and its transpose.
     p: CsMat<f64>,
     r: CsMat<f64>,
+    /// This level's nodes and the next level's (row groups sharing their columns).
+    nodes: Nodes,
+    coarse_nodes: Nodes,
 }
 
 /// A set-up multigrid hierarchy.
@@ -158,11 +161,11 @@ impl Amg {
                 break;
             }
             let (t, coarse_nodes, coarse_modes) = tentative(&nodes, &modes, &aggregate_of, count);
-            let at = multiply(current, &t);
+            let at = multiply_grouped(current, &nodes, &t, &nodes);
             flops += product_flops(current, &t);
             let p = smooth_prolongator(&t, &at, &inv_diag, 4.0 / (3.0 * lambda));
             let r = transpose(&p);
-            let (next, f) = galerkin(current, &p, &r);
+            let (next, f) = galerkin(current, &p, &r, &nodes, &coarse_nodes);
             flops += f;
             levels.push(Level {
                 a: coarse_a.take(),
@@ -170,6 +173,8 @@ impl Amg {
                 lambda,
                 p,
                 r,
+                nodes,
+                coarse_nodes: coarse_nodes.clone(),
             });
             coarse_a = Some(next);
             nodes = coarse_nodes;
@@ -199,7 +204,13 @@ impl Amg {
             }
             let current = level.a.as_ref().unwrap_or(a);
             let (inv_diag, lambda, f) = smoother_data(current)?;
-            let (coarse, g) = galerkin(current, &level.p, &level.r);
+            let (coarse, g) = galerkin(
+                current,
+                &level.p,
+                &level.r,
+                &level.nodes,
+                &level.coarse_nodes,
+            );
             (level.inv_diag, level.lambda) = (inv_diag, lambda);
             flops += f + g;
             next = Some(coarse);
@@ -612,34 +623,40 @@ fn tentative(
 /// `P = (I - omega D^-1 A) T`, given `A T`; `T`'s pattern lies inside `A T`'s (the diagonal
 /// of `A` is stored).
 fn smooth_prolongator(t: &CsMat<f64>, at: &CsMat<f64>, inv_diag: &[f64], omega: f64) -> CsMat<f64> {
-    let mut p = at.clone();
     let (t_ptr, t_idx, t_val) = (t.indptr(), t.indices(), t.data());
-    let t_ptr = t_ptr.raw_storage().to_vec();
-    let p_ptr = p.indptr().raw_storage().to_vec();
-    let p_idx = p.indices().to_vec();
-    let data = p.data_mut();
-    for i in 0..p_ptr.len() - 1 {
-        let scale = -omega * inv_diag[i];
-        let row = p_ptr[i]..p_ptr[i + 1];
-        for k in row.clone() {
-            data[k] *= scale;
-        }
-        for m in t_ptr[i]..t_ptr[i + 1] {
-            let col = t_idx[m];
-            let offset = p_idx[row.clone()]
-                .binary_search(&col)
-                .expect("T's pattern lies inside A T's");
-            data[row.start + offset] += t_val[m];
-        }
-    }
-    p
+    let t_ptr = t_ptr.raw_storage();
+    let (p_ptr, p_idx, at_val) = (at.indptr(), at.indices(), at.data());
+    let p_ptr = p_ptr.raw_storage();
+    let data: Vec<f64> = (0..at.rows())
+        .into_par_iter()
+        .with_min_len(ROWS_PER_TASK)
+        .flat_map_iter(|i| {
+            let row = p_ptr[i]..p_ptr[i + 1];
+            let scale = -omega * inv_diag[i];
+            let mut values: Vec<f64> = at_val[row.clone()].iter().map(|v| scale * v).collect();
+            for m in t_ptr[i]..t_ptr[i + 1] {
+                let offset = p_idx[row.clone()]
+                    .binary_search(&t_idx[m])
+                    .expect("T's pattern lies inside A T's");
+                values[offset] += t_val[m];
+            }
+            values
+        })
+        .collect();
+    CsMat::new((at.rows(), at.cols()), p_ptr.to_vec(), p_idx.to_vec(), data)
 }
 
-/// `P^T A P` and its flops.
-fn galerkin(a: &CsMat<f64>, p: &CsMat<f64>, r: &CsMat<f64>) -> (CsMat<f64>, u64) {
-    let ap = multiply(a, p);
+/// `P^T A P` and its flops; `fine` and `coarse` group the rows of `A` and of `P^T`.
+fn galerkin(
+    a: &CsMat<f64>,
+    p: &CsMat<f64>,
+    r: &CsMat<f64>,
+    fine: &Nodes,
+    coarse: &Nodes,
+) -> (CsMat<f64>, u64) {
+    let ap = multiply_grouped(a, fine, p, fine);
     let flops = product_flops(a, p) + product_flops(r, &ap);
-    (multiply(r, &ap), flops)
+    (multiply_grouped(r, coarse, &ap, fine), flops)
 }
 
 /// Flops of `a * b`: two per product of entries.
@@ -651,6 +668,156 @@ fn product_flops(a: &CsMat<f64>, b: &CsMat<f64>) -> u64 {
         .iter()
         .map(|&k| (b_ptr[k + 1] - b_ptr[k]) as u64)
         .sum::<u64>()
+}
+
+/// Whether the rows of each group have the same columns.
+fn rows_share_columns(m: &CsMat<f64>, groups: &Nodes) -> bool {
+    let (ptr, idx) = (m.indptr(), m.indices());
+    let ptr = ptr.raw_storage();
+    *groups.ptr.last().unwrap_or(&0) == m.rows()
+        && (0..groups.len()).into_par_iter().all(|g| {
+            let rows = groups.dofs(g);
+            let first = &idx[ptr[rows.start]..ptr[rows.start + 1]];
+            rows.skip(1)
+                .all(|row| &idx[ptr[row]..ptr[row + 1]] == first)
+        })
+}
+
+/// One group of a grouped product: `(row lengths, columns, values)`.
+type RowsOut = (Vec<usize>, Vec<usize>, Vec<f64>);
+
+/// `a * b` for block-structured operands, the same values as [`multiply`]: `a`'s rows come in
+/// `a_groups` that share their columns, those columns cover whole groups of `b`'s rows
+/// (`b_groups`), whose rows share theirs too. Each group of output rows then has one column
+/// set, found once, and each block pair is a small dense product through a position table
+/// (no per-entry search or sort). Falls back to [`multiply`] when the structure is not there.
+fn multiply_grouped(
+    a: &CsMat<f64>,
+    a_groups: &Nodes,
+    b: &CsMat<f64>,
+    b_groups: &Nodes,
+) -> CsMat<f64> {
+    multiply_blocks(a, a_groups, b, b_groups).unwrap_or_else(|| multiply(a, b))
+}
+
+/// The grouped product of [`multiply_grouped`], `None` without the block structure.
+fn multiply_blocks(
+    a: &CsMat<f64>,
+    a_groups: &Nodes,
+    b: &CsMat<f64>,
+    b_groups: &Nodes,
+) -> Option<CsMat<f64>> {
+    if !(rows_share_columns(a, a_groups) && rows_share_columns(b, b_groups)) {
+        return None;
+    }
+    let owner = b_groups.owners();
+    let (a_ptr, a_idx, a_val) = (a.indptr(), a.indices(), a.data());
+    let a_ptr = a_ptr.raw_storage();
+    let (b_ptr, b_idx, b_val) = (b.indptr(), b.indices(), b.data());
+    let b_ptr = b_ptr.raw_storage();
+    let group = |g: usize, pos: &mut Vec<usize>, out: &mut RowsOut| -> Option<()> {
+        let rows = a_groups.dofs(g);
+        let (m, r0) = (rows.len(), rows.start);
+        let a_cols = &a_idx[a_ptr[r0]..a_ptr[r0 + 1]];
+        // The row's columns as whole groups of b's rows: (group, offset in the row).
+        let mut segments = Vec::new();
+        let mut k = 0;
+        while k < a_cols.len() {
+            let j = owner[a_cols[k]];
+            let range = b_groups.dofs(j);
+            let len = range.len();
+            if k + len > a_cols.len() || !a_cols[k..k + len].iter().copied().eq(range) {
+                return None;
+            }
+            segments.push((j, k));
+            k += len;
+        }
+        let mut cols: Vec<usize> = Vec::new();
+        for &(j, _) in &segments {
+            let first = b_groups.ptr[j];
+            for &c in &b_idx[b_ptr[first]..b_ptr[first + 1]] {
+                if pos[c] == usize::MAX {
+                    pos[c] = 0;
+                    cols.push(c);
+                }
+            }
+        }
+        cols.sort_unstable();
+        for (t, &c) in cols.iter().enumerate() {
+            pos[c] = t;
+        }
+        let u = cols.len();
+        let start = out.2.len();
+        out.2.resize(start + m * u, 0.0);
+        let acc = &mut out.2[start..];
+        let mut local = Vec::new();
+        // Entries are added in the order of a's row, as in `multiply`.
+        for &(j, offset) in &segments {
+            let b_rows = b_groups.dofs(j);
+            local.clear();
+            local.extend(
+                b_idx[b_ptr[b_rows.start]..b_ptr[b_rows.start + 1]]
+                    .iter()
+                    .map(|&c| pos[c]),
+            );
+            for ii in 0..m {
+                let a_row = a_ptr[r0 + ii] + offset;
+                let target = &mut acc[ii * u..(ii + 1) * u];
+                for (jj, b_row) in b_rows.clone().enumerate() {
+                    let x = a_val[a_row + jj];
+                    let values = &b_val[b_ptr[b_row]..b_ptr[b_row + 1]];
+                    for (&p, &v) in local.iter().zip(values) {
+                        target[p] += x * v;
+                    }
+                }
+            }
+        }
+        for &c in &cols {
+            pos[c] = usize::MAX;
+        }
+        for _ in 0..m {
+            out.0.push(u);
+            out.1.extend_from_slice(&cols);
+        }
+        Some(())
+    };
+    const GROUPS_PER_TASK: usize = 128;
+    let tasks: Option<Vec<RowsOut>> = (0..a_groups.len().div_ceil(GROUPS_PER_TASK))
+        .into_par_iter()
+        .map_init(
+            || vec![usize::MAX; b.cols()],
+            |pos, task| {
+                let mut out = (Vec::new(), Vec::new(), Vec::new());
+                let groups =
+                    task * GROUPS_PER_TASK..((task + 1) * GROUPS_PER_TASK).min(a_groups.len());
+                for g in groups {
+                    if group(g, pos, &mut out).is_none() {
+                        // Leave the table clean for the thread's next task.
+                        pos.fill(usize::MAX);
+                        return None;
+                    }
+                }
+                Some(out)
+            },
+        )
+        .collect();
+    Some(concatenate(a.rows(), b.cols(), tasks?))
+}
+
+/// A CSR matrix from consecutive row blocks `(row lengths, columns, values)`.
+fn concatenate(rows: usize, cols: usize, tasks: Vec<RowsOut>) -> CsMat<f64> {
+    let nnz = tasks.iter().map(|t| t.1.len()).sum();
+    let mut indptr = Vec::with_capacity(rows + 1);
+    let (mut indices, mut values) = (Vec::with_capacity(nnz), Vec::with_capacity(nnz));
+    indptr.push(0);
+    for (lengths, idx, val) in tasks {
+        for len in lengths {
+            indptr.push(indptr.last().unwrap() + len);
+        }
+        indices.extend(idx);
+        values.extend(val);
+    }
+    CsMat::new((rows, cols), indptr, indices, values)
 }
 
 /// The CSR product `a * b`, sorted columns; rows in parallel, each summed in entry order.
@@ -688,18 +855,7 @@ fn multiply(a: &CsMat<f64>, b: &CsMat<f64>) -> CsMat<f64> {
             },
         )
         .collect();
-    let nnz = tasks.iter().map(|t| t.1.len()).sum();
-    let mut indptr = Vec::with_capacity(rows + 1);
-    let (mut indices, mut values) = (Vec::with_capacity(nnz), Vec::with_capacity(nnz));
-    indptr.push(0);
-    for (lengths, idx, val) in tasks {
-        for len in lengths {
-            indptr.push(indptr.last().unwrap() + len);
-        }
-        indices.extend(idx);
-        values.extend(val);
-    }
-    CsMat::new((rows, cols), indptr, indices, values)
+    concatenate(rows, cols, tasks)
 }
 
 /// The transpose of a CSR matrix, as CSR with sorted columns.
@@ -768,7 +924,7 @@ mod tests {
         assert!(c.indptr().raw_storage().windows(2).all(|w| w[0] <= w[1]));
     }
 
-    /// A `cells^3` grid's graph Laplacian on each of 3 components plus `shift I`, and the
+    /// A `cells^3` grid's graph Laplacian coupling 3 components plus `shift I`, and the
     /// grid's points.
     fn grid_operator(cells: usize, shift: f64) -> (CsMat<f64>, Vec<[f64; 3]>) {
         let index = |x: usize, y: usize, z: usize| (z * cells + y) * cells + x;
@@ -789,16 +945,50 @@ mod tests {
                             neighbours.push(index(x - dx, y - dy, z - dz));
                         }
                     }
+                    // (Laplacian (x) B) + shift I with B = I + 0.1 (ones - I): full 3x3
+                    // blocks, as FEM matrices have.
                     for c in 0..3 {
-                        t.add_triplet(3 * i + c, 3 * i + c, neighbours.len() as f64 + shift);
-                        for &j in &neighbours {
-                            t.add_triplet(3 * i + c, 3 * j + c, -1.0);
+                        for d in 0..3 {
+                            let b = if c == d { 1.0 } else { 0.1 };
+                            let diagonal = neighbours.len() as f64 * b;
+                            let shift = if c == d { shift } else { 0.0 };
+                            t.add_triplet(3 * i + c, 3 * i + d, diagonal + shift);
+                            for &j in &neighbours {
+                                t.add_triplet(3 * i + c, 3 * j + d, -b);
+                            }
                         }
                     }
                 }
             }
         }
         (t.to_csr(), points)
+    }
+
+    #[test]
+    fn grouped_products_equal_plain_ones_bit_for_bit_and_fall_back_without_blocks() {
+        let (a, points) = grid_operator(8, 0.1);
+        let (nodes, modes) = near_null_space(a.rows(), Some(&points));
+        let graph = strength(&a, &nodes, 0.0);
+        let (aggregate_of, count) = aggregate(&graph);
+        let (t, coarse, _) = tentative(&nodes, &modes, &aggregate_of, count);
+        let same = |x: &CsMat<f64>, y: &CsMat<f64>| {
+            x.indptr().raw_storage() == y.indptr().raw_storage()
+                && x.indices() == y.indices()
+                && x.data() == y.data()
+        };
+        let at = multiply_blocks(&a, &nodes, &t, &nodes).unwrap();
+        assert!(same(&at, &multiply(&a, &t)));
+        let r = transpose(&at);
+        let rat = multiply_blocks(&r, &coarse, &at, &nodes).unwrap();
+        assert!(same(&rat, &multiply(&r, &at)));
+        // Rows of a group that do not share columns: the plain product.
+        let b = random(30, 30, 5);
+        let groups = Nodes::uniform(30, 3);
+        assert!(multiply_blocks(&b, &groups, &b, &groups).is_none());
+        assert!(same(
+            &multiply_grouped(&b, &groups, &b, &groups),
+            &multiply(&b, &b)
+        ));
     }
 
     #[test]

@@ -7,8 +7,9 @@
 //! Operators are anything implementing [`LinearOperator`]: the assembled CSR matrix
 //! (`sprs::CsMat<f64>`, full symmetric storage) or a matrix-free operator.
 //!
-//! Solvers: weighted Jacobi, CG, PCG with Jacobi, 3x3 block-Jacobi, SSOR, IC(0) and
-//! stale-Cholesky preconditioners, and a sparse direct Cholesky ([`Cholesky`], faer's
+//! Solvers: weighted Jacobi, CG, PCG with Jacobi, 3x3 block-Jacobi, SSOR, IC(0),
+//! stale-Cholesky and smoothed-aggregation multigrid preconditioners (the rigid-body modes
+//! of [`LinearSolver::set_coordinates`]' positions as near-null space), and a sparse direct Cholesky ([`Cholesky`], faer's
 //! supernodal/simplicial factorisation behind a nested-dissection ordering of the vertex
 //! graph or of the vertices' positions; above 20,000 rows the two halves of the first cut
 //! are factorised concurrently and the separator's Schur complement after them; single
