@@ -1,0 +1,753 @@
+//! Smoothed-aggregation algebraic multigrid (Vaněk, Mandel & Brezina 1996) as a PCG
+//! preconditioner, for elasticity: the near-null space is the six rigid-body modes of the
+//! nodes' positions, so each coarse node carries up to six unknowns (three translations and
+//! three rotations of its aggregate), which is what keeps the iteration count flat as the
+//! mesh is refined.
+//!
+//! Set-up per level: strength of connection on the node graph (3x3 blocks on the finest
+//! level, `k x k` blocks below), greedy aggregation, a tentative prolongator from a QR of the
+//! near-null space on each aggregate, one damped-Jacobi smoothing of it, and the Galerkin
+//! operator `P^T A P`; the coarsest level is factorised by the sparse Cholesky. Every matrix
+//! of the hierarchy is block CSR ([`blocks`]): each coarse node keeps all `k` unknowns, a
+//! near-null-space column that is dependent on a small aggregate becomes a zero column of
+//! `P` and its coarse unknown an identity row nothing couples to, so the blocks stay uniform. One V-cycle
+//! with symmetric smoothing (Chebyshev or damped Jacobi, the same before and after) is the
+//! preconditioner, so PCG sees an SPD operator. Every product runs rows in parallel with
+//! each row summed in a fixed order: the hierarchy and the cycle are identical for any
+//! thread count.
+
+mod blocks;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sprs::CsMat;
+
+use blocks::Blocks;
+
+use crate::direct::{Cholesky, Indefinite};
+use crate::operator::{LinearOperator, dot, for_each_entry, norm};
+use crate::ordering::Ordering;
+use crate::{LinearSolver, SolverError};
+
+/// The smoother on every level of the multigrid cycle.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum AmgSmoother {
+    /// `sweeps` damped-Jacobi sweeps, `x += 4/(3 lambda) D^-1 (b - A x)` with `lambda` the
+    /// estimated largest eigenvalue of `D^-1 A`.
+    Jacobi {
+        /// Sweeps before and after the coarse correction.
+        sweeps: usize,
+    },
+    /// A Chebyshev polynomial of `degree` in `D^-1 A` damping the eigenvalues in
+    /// `[lambda / 30, 1.1 lambda]` (one product with `A` per degree).
+    Chebyshev {
+        /// The polynomial's degree, before and after the coarse correction.
+        degree: usize,
+    },
+}
+
+impl Default for AmgSmoother {
+    fn default() -> Self {
+        AmgSmoother::Chebyshev { degree: 2 }
+    }
+}
+
+/// Checks the parameters of an AMG preconditioner.
+pub(crate) fn validate(theta: f64, smoother: AmgSmoother) -> Result<(), SolverError> {
+    if !(0.0..1.0).contains(&theta) {
+        return Err(SolverError::InvalidParameter {
+            field: "theta",
+            value: theta,
+            reason: "must be in [0, 1)",
+        });
+    }
+    let (field, steps) = match smoother {
+        AmgSmoother::Jacobi { sweeps } => ("sweeps", sweeps),
+        AmgSmoother::Chebyshev { degree } => ("degree", degree),
+    };
+    if steps == 0 {
+        return Err(SolverError::InvalidParameter {
+            field,
+            value: 0.0,
+            reason: "must be at least 1",
+        });
+    }
+    Ok(())
+}
+
+/// Levels stop coarsening at this many unknowns; the last one is factorised.
+const MAX_COARSE: usize = 2000;
+/// At most this many levels (the finest included).
+const MAX_LEVELS: usize = 12;
+/// Lanczos steps of the estimate of the largest eigenvalue of `D^-1 A`.
+const LANCZOS_STEPS: usize = 12;
+
+/// One level above the coarsest: its smoother and the transfer to the next level.
+#[derive(Debug)]
+struct Level {
+    /// This level's operator; `None` on the finest, where the operator being solved is used.
+    a: Option<Blocks>,
+    inv_diag: Vec<f64>,
+    /// Estimated largest eigenvalue of `D^-1 A`.
+    lambda: f64,
+    /// Prolongation to this level from the next one, and its transpose.
+    p: Blocks,
+    r: Blocks,
+}
+
+/// A set-up multigrid hierarchy.
+#[derive(Debug)]
+pub(crate) struct Amg {
+    levels: Vec<Level>,
+    coarse: Box<Cholesky>,
+    smoother: AmgSmoother,
+}
+
+impl Amg {
+    /// Builds the hierarchy for `a` with strength threshold `theta`; `coordinates` (one per 3
+    /// rows) give the rotations of the near-null space, without them only translations are
+    /// used. Returns it with the set-up flops.
+    pub fn new(
+        a: &CsMat<f64>,
+        coordinates: Option<&[[f64; 3]]>,
+        theta: f64,
+        smoother: AmgSmoother,
+    ) -> Result<(Self, u64), SolverError> {
+        let mut modes = near_null_space(a.rows(), coordinates);
+        let mut current = finest_blocks(a)?;
+        let mut levels: Vec<Level> = Vec::new();
+        let mut flops = 0;
+        while current.shape().0 > MAX_COARSE && levels.len() + 1 < MAX_LEVELS {
+            let (inv_diag, lambda, f) = smoother_data(&current)?;
+            flops += f;
+            let (aggregate_of, count) = aggregate(&strength(&current, theta));
+            if count == current.rows {
+                break;
+            }
+            let (t, coarse_modes) = tentative(&modes, current.r, &aggregate_of, count);
+            let at = current.multiply(&t);
+            flops += current.product_flops(&t);
+            let p = smooth_prolongator(&t, &at, &inv_diag, 4.0 / (3.0 * lambda));
+            let r = p.transpose();
+            let (next, f) = galerkin(&current, &p, &r);
+            flops += f;
+            let a_level = if levels.is_empty() {
+                None
+            } else {
+                Some(current)
+            };
+            levels.push(Level {
+                a: a_level,
+                inv_diag,
+                lambda,
+                p,
+                r,
+            });
+            current = next;
+            modes = coarse_modes;
+        }
+        let mut coarse = Box::new(Cholesky::new(Ordering::Amd, Indefinite::Error));
+        coarse.set_parallel(false);
+        flops += coarse.factorize(&current.to_csr())?.flops;
+        Ok((
+            Self {
+                levels,
+                coarse,
+                smoother,
+            },
+            flops,
+        ))
+    }
+
+    /// New values for `a` on the same hierarchy: the prolongators are kept, the Galerkin
+    /// operators, smoothers and the coarse factor are recomputed. Returns the flops.
+    pub fn refresh(&mut self, a: &CsMat<f64>) -> Result<u64, SolverError> {
+        let mut flops = 0;
+        let mut current = finest_blocks(a)?;
+        for (l, level) in self.levels.iter_mut().enumerate() {
+            let (inv_diag, lambda, f) = smoother_data(&current)?;
+            let (next, g) = galerkin(&current, &level.p, &level.r);
+            (level.inv_diag, level.lambda) = (inv_diag, lambda);
+            flops += f + g;
+            let previous = std::mem::replace(&mut current, next);
+            if l > 0 {
+                level.a = Some(previous);
+            }
+        }
+        flops += self.coarse.factorize(&current.to_csr())?.flops;
+        Ok(flops)
+    }
+
+    /// Rows of the finest level.
+    pub fn nrows(&self) -> usize {
+        self.levels
+            .first()
+            .map_or(self.coarse.nrows().unwrap_or(0), |l| l.p.shape().0)
+    }
+
+    /// Rows of each level, finest first (the coarsest last).
+    pub fn level_sizes(&self) -> Vec<usize> {
+        let mut sizes: Vec<usize> = self.levels.iter().map(|l| l.p.shape().0).collect();
+        sizes.push(self.coarse.nrows().unwrap_or(0));
+        sizes
+    }
+
+    /// `z = M^-1 r`: one V-cycle from a zero guess, `a0` the finest operator.
+    pub fn apply(&self, a0: &dyn LinearOperator, r: &[f64], z: &mut [f64]) {
+        z.fill(0.0);
+        self.cycle(0, a0, r, z);
+    }
+
+    fn cycle(&self, l: usize, a0: &dyn LinearOperator, b: &[f64], x: &mut [f64]) {
+        let Some(level) = self.levels.get(l) else {
+            x.copy_from_slice(b);
+            self.coarse
+                .solve_in_place(x)
+                .expect("the coarsest factor solves vectors of its size");
+            return;
+        };
+        let a: &dyn LinearOperator = match &level.a {
+            Some(m) => m,
+            None => a0,
+        };
+        let n = b.len();
+        let mut work = vec![0.0; n];
+        self.smooth(level, a, b, x, true, &mut work);
+        a.apply(x, &mut work);
+        for_each_entry(&mut work, |i, w| *w = b[i] - *w);
+        let nc = level.r.shape().0;
+        let (mut bc, mut xc) = (vec![0.0; nc], vec![0.0; nc]);
+        level.r.multiply_vector(&work, &mut bc);
+        self.cycle(l + 1, a0, &bc, &mut xc);
+        level.p.multiply_vector(&xc, &mut work);
+        for_each_entry(x, |i, xi| *xi += work[i]);
+        self.smooth(level, a, b, x, false, &mut work);
+    }
+    /// Smooths `A x = b` in place; `zero` says `x` is zero on entry (saves a product); `x`
+    /// is zero on entry to every `cycle`.
+    fn smooth(
+        &self,
+        level: &Level,
+        a: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+        zero: bool,
+        work: &mut [f64],
+    ) {
+        let d = &level.inv_diag;
+        // work = D^-1 (b - A x)
+        let residual = |x: &[f64], work: &mut [f64], skip: bool| {
+            if skip {
+                for_each_entry(work, |i, w| *w = d[i] * b[i]);
+            } else {
+                a.apply(x, work);
+                for_each_entry(work, |i, w| *w = d[i] * (b[i] - *w));
+            }
+        };
+        match self.smoother {
+            AmgSmoother::Jacobi { sweeps } => {
+                let omega = 4.0 / (3.0 * level.lambda);
+                for s in 0..sweeps {
+                    residual(x, work, zero && s == 0);
+                    for_each_entry(x, |i, xi| *xi += omega * work[i]);
+                }
+            }
+            AmgSmoother::Chebyshev { degree } => {
+                let upper = 1.1 * level.lambda;
+                let lower = upper / 30.0;
+                let (theta, delta) = (0.5 * (upper + lower), 0.5 * (upper - lower));
+                let sigma = theta / delta;
+                let mut rho = 1.0 / sigma;
+                residual(x, work, zero);
+                let mut step: Vec<f64> = work.iter().map(|w| w / theta).collect();
+                for _ in 1..degree {
+                    for_each_entry(x, |i, xi| *xi += step[i]);
+                    residual(x, work, false);
+                    let rho_next = 1.0 / (2.0 * sigma - rho);
+                    let (c1, c2) = (rho_next * rho, 2.0 * rho_next / delta);
+                    for_each_entry(&mut step, |i, s| *s = c1 * *s + c2 * work[i]);
+                    rho = rho_next;
+                }
+                for_each_entry(x, |i, xi| *xi += step[i]);
+            }
+        }
+    }
+
+    /// Floating-point operations of one `apply` with finest operator `a0`.
+    pub fn flops(&self, a0: &dyn LinearOperator) -> u64 {
+        let per_smooth = match self.smoother {
+            AmgSmoother::Jacobi { sweeps } => sweeps as u64,
+            AmgSmoother::Chebyshev { degree } => degree as u64,
+        };
+        let mut total = self.coarse.solve_flops();
+        for level in &self.levels {
+            let (apply, n) = match &level.a {
+                Some(m) => (m.apply_flops(), m.nrows() as u64),
+                None => (a0.apply_flops(), a0.nrows() as u64),
+            };
+            // Pre- and post-smoothing (the first product is skipped), the residual, the
+            // two transfers and the vector updates.
+            total += (2 * per_smooth) * apply + 2 * 2 * level.p.nnz() as u64 + 12 * n;
+        }
+        total
+    }
+}
+
+/// The finest operator in 3x3 blocks (1x1 when the rows are not a multiple of 3).
+fn finest_blocks(a: &CsMat<f64>) -> Result<Blocks, SolverError> {
+    let b = if a.rows().is_multiple_of(3) { 3 } else { 1 };
+    Blocks::from_csr(a, b).ok_or(SolverError::Unsupported("AMG needs a square CSR matrix"))
+}
+
+/// Near-null-space vectors, row-major: `values[i * k + j]` is mode `j` at unknown `i`.
+#[derive(Debug, Clone)]
+struct Modes {
+    k: usize,
+    values: Vec<f64>,
+}
+
+/// The rigid-body modes of the nodes (translations, and rotations about the centroid when
+/// positions are given), row-major `n x k`; a single constant without 3x3 blocks.
+fn near_null_space(n: usize, coordinates: Option<&[[f64; 3]]>) -> Modes {
+    let blocked = n.is_multiple_of(3);
+    let coordinates = coordinates.filter(|c| blocked && c.len() * 3 == n);
+    let Some(points) = coordinates else {
+        if !blocked {
+            return Modes {
+                k: 1,
+                values: vec![1.0; n],
+            };
+        }
+        let values = (0..n)
+            .flat_map(|i| std::array::from_fn::<f64, 3, _>(|c| f64::from(u8::from(c == i % 3))))
+            .collect();
+        return Modes { k: 3, values };
+    };
+    let count = points.len().max(1) as f64;
+    let mut centre = [0.0; 3];
+    for p in points {
+        for c in 0..3 {
+            centre[c] += p[c] / count;
+        }
+    }
+    // Scaled to unit size so the rotations' columns weigh like the translations'.
+    let size = points
+        .iter()
+        .flat_map(|p| (0..3).map(move |c| (p[c] - centre[c]).abs()))
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
+    let mut values = Vec::with_capacity(6 * n);
+    for p in points {
+        let [x, y, z] = std::array::from_fn(|c| (p[c] - centre[c]) / size);
+        values.extend_from_slice(&[1.0, 0.0, 0.0, 0.0, z, -y]);
+        values.extend_from_slice(&[0.0, 1.0, 0.0, -z, 0.0, x]);
+        values.extend_from_slice(&[0.0, 0.0, 1.0, y, -x, 0.0]);
+    }
+    Modes { k: 6, values }
+}
+
+/// `D^-1` of `a`, the estimated largest eigenvalue of `D^-1 A`, and the flops spent.
+fn smoother_data(a: &Blocks) -> Result<(Vec<f64>, f64, u64), SolverError> {
+    let n = a.nrows();
+    let mut d = vec![0.0; n];
+    a.diagonal(&mut d);
+    if let Some(i) = d.iter().position(|&x| !(x > 0.0)) {
+        return Err(SolverError::NotPositiveDefinite {
+            pivot: i,
+            value: d[i],
+            spent: None,
+        });
+    }
+    let inv: Vec<f64> = d.iter().map(|x| 1.0 / x).collect();
+    let lambda = largest_eigenvalue(a, &inv);
+    if !(lambda.is_finite() && lambda > 0.0) {
+        return Err(SolverError::NotPositiveDefinite {
+            pivot: 0,
+            value: lambda,
+            spent: None,
+        });
+    }
+    let flops = LANCZOS_STEPS as u64 * (a.apply_flops() + 12 * n as u64);
+    Ok((inv, lambda, flops))
+}
+
+/// The largest eigenvalue of `D^-1 A` (that of `D^-1/2 A D^-1/2`), as the largest Ritz value
+/// of a few Lanczos steps from a fixed pseudo-random start: within a few per cent where as
+/// many power iterations can be off by tens of per cent (and a Chebyshev smoother above its
+/// upper bound amplifies instead of damping).
+fn largest_eigenvalue(a: &Blocks, inv_diag: &[f64]) -> f64 {
+    let n = inv_diag.len();
+    let scale: Vec<f64> = inv_diag.iter().map(|x| x.sqrt()).collect();
+    let mut v: Vec<f64> = (0..n)
+        .map(|i| {
+            let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            (h >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        })
+        .collect();
+    let length = norm(&v);
+    for_each_entry(&mut v, |_, x| *x /= length);
+    let (mut previous, mut u, mut w) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+    let (mut alphas, mut betas) = (Vec::new(), Vec::new());
+    let mut beta = 0.0;
+    for _ in 0..LANCZOS_STEPS {
+        for_each_entry(&mut u, |i, x| *x = scale[i] * v[i]);
+        a.apply(&u, &mut w);
+        for_each_entry(&mut w, |i, x| *x *= scale[i]);
+        let alpha = dot(&w, &v);
+        for_each_entry(&mut w, |i, x| *x -= alpha * v[i] + beta * previous[i]);
+        alphas.push(alpha);
+        beta = norm(&w);
+        if !(beta > 1e-12 * alpha.abs()) {
+            break;
+        }
+        betas.push(beta);
+        std::mem::swap(&mut previous, &mut v);
+        for_each_entry(&mut v, |i, x| *x = w[i] / beta);
+    }
+    let k = alphas.len();
+    let tridiagonal = nalgebra::DMatrix::from_fn(k, k, |i, j| match i.abs_diff(j) {
+        0 => alphas[i],
+        1 => betas[i.min(j)],
+        _ => 0.0,
+    });
+    tridiagonal.symmetric_eigenvalues().max()
+}
+
+/// The strong neighbours of each node (block row), sorted: `||A_IJ||_F >= theta
+/// sqrt(||A_II||_F ||A_JJ||_F)` with a nonzero block.
+fn strength(a: &Blocks, theta: f64) -> Vec<Vec<usize>> {
+    let squared = |k: usize| a.block(k).iter().map(|v| v * v).sum::<f64>();
+    let diag: Vec<f64> = (0..a.rows)
+        .map(|i| {
+            let row = &a.idx[a.ptr[i]..a.ptr[i + 1]];
+            row.binary_search(&(i as u32))
+                .map_or(0.0, |k| squared(a.ptr[i] + k))
+        })
+        .collect();
+    let theta2 = theta * theta;
+    (0..a.rows)
+        .into_par_iter()
+        .with_min_len(256)
+        .map(|i| {
+            (a.ptr[i]..a.ptr[i + 1])
+                .filter_map(|k| {
+                    let j = a.idx[k] as usize;
+                    let s = squared(k);
+                    (j != i && s > 0.0 && s >= theta2 * (diag[i] * diag[j]).sqrt()).then_some(j)
+                })
+                .collect()
+        })
+        .collect()
+}
+/// Greedy aggregation (Vaněk et al.): a node whose strong neighbours are all free starts an
+/// aggregate with them; a left-over node joins the aggregate of its first aggregated strong
+/// neighbour; what remains forms aggregates with its free neighbours. Returns each node's
+/// aggregate and the number of aggregates.
+fn aggregate(graph: &[Vec<usize>]) -> (Vec<usize>, usize) {
+    const FREE: usize = usize::MAX;
+    let n = graph.len();
+    let mut of = vec![FREE; n];
+    let mut count = 0;
+    for i in 0..n {
+        if of[i] == FREE && graph[i].iter().all(|&j| of[j] == FREE) {
+            of[i] = count;
+            for &j in &graph[i] {
+                of[j] = count;
+            }
+            count += 1;
+        }
+    }
+    let first_pass = of.clone();
+    for i in 0..n {
+        if of[i] == FREE
+            && let Some(&j) = graph[i].iter().find(|&&j| first_pass[j] != FREE)
+        {
+            of[i] = first_pass[j];
+        }
+    }
+    for i in 0..n {
+        if of[i] == FREE {
+            of[i] = count;
+            for &j in &graph[i] {
+                if of[j] == FREE {
+                    of[j] = count;
+                }
+            }
+            count += 1;
+        }
+    }
+    (of, count)
+}
+
+/// The tentative prolongator in `b x k` blocks (one per fine node, at its aggregate): on
+/// each aggregate, the near-null space's rows orthonormalised (`B_agg = Q R` by
+/// twice-applied modified Gram-Schmidt), `Q` as the aggregate's block column and `R` as the
+/// coarse near-null space; a column dependent on the earlier ones (a small aggregate) is
+/// left zero in `Q` and `R`. Returns `T` and the coarse modes.
+fn tentative(modes: &Modes, b: usize, aggregate_of: &[usize], count: usize) -> (Blocks, Modes) {
+    let k = modes.k;
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); count];
+    for (node, &g) in aggregate_of.iter().enumerate() {
+        members[g].push(node);
+    }
+    // Per aggregate: Q (rows x k, column-major) and R (k x k, row-major).
+    let factors: Vec<(Vec<f64>, Vec<f64>)> = members
+        .par_iter()
+        .map(|nodes| {
+            let m = nodes.len() * b;
+            let mut q = vec![0.0; m * k];
+            for (local, &node) in nodes.iter().enumerate() {
+                for d in 0..b {
+                    let row = node * b + d;
+                    for c in 0..k {
+                        q[c * m + local * b + d] = modes.values[row * k + c];
+                    }
+                }
+            }
+            let mut r = vec![0.0; k * k];
+            for c in 0..k {
+                let original = norm(&q[c * m..(c + 1) * m]);
+                for _ in 0..2 {
+                    for j in 0..c {
+                        let (done, rest) = q.split_at_mut(c * m);
+                        let (qj, col) = (&done[j * m..(j + 1) * m], &mut rest[..m]);
+                        let h = dot(qj, col);
+                        r[j * k + c] += h;
+                        for (x, y) in col.iter_mut().zip(qj) {
+                            *x -= h * y;
+                        }
+                    }
+                }
+                let col = &mut q[c * m..(c + 1) * m];
+                let length = norm(col);
+                if length > 1e-10 * original && length > 0.0 {
+                    r[c * k + c] = length;
+                    col.iter_mut().for_each(|x| *x /= length);
+                } else {
+                    col.fill(0.0);
+                }
+            }
+            (q, r)
+        })
+        .collect();
+    let n = aggregate_of.len();
+    let mut position = vec![0; n];
+    for nodes in &members {
+        for (local, &node) in nodes.iter().enumerate() {
+            position[node] = local;
+        }
+    }
+    let mut val = Vec::with_capacity(n * b * k);
+    for node in 0..n {
+        let g = aggregate_of[node];
+        let (q, m) = (&factors[g].0, members[g].len() * b);
+        for d in 0..b {
+            for c in 0..k {
+                val.push(q[c * m + position[node] * b + d]);
+            }
+        }
+    }
+    let t = Blocks {
+        r: b,
+        c: k,
+        rows: n,
+        cols: count,
+        ptr: (0..=n).collect(),
+        idx: aggregate_of.iter().map(|&g| g as u32).collect(),
+        val,
+    };
+    let values = factors.into_iter().flat_map(|(_, r)| r).collect();
+    (t, Modes { k, values })
+}
+
+/// `P = (I - omega D^-1 A) T`, given `A T`; `T`'s blocks lie inside `A T`'s (the diagonal
+/// blocks of `A` are stored).
+fn smooth_prolongator(t: &Blocks, at: &Blocks, inv_diag: &[f64], omega: f64) -> Blocks {
+    let (b, k) = (at.r, at.c);
+    let size = b * k;
+    let mut p = at.clone();
+    for i in 0..p.rows {
+        for blk in p.ptr[i]..p.ptr[i + 1] {
+            let values = &mut p.val[blk * size..(blk + 1) * size];
+            for d in 0..b {
+                let scale = -omega * inv_diag[i * b + d];
+                values[d * k..(d + 1) * k]
+                    .iter_mut()
+                    .for_each(|v| *v *= scale);
+            }
+        }
+        let g = t.idx[i];
+        let row = &p.idx[p.ptr[i]..p.ptr[i + 1]];
+        let at_block = p.ptr[i] + row.binary_search(&g).expect("T's blocks lie inside A T's");
+        for (v, tv) in p.val[at_block * size..(at_block + 1) * size]
+            .iter_mut()
+            .zip(t.block(i))
+        {
+            *v += tv;
+        }
+    }
+    p
+}
+
+/// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1) and its flops.
+fn galerkin(a: &Blocks, p: &Blocks, r: &Blocks) -> (Blocks, u64) {
+    let ap = a.multiply(p);
+    let flops = a.product_flops(p) + r.product_flops(&ap);
+    let mut coarse = r.multiply(&ap);
+    coarse.fill_zero_diagonal(1.0);
+    (coarse, flops)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sprs::TriMat;
+
+    /// A `cells^3` grid's graph Laplacian coupling 3 components plus `shift I`, and the
+    /// grid's points.
+    fn grid_operator(cells: usize, shift: f64) -> (CsMat<f64>, Vec<[f64; 3]>) {
+        let index = |x: usize, y: usize, z: usize| (z * cells + y) * cells + x;
+        let nodes = cells * cells * cells;
+        let mut t = TriMat::new((3 * nodes, 3 * nodes));
+        let mut points = Vec::new();
+        for z in 0..cells {
+            for y in 0..cells {
+                for x in 0..cells {
+                    let i = index(x, y, z);
+                    points.push([x as f64, y as f64, z as f64]);
+                    let mut neighbours = Vec::new();
+                    for (dx, dy, dz) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
+                        if x + dx < cells && y + dy < cells && z + dz < cells {
+                            neighbours.push(index(x + dx, y + dy, z + dz));
+                        }
+                        if x >= dx && y >= dy && z >= dz {
+                            neighbours.push(index(x - dx, y - dy, z - dz));
+                        }
+                    }
+                    // (Laplacian (x) B) + shift I with B = I + 0.1 (ones - I): full 3x3
+                    // blocks, as FEM matrices have.
+                    for c in 0..3 {
+                        for d in 0..3 {
+                            let b = if c == d { 1.0 } else { 0.1 };
+                            let diagonal = neighbours.len() as f64 * b;
+                            let shift = if c == d { shift } else { 0.0 };
+                            t.add_triplet(3 * i + c, 3 * i + d, diagonal + shift);
+                            for &j in &neighbours {
+                                t.add_triplet(3 * i + c, 3 * j + d, -b);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        (t.to_csr(), points)
+    }
+
+    #[test]
+    fn the_cycle_is_a_symmetric_positive_definite_operator() {
+        let (a, points) = grid_operator(12, 1e-3);
+        for smoother in [
+            AmgSmoother::Chebyshev { degree: 3 },
+            AmgSmoother::Jacobi { sweeps: 1 },
+        ] {
+            let (amg, _) = Amg::new(&a, Some(&points), 0.0, smoother).unwrap();
+            assert!(amg.level_sizes().len() >= 2, "{:?}", amg.level_sizes());
+            let n = a.rows();
+            let vector = |seed: u64| -> Vec<f64> {
+                (0..n as u64)
+                    .map(|i| (((i + 1) * seed * 0x9E37_79B9) % 1000) as f64 / 500.0 - 1.0)
+                    .collect()
+            };
+            let (u, v) = (vector(3), vector(7));
+            let (mut mu, mut mv) = (vec![0.0; n], vec![0.0; n]);
+            amg.apply(&a, &u, &mut mu);
+            amg.apply(&a, &v, &mut mv);
+            let (umv, vmu) = (dot(&u, &mv), dot(&v, &mu));
+            assert!(
+                (umv - vmu).abs() <= 1e-10 * umv.abs().max(vmu.abs()),
+                "{umv} vs {vmu}"
+            );
+            assert!(dot(&u, &mu) > 0.0 && dot(&v, &mv) > 0.0);
+        }
+    }
+
+    #[test]
+    fn aggregation_covers_every_node_once_with_connected_aggregates() {
+        // A path of 10 nodes.
+        let graph: Vec<Vec<usize>> = (0..10)
+            .map(|i: usize| {
+                [i.checked_sub(1), (i + 1 < 10).then_some(i + 1)]
+                    .into_iter()
+                    .flatten()
+                    .collect()
+            })
+            .collect();
+        let (of, count) = aggregate(&graph);
+        assert!((10 / 3..10).contains(&count));
+        for g in 0..count {
+            let members: Vec<usize> = (0..10).filter(|&i| of[i] == g).collect();
+            assert!(!members.is_empty());
+            assert!(members.windows(2).all(|w| w[1] == w[0] + 1), "{members:?}");
+        }
+    }
+
+    #[test]
+    fn the_tentative_prolongator_reproduces_the_rigid_modes() {
+        let points: Vec<[f64; 3]> = (0..13)
+            .map(|i| [f64::from(i % 3), f64::from(i / 3 % 2), f64::from(i / 6)])
+            .collect();
+        let modes = near_null_space(39, Some(&points));
+        // Three aggregates of 4 nodes and one of a single node, where only 3 of the 6 modes
+        // are independent.
+        let aggregate_of: Vec<usize> = (0..13).map(|i| i / 4).collect();
+        let (t, coarse) = tentative(&modes, 3, &aggregate_of, 4);
+        assert_eq!((t.shape(), coarse.k), ((39, 24), 6));
+        // T B_c = B, and T's columns are orthonormal or zero (3 on the single node).
+        let dt = t.to_csr().to_dense();
+        for i in 0..39 {
+            for c in 0..6 {
+                let v: f64 = (0..24).map(|j| dt[[i, j]] * coarse.values[j * 6 + c]).sum();
+                assert!((v - modes.values[i * 6 + c]).abs() < 1e-12, "{i} {c}: {v}");
+            }
+        }
+        let gram = dt.t().dot(&dt);
+        let mut zero = 0;
+        for i in 0..24 {
+            for j in 0..24 {
+                let expected = if i == j && gram[[i, i]] > 0.5 {
+                    1.0
+                } else {
+                    0.0
+                };
+                assert!((gram[[i, j]] - expected).abs() < 1e-12);
+            }
+            zero += usize::from(gram[[i, i]] == 0.0);
+        }
+        assert_eq!(zero, 3);
+    }
+
+    #[test]
+    fn a_refreshed_hierarchy_equals_a_new_one_on_the_same_matrix() {
+        let (a, points) = grid_operator(12, 1e-2);
+        let smoother = AmgSmoother::default();
+        let (fresh, _) = Amg::new(&a, Some(&points), 0.0, smoother).unwrap();
+        let (b, _) = grid_operator(12, 1.0);
+        let (mut refreshed, _) = Amg::new(&b, Some(&points), 0.0, smoother).unwrap();
+        refreshed.refresh(&a).unwrap();
+        let r: Vec<f64> = (0..a.rows()).map(|i| (i as f64 * 0.1).sin()).collect();
+        let (mut z1, mut z2) = (vec![0.0; r.len()], vec![0.0; r.len()]);
+        fresh.apply(&a, &r, &mut z1);
+        refreshed.apply(&a, &r, &mut z2);
+        // Same aggregates (the strength graph does not depend on the shift), but P was
+        // smoothed with the other matrix's diagonal: close, not equal.
+        let diff: f64 = z1
+            .iter()
+            .zip(&z2)
+            .map(|(x, y)| (x - y).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!(diff < 0.5 * norm(&z1), "{diff} vs {}", norm(&z1));
+        assert_eq!(fresh.level_sizes(), refreshed.level_sizes());
+    }
+}
