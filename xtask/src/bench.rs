@@ -76,6 +76,9 @@ pub struct StepArgs {
     /// Time steps per policy.
     #[arg(long, default_value_t = 1)]
     pub steps: usize,
+    /// Only these policies (comma-separated names, e.g. `pcg_amg,pcg_ic0`); all by default.
+    #[arg(long, value_delimiter = ',')]
+    pub policies: Vec<String>,
 }
 
 pub fn run(task: BenchTask) -> Result<()> {
@@ -176,7 +179,19 @@ fn solvers(args: SolversArgs) -> Result<()> {
 
 fn step(args: StepArgs) -> Result<()> {
     let tets = beam(args.n).0.num_tets();
-    for (name, policy) in STEP_POLICIES {
+    if let Some(unknown) = args
+        .policies
+        .iter()
+        .find(|p| !STEP_POLICIES.iter().any(|(name, _)| name == p))
+    {
+        let names: Vec<&str> = STEP_POLICIES.iter().map(|(name, _)| *name).collect();
+        bail!(
+            "--policies: unknown policy {unknown:?}; expected some of {}",
+            names.join(", ")
+        );
+    }
+    let chosen = |name: &str| args.policies.is_empty() || args.policies.iter().any(|p| p == name);
+    for (name, policy) in STEP_POLICIES.into_iter().filter(|(name, _)| chosen(name)) {
         let (mut sim, mut state) = beam_integrator(args.n, policy)?;
         let mut last = Instant::now();
         let run = sim.run(

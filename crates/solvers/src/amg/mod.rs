@@ -673,6 +673,22 @@ mod tests {
     }
 
     #[test]
+    fn the_eigenvalue_estimate_is_within_two_per_cent_below_the_largest() {
+        let (a, _) = grid_operator(6, 0.5);
+        let blocks = Blocks::from_csr(&a, 3).unwrap();
+        let (inv, estimate, _) = smoother_data(&blocks).unwrap();
+        let n = a.rows();
+        let dense = a.to_dense();
+        let scaled =
+            nalgebra::DMatrix::from_fn(n, n, |i, j| dense[[i, j]] * (inv[i] * inv[j]).sqrt());
+        let largest = scaled.symmetric_eigenvalues().max();
+        assert!(
+            estimate <= largest * (1.0 + 1e-12) && estimate >= 0.98 * largest,
+            "{estimate} vs {largest}"
+        );
+    }
+
+    #[test]
     fn aggregation_covers_every_node_once_with_connected_aggregates() {
         // A path of 10 nodes.
         let graph: Vec<Vec<usize>> = (0..10)
