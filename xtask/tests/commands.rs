@@ -226,7 +226,7 @@ fn bad_input_fails_naming_the_file() {
 fn bench_prints_one_json_object_per_measurement() {
     let out = ok(&["bench", "step", "--n", "1"]);
     let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(lines.len(), 9, "one line per policy: {out}");
+    assert_eq!(lines.len(), 11, "one line per policy: {out}");
     assert!(
         lines
             .iter()
@@ -236,7 +236,18 @@ fn bench_prints_one_json_object_per_measurement() {
     assert!(out.contains("\"tets\": 24"), "{out}");
     let out = ok(&["bench", "solvers", "--n", "1", "--repeats", "1"]);
     assert!(
-        out.contains("\"solver\": \"direct\"") && out.contains("pcg_ic0_1e-6"),
+        out.contains("\"solver\": \"direct\"")
+            && out.contains("pcg_ic0_1e-6")
+            && out.contains("pcg_amg_1e-6"),
         "{out}"
+    );
+    let out = ok(&["bench", "step", "--n", "1", "--policies", "pcg_amg,direct"]);
+    assert_eq!(out.lines().count(), 2, "{out}");
+    let out = xtask(&["bench", "step", "--n", "1", "--policies", "pcg_mystery"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("pcg_mystery") && err.contains("pcg_amg_refresh"),
+        "{err}"
     );
 }

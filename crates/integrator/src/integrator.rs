@@ -353,13 +353,7 @@ impl Integrator {
         } = b;
         let policy: Box<dyn SolverPolicy> = match policy {
             Some(p) => p,
-            // The direct solver as `PolicySpec::default()` states it.
-            None => Box::new(crate::policy::Fixed(SolverSpec::Direct {
-                ordering: Ordering::Auto,
-                indefinite: Indefinite::Error,
-                parallel: true,
-                precision: Default::default(),
-            })),
+            None => Box::new(crate::policy::BySize::default()),
         };
         options.validate()?;
         if !(density.is_finite() && density > 0.0) {

@@ -6,7 +6,7 @@
 //! preconditioner must be refreshed. Solvers are kept between iterations and steps, keyed by
 //! their configuration, so factorisations and symbolic analyses are reused.
 
-use deform_solvers::SolverSpec;
+use deform_solvers::{PreconditionerSpec, SolverSpec, Tolerance};
 use serde::{Deserialize, Serialize};
 
 use crate::report::IterationReport;
@@ -76,6 +76,63 @@ impl SolverPolicy for Fixed {
 
     fn choose(&mut self, _: &PolicyContext<'_>) -> Decision {
         Decision::solver(self.0.clone())
+    }
+}
+
+/// One solver for small systems and another for large ones, by the number of free DOFs.
+#[derive(Debug, Clone)]
+pub struct BySize {
+    /// The solver below `large_from` free DOFs.
+    pub small: SolverSpec,
+    /// The solver from `large_from` free DOFs on.
+    pub large: SolverSpec,
+    /// The first system size that gets `large`.
+    pub large_from: usize,
+}
+
+impl Default for BySize {
+    /// `BySize(small: Direct(), large: Pcg(preconditioner: Amg(max_age: 20), tolerance:
+    /// (rel: 1e-8)), large_from: 150000)`: deform's default policy.
+    fn default() -> Self {
+        Self {
+            small: SolverSpec::Direct {
+                ordering: Default::default(),
+                indefinite: Default::default(),
+                parallel: true,
+                precision: Default::default(),
+            },
+            large: SolverSpec::Pcg {
+                preconditioner: PreconditionerSpec::Amg {
+                    theta: 0.0,
+                    smoother: Default::default(),
+                    max_age: 20,
+                },
+                tolerance: Tolerance {
+                    rel: 1e-8,
+                    ..Default::default()
+                },
+            },
+            large_from: default_large_from(),
+        }
+    }
+}
+
+impl SolverPolicy for BySize {
+    fn name(&self) -> String {
+        format!(
+            "by size({} below {} free DOFs, else {})",
+            self.small.name(),
+            self.large_from,
+            self.large.name()
+        )
+    }
+
+    fn choose(&mut self, c: &PolicyContext<'_>) -> Decision {
+        Decision::solver(if c.num_free < self.large_from {
+            self.small.clone()
+        } else {
+            self.large.clone()
+        })
     }
 }
 
@@ -249,6 +306,18 @@ pub enum PolicySpec {
         #[serde(default = "default_eta_max")]
         eta_max: f64,
     },
+    /// `small` for systems of fewer than `large_from` free DOFs, `large` from there on
+    /// ([`BySize`]). The default: a direct factorisation while its fill is affordable,
+    /// PCG with smoothed-aggregation multigrid beyond.
+    BySize {
+        /// The solver below `large_from` free DOFs.
+        small: SolverSpec,
+        /// The solver from `large_from` free DOFs on.
+        large: SolverSpec,
+        /// The first system size that gets `large`.
+        #[serde(default = "default_large_from")]
+        large_from: usize,
+    },
     /// Stale-factor reuse ([`StaleFactor`]).
     StaleFactor {
         /// PCG with a `StaleCholesky` preconditioner.
@@ -257,6 +326,13 @@ pub enum PolicySpec {
         #[serde(default = "default_refactor_above")]
         refactor_above: usize,
     },
+}
+
+/// Where the default policy leaves the direct solver: at 55k free DOFs a factorisation takes
+/// 0.6 s and 0.3 GB, at 418k 26 s and 4.1 GB, where PCG-AMG takes 6 s a step in 3.1 GB
+/// (docs/benchmarks.md).
+fn default_large_from() -> usize {
+    150_000
 }
 
 fn default_refactor_above() -> usize {
@@ -268,13 +344,18 @@ fn default_eta_max() -> f64 {
 }
 
 impl Default for PolicySpec {
+    /// [`BySize::default`].
     fn default() -> Self {
-        PolicySpec::Fixed(SolverSpec::Direct {
-            ordering: Default::default(),
-            indefinite: Default::default(),
-            parallel: true,
-            precision: Default::default(),
-        })
+        let BySize {
+            small,
+            large,
+            large_from,
+        } = BySize::default();
+        PolicySpec::BySize {
+            small,
+            large,
+            large_from,
+        }
     }
 }
 
@@ -340,6 +421,19 @@ impl PolicySpec {
                     0.9,
                 ))
             }
+            PolicySpec::BySize {
+                small,
+                large,
+                large_from,
+            } => {
+                check(small)?;
+                check(large)?;
+                Box::new(BySize {
+                    small: small.clone(),
+                    large: large.clone(),
+                    large_from: *large_from,
+                })
+            }
             PolicySpec::StaleFactor {
                 solver,
                 refactor_above,
@@ -354,5 +448,52 @@ impl PolicySpec {
                 Box::new(StaleFactor::new(solver.clone(), *refactor_above))
             }
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn context(num_free: usize) -> PolicyContext<'static> {
+        PolicyContext {
+            step: 0,
+            iteration: 0,
+            dt: 0.01,
+            num_free,
+            residual: 1.0,
+            initial_residual: 1.0,
+            history: &[],
+        }
+    }
+
+    #[test]
+    fn the_default_policy_factorises_small_systems_and_uses_multigrid_on_large_ones() {
+        let mut policy = PolicySpec::default().build().unwrap();
+        assert!(matches!(
+            policy.choose(&context(55_488)).solver,
+            SolverSpec::Direct { .. }
+        ));
+        let large = policy.choose(&context(418_176)).solver;
+        assert!(
+            matches!(
+                large,
+                SolverSpec::Pcg {
+                    preconditioner: PreconditionerSpec::Amg { .. },
+                    ..
+                }
+            ),
+            "{large:?}"
+        );
+        let text = "BySize(small: Direct(), large: Pcg(preconditioner: Ic0), large_from: 10)";
+        let mut custom = ron::from_str::<PolicySpec>(text).unwrap().build().unwrap();
+        assert!(matches!(
+            custom.choose(&context(10)).solver,
+            SolverSpec::Pcg { .. }
+        ));
+        assert!(
+            ron::from_str::<PolicySpec>("BySize(small: Direct(), large: Direct(), above: 3)")
+                .is_err()
+        );
     }
 }
