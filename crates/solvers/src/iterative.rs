@@ -5,7 +5,9 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
-use crate::operator::{LinearOperator, dot, fast_operator, for_each_entry, norm};
+use crate::operator::{
+    LinearOperator, dot, fast_operator, for_each_entry, norm, positive_diagonal,
+};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::{LinearSolver, SolverError};
@@ -327,16 +329,7 @@ impl LinearSolver for Iterative {
         let mut setup = SetupStats::default();
         match self.method {
             Method::Jacobi { .. } => {
-                let mut d = vec![0.0; a.nrows()];
-                a.diagonal(&mut d);
-                if let Some(i) = d.iter().position(|&x| !(x > 0.0)) {
-                    return Err(SolverError::NotPositiveDefinite {
-                        pivot: i,
-                        value: d[i],
-                        spent: None,
-                    });
-                }
-                self.inv_diag = d.iter().map(|x| 1.0 / x).collect();
+                self.inv_diag = positive_diagonal(a)?.iter().map(|x| 1.0 / x).collect();
                 setup.flops = a.nrows() as u64;
             }
             Method::Pcg(spec) => {

@@ -117,6 +117,21 @@ const VECTOR_CHUNK: usize = 8192;
 /// Below this length vector operations run on the calling thread (same arithmetic).
 const PARALLEL_LEN: usize = 4 * VECTOR_CHUNK;
 
+/// The diagonal of `a`, all of it positive, or [`SolverError::NotPositiveDefinite`] at the
+/// first entry that is not.
+pub(crate) fn positive_diagonal(a: &dyn LinearOperator) -> Result<Vec<f64>, SolverError> {
+    let mut d = vec![0.0; a.nrows()];
+    a.diagonal(&mut d);
+    match d.iter().position(|&x| !(x > 0.0)) {
+        Some(i) => Err(SolverError::NotPositiveDefinite {
+            pivot: i,
+            value: d[i],
+            spent: None,
+        }),
+        None => Ok(d),
+    }
+}
+
 /// `sqrt(x . x)`.
 pub(crate) fn norm(x: &[f64]) -> f64 {
     dot(x, x).sqrt()

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::amg::{Amg, AmgSmoother};
 
 use crate::direct::{Cholesky, Indefinite, Precision};
-use crate::operator::{LinearOperator, for_each_entry};
+use crate::operator::{LinearOperator, for_each_entry, positive_diagonal};
 use crate::ordering::Ordering;
 use crate::{LinearSolver, SolverError};
 
@@ -111,23 +111,7 @@ impl Preconditioner {
         Ok(match *spec {
             PreconditionerSpec::Identity => (Preconditioner::Identity, 0),
             PreconditionerSpec::Jacobi => {
-                let mut d = vec![0.0; n];
-                a.diagonal(&mut d);
-                let inv = d
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &x)| {
-                        if x > 0.0 {
-                            Ok(1.0 / x)
-                        } else {
-                            Err(SolverError::NotPositiveDefinite {
-                                pivot: i,
-                                value: x,
-                                spent: None,
-                            })
-                        }
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
+                let inv = positive_diagonal(a)?.iter().map(|x| 1.0 / x).collect();
                 (Preconditioner::Jacobi(inv), nu)
             }
             PreconditionerSpec::BlockJacobi => {
@@ -153,15 +137,7 @@ impl Preconditioner {
                 a.csr().ok_or(SolverError::Unsupported(
                     "SSOR needs an assembled CSR matrix",
                 ))?;
-                let mut diag = vec![0.0; n];
-                a.diagonal(&mut diag);
-                if let Some(i) = diag.iter().position(|&d| !(d > 0.0)) {
-                    return Err(SolverError::NotPositiveDefinite {
-                        pivot: i,
-                        value: diag[i],
-                        spent: None,
-                    });
-                }
+                let diag = positive_diagonal(a)?;
                 (Preconditioner::Ssor { omega, diag }, nu)
             }
             PreconditionerSpec::Ic0 => {

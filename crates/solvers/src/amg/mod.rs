@@ -25,7 +25,7 @@ use sprs::CsMat;
 use blocks::Blocks;
 
 use crate::direct::{Cholesky, Indefinite};
-use crate::operator::{LinearOperator, dot, for_each_entry, norm};
+use crate::operator::{LinearOperator, dot, for_each_entry, norm, positive_diagonal};
 use crate::ordering::Ordering;
 use crate::{LinearSolver, SolverError};
 
@@ -350,16 +350,7 @@ fn near_null_space(n: usize, coordinates: Option<&[[f64; 3]]>) -> Modes {
 /// `D^-1` of `a`, the estimated largest eigenvalue of `D^-1 A`, and the flops spent.
 fn smoother_data(a: &Blocks) -> Result<(Vec<f64>, f64, u64), SolverError> {
     let n = a.nrows();
-    let mut d = vec![0.0; n];
-    a.diagonal(&mut d);
-    if let Some(i) = d.iter().position(|&x| !(x > 0.0)) {
-        return Err(SolverError::NotPositiveDefinite {
-            pivot: i,
-            value: d[i],
-            spent: None,
-        });
-    }
-    let inv: Vec<f64> = d.iter().map(|x| 1.0 / x).collect();
+    let inv: Vec<f64> = positive_diagonal(a)?.iter().map(|x| 1.0 / x).collect();
     let lambda = largest_eigenvalue(a, &inv);
     if !(lambda.is_finite() && lambda > 0.0) {
         return Err(SolverError::NotPositiveDefinite {
