@@ -204,12 +204,20 @@ fn step(args: StepArgs) -> Result<()> {
                 let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
                 // The process's peak so far (it includes earlier policies' runs).
                 let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
+                // The Newton iterations' stages (the iteration that only checks convergence
+                // included): assembly and residual, the Newton matrix, the line search.
+                let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
+                    report.iterations.iter().map(|i| f(&i.stages)).sum()
+                };
                 println!(
-                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}}}"#,
+                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "residual_seconds": {:.3}, "matrix_seconds": {:.3}, "line_search_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}}}"#,
                     report.step,
                     report.newton_iterations(),
                     report.linear_iterations(),
                     seconds - solve,
+                    stage(|s| s.residual),
+                    stage(|s| s.matrix),
+                    stage(|s| s.line_search),
                     report.flops()
                 );
                 last = Instant::now();
