@@ -47,6 +47,16 @@ pub enum AmgSmoother {
     },
 }
 
+impl AmgSmoother {
+    /// Sweeps or degree: products with `A` per smoothing.
+    fn steps(self) -> usize {
+        match self {
+            AmgSmoother::Jacobi { sweeps } => sweeps,
+            AmgSmoother::Chebyshev { degree } => degree,
+        }
+    }
+}
+
 impl Default for AmgSmoother {
     fn default() -> Self {
         AmgSmoother::Chebyshev { degree: 2 }
@@ -62,11 +72,11 @@ pub(crate) fn validate(theta: f64, smoother: AmgSmoother) -> Result<(), SolverEr
             reason: "must be in [0, 1)",
         });
     }
-    let (field, steps) = match smoother {
-        AmgSmoother::Jacobi { sweeps } => ("sweeps", sweeps),
-        AmgSmoother::Chebyshev { degree } => ("degree", degree),
+    let field = match smoother {
+        AmgSmoother::Jacobi { .. } => "sweeps",
+        AmgSmoother::Chebyshev { .. } => "degree",
     };
-    if steps == 0 {
+    if smoother.steps() == 0 {
         return Err(SolverError::InvalidParameter {
             field,
             value: 0.0,
@@ -96,12 +106,27 @@ struct Level {
     r: Blocks,
 }
 
+/// Vectors of one level's part of a cycle, allocated once per hierarchy.
+#[derive(Debug, Default)]
+struct Scratch {
+    /// Residuals and transfers on this level.
+    work: Vec<f64>,
+    /// The Chebyshev smoother's step.
+    step: Vec<f64>,
+    /// Right-hand side and solution on the next level.
+    bc: Vec<f64>,
+    xc: Vec<f64>,
+}
+
 /// A set-up multigrid hierarchy.
 #[derive(Debug)]
 pub(crate) struct Amg {
     levels: Vec<Level>,
     coarse: Box<Cholesky>,
     smoother: AmgSmoother,
+    /// One [`Scratch`] per level; `apply` takes `&self`, so the cycle borrows them here
+    /// instead of allocating vectors in every PCG iteration.
+    scratch: std::sync::Mutex<Vec<Scratch>>,
 }
 
 impl Amg {
@@ -150,11 +175,24 @@ impl Amg {
         let mut coarse = Box::new(Cholesky::new(Ordering::Amd, Indefinite::Error));
         coarse.set_parallel(false);
         flops += coarse.factorize(&current.to_csr())?.flops;
+        let scratch = levels
+            .iter()
+            .map(|l| {
+                let (n, nc) = (l.p.shape().0, l.p.shape().1);
+                Scratch {
+                    work: vec![0.0; n],
+                    step: vec![0.0; n],
+                    bc: vec![0.0; nc],
+                    xc: vec![0.0; nc],
+                }
+            })
+            .collect();
         Ok((
             Self {
                 levels,
                 coarse,
                 smoother,
+                scratch: std::sync::Mutex::new(scratch),
             },
             flops,
         ))
@@ -196,11 +234,24 @@ impl Amg {
     /// `z = M^-1 r`: one V-cycle from a zero guess, `a0` the finest operator.
     pub fn apply(&self, a0: &dyn LinearOperator, r: &[f64], z: &mut [f64]) {
         z.fill(0.0);
-        self.cycle(0, a0, r, z);
+        let mut scratch = self
+            .scratch
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        self.cycle(0, a0, r, z, &mut scratch);
     }
 
-    fn cycle(&self, l: usize, a0: &dyn LinearOperator, b: &[f64], x: &mut [f64]) {
-        let Some(level) = self.levels.get(l) else {
+    /// One V-cycle from level `l` down; `x` is zero on entry.
+    fn cycle(
+        &self,
+        l: usize,
+        a0: &dyn LinearOperator,
+        b: &[f64],
+        x: &mut [f64],
+        scratch: &mut [Scratch],
+    ) {
+        let (Some(level), Some((s, deeper))) = (self.levels.get(l), scratch.split_first_mut())
+        else {
             x.copy_from_slice(b);
             self.coarse
                 .solve_in_place(x)
@@ -211,19 +262,18 @@ impl Amg {
             Some(m) => m,
             None => a0,
         };
-        let n = b.len();
-        let mut work = vec![0.0; n];
-        self.smooth(level, a, b, x, true, &mut work);
-        a.apply(x, &mut work);
-        for_each_entry(&mut work, |i, w| *w = b[i] - *w);
-        let nc = level.r.shape().0;
-        let (mut bc, mut xc) = (vec![0.0; nc], vec![0.0; nc]);
-        level.r.multiply_vector(&work, &mut bc);
-        self.cycle(l + 1, a0, &bc, &mut xc);
-        level.p.multiply_vector(&xc, &mut work);
+        self.smooth(level, a, b, x, true, s);
+        a.apply(x, &mut s.work);
+        for_each_entry(&mut s.work, |i, w| *w = b[i] - *w);
+        level.r.multiply_vector(&s.work, &mut s.bc);
+        s.xc.fill(0.0);
+        self.cycle(l + 1, a0, &s.bc, &mut s.xc, deeper);
+        level.p.multiply_vector(&s.xc, &mut s.work);
+        let work = &s.work;
         for_each_entry(x, |i, xi| *xi += work[i]);
-        self.smooth(level, a, b, x, false, &mut work);
+        self.smooth(level, a, b, x, false, s);
     }
+
     /// Smooths `A x = b` in place; `zero` says `x` is zero on entry (saves a product); `x`
     /// is zero on entry to every `cycle`.
     fn smooth(
@@ -233,8 +283,9 @@ impl Amg {
         b: &[f64],
         x: &mut [f64],
         zero: bool,
-        work: &mut [f64],
+        s: &mut Scratch,
     ) {
+        let (work, step) = (&mut s.work, &mut s.step);
         let d = &level.inv_diag;
         // work = D^-1 (b - A x)
         let residual = |x: &[f64], work: &mut [f64], skip: bool| {
@@ -260,13 +311,13 @@ impl Amg {
                 let sigma = theta / delta;
                 let mut rho = 1.0 / sigma;
                 residual(x, work, zero);
-                let mut step: Vec<f64> = work.iter().map(|w| w / theta).collect();
+                for_each_entry(step, |i, v| *v = work[i] / theta);
                 for _ in 1..degree {
                     for_each_entry(x, |i, xi| *xi += step[i]);
                     residual(x, work, false);
                     let rho_next = 1.0 / (2.0 * sigma - rho);
                     let (c1, c2) = (rho_next * rho, 2.0 * rho_next / delta);
-                    for_each_entry(&mut step, |i, s| *s = c1 * *s + c2 * work[i]);
+                    for_each_entry(step, |i, s| *s = c1 * *s + c2 * work[i]);
                     rho = rho_next;
                 }
                 for_each_entry(x, |i, xi| *xi += step[i]);
@@ -276,10 +327,7 @@ impl Amg {
 
     /// Floating-point operations of one `apply` with finest operator `a0`.
     pub fn flops(&self, a0: &dyn LinearOperator) -> u64 {
-        let per_smooth = match self.smoother {
-            AmgSmoother::Jacobi { sweeps } => sweeps as u64,
-            AmgSmoother::Chebyshev { degree } => degree as u64,
-        };
+        let per_smooth = self.smoother.steps() as u64;
         let mut total = self.coarse.solve_flops();
         for level in &self.levels {
             let (apply, n) = match &level.a {
