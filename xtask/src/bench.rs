@@ -10,8 +10,8 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use deform_fs::write_atomic;
 use deform_integrator::benchmark::{
-    STEP_POLICIES, beam, beam_free_coordinates, beam_integrator, beam_system, time_assembly,
-    time_direct, time_iterative,
+    AssemblyOutputs, STEP_POLICIES, beam, beam_free_coordinates, beam_integrator, beam_system,
+    time_assembly, time_direct, time_iterative,
 };
 use deform_integrator::{MaterialField, Model, OnStep, RunOptions, State, StepReport};
 use deform_materials::StableNeoHookean;
@@ -44,6 +44,10 @@ pub struct AssemblyArgs {
     /// Also write the beam as Gmsh 4.1 (for peers that read meshes).
     #[arg(long)]
     pub export_mesh: Option<PathBuf>,
+    /// Also time the energy alone, energy + forces and K alone (what the Newton loop asks
+    /// for in its stages).
+    #[arg(long)]
+    pub outputs: bool,
 }
 
 /// `bench solvers`.
@@ -109,14 +113,24 @@ fn assembly(args: AssemblyArgs) -> Result<()> {
         };
         write_msh(path, &mesh, format).with_context(|| format!("writing {}", path.display()))?;
     }
-    let s = time_assembly(args.n, material, args.repeats)?;
-    println!(
-        r#"{{"what": "assembly", "impl": "deform", "model": "{}", "tets": {}, "threads": {}, "seconds": {s:.6}, "tets_per_second": {:.0}}}"#,
-        args.model,
-        mesh.num_tets(),
-        rayon::current_num_threads(),
-        mesh.num_tets() as f64 / s
-    );
+    // Energy + forces + K (the peers' figure) first; with `--outputs` also each part the
+    // Newton loop asks for alone.
+    let kinds: &[AssemblyOutputs] = if args.outputs {
+        &AssemblyOutputs::ALL
+    } else {
+        &[AssemblyOutputs::All]
+    };
+    for &outputs in kinds {
+        let s = time_assembly(args.n, material.clone(), outputs, args.repeats)?;
+        println!(
+            r#"{{"what": "assembly", "impl": "deform", "model": "{}", "outputs": "{}", "tets": {}, "threads": {}, "seconds": {s:.6}, "tets_per_second": {:.0}}}"#,
+            args.model,
+            outputs.name(),
+            mesh.num_tets(),
+            rayon::current_num_threads(),
+            mesh.num_tets() as f64 / s
+        );
+    }
     Ok(())
 }
 
@@ -204,8 +218,9 @@ fn step(args: StepArgs) -> Result<()> {
                 let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
                 // The process's peak so far (it includes earlier policies' runs).
                 let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
-                // The Newton iterations' stages (the iteration that only checks convergence
-                // included): assembly and residual, the Newton matrix, the line search.
+                // The Newton iterations' stages: assembly and residual, the Newton matrix
+                // (with K when the residual came from the line search), the line search. The
+                // final convergence check is no iteration: it is in `other_seconds` only.
                 let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
                     report.iterations.iter().map(|i| f(&i.stages)).sum()
                 };

@@ -1,11 +1,13 @@
 //! `Assembly`: energy, forces and the stiffness matrix of one mesh, in parallel and
 //! bit-for-bit independent of the thread count.
 //!
-//! Every evaluation runs in two phases. The element phase computes each element's energy,
-//! forces and ten upper 3x3 stiffness blocks into its own slot of a buffer, in parallel over
-//! elements. The gather phase sums those slots into the outputs through maps built once per
-//! mesh (vertex -> element slots, CSR block -> element blocks), in parallel over vertices,
-//! each sum in a fixed order. No output depends on how the work was split.
+//! Every evaluation runs in two phases, block by block of [`BLOCK`] elements. The element
+//! phase computes each element's energy, forces and ten upper 3x3 stiffness blocks into its
+//! own slot of a buffer, in parallel over the block's elements. The gather phase adds those
+//! slots into the outputs through maps built once per mesh (vertex -> element slots, CSR
+//! block -> element blocks), in parallel over the vertices the block touches, each sum in
+//! element order. No output depends on how the work was split, nor on the block size: the
+//! buffer holds one block, so its memory does not grow with the mesh.
 
 use deform_materials::{Material, Matrix9, Model};
 use deform_mesh::TetMesh;
@@ -21,6 +23,11 @@ use crate::{AssemblyError, MaterialField};
 pub(crate) const CHUNK: usize = 512;
 /// Vertices per parallel task in the gathers.
 const VERTEX_CHUNK: usize = 256;
+/// Elements per block of an evaluation: the element buffer holds one block (824 B an
+/// element, 108 MB) instead of the whole mesh (5.2 GB for the 6.3 M tets of the n = 64
+/// beam). Each block boundary costs a little (at 98k tets, three blocks took 4 % longer
+/// than one), so meshes up to this size are one block.
+pub(crate) const BLOCK: usize = 256 * CHUNK;
 
 /// Which tangent the stiffness matrix uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -104,6 +111,8 @@ pub struct Assembly {
     pub(crate) geometry: Geometry,
     pub(crate) materials: MaterialField,
     work: Vec<ElementOut>,
+    /// Elements per block of an evaluation (a multiple of `CHUNK`).
+    block: usize,
 }
 
 impl Assembly {
@@ -157,7 +166,16 @@ impl Assembly {
             geometry,
             materials,
             work: Vec::new(),
+            block: BLOCK,
         })
+    }
+
+    /// Sets how many elements an evaluation computes before adding them into its outputs
+    /// (rounded up to a multiple of 512; 131,072 by default): the element buffer's memory,
+    /// 824 bytes an element. Results do not depend on it, bit for bit.
+    pub fn set_block_elements(&mut self, elements: usize) {
+        self.block = elements.max(1).div_ceil(CHUNK) * CHUNK;
+        self.work = Vec::new();
     }
 
     /// Number of vertices.
@@ -325,15 +343,38 @@ impl Assembly {
             forces: forces.is_some(),
             stiffness: stiffness.as_ref().map(|(_, t)| *t),
         };
-        self.work.resize(self.num_elements(), ElementOut::default());
-        element_phase(&self.geometry, &self.materials, x, need, &mut self.work)?;
-        if let Some(e) = energy {
-            *e = sum_energy(&self.work);
+        let (geo, ne) = (&self.geometry, self.num_elements());
+        let block = self.block;
+        self.work.resize(ne.min(block), ElementOut::default());
+        // Each vertex's next element slot: the gathers consume them block by block.
+        let mut cursor = geo.vertex_ptr[..geo.num_vertices].to_vec();
+        let mut partials = Vec::new();
+        let (mut forces, mut values) = (forces, stiffness.map(|(v, _)| v));
+        for first in (0..ne).step_by(block) {
+            let work = &mut self.work[..(ne - first).min(block)];
+            element_phase(geo, &self.materials, x, need, first, work)?;
+            if need.energy {
+                // Chunk sums, as if over the whole mesh (a block is a multiple of CHUNK).
+                partials.extend(
+                    work.par_chunks(CHUNK)
+                        .map(|c| c.iter().map(|o| o.energy).sum::<f64>())
+                        .collect::<Vec<f64>>(),
+                );
+            }
+            if forces.is_some() || values.is_some() {
+                let elements = first..first + work.len();
+                gather_block(
+                    geo,
+                    work,
+                    elements,
+                    values.as_deref_mut(),
+                    forces.as_deref_mut(),
+                    &mut cursor,
+                );
+            }
         }
-        match (forces, stiffness) {
-            (f, Some((values, _))) => gather_rows(&self.geometry, &self.work, values, f),
-            (Some(f), None) => gather_forces(&self.geometry, &self.work, f),
-            (None, None) => {}
+        if let Some(e) = energy {
+            *e = partials.iter().sum();
         }
         Ok(())
     }
@@ -385,9 +426,11 @@ pub(crate) fn corners(v: &[f64], t: &[usize; 4]) -> [Vector3<f64>; 4] {
     t.map(|i| Vector3::new(v[3 * i], v[3 * i + 1], v[3 * i + 2]))
 }
 
-/// Runs `body` on every element in parallel chunks; returns the error of the lowest-indexed
-/// failing element, so the reported element does not depend on the thread count.
+/// Runs `body` on the elements `first..first + buffer.len()` in parallel chunks; returns the
+/// error of the lowest-indexed failing element, so the reported element does not depend on
+/// the thread count.
 pub(crate) fn for_each_element<T: Send>(
+    first: usize,
     buffer: &mut [T],
     body: impl Fn(usize, &mut T) -> Result<(), AssemblyError> + Sync,
 ) -> Result<(), AssemblyError> {
@@ -396,7 +439,7 @@ pub(crate) fn for_each_element<T: Send>(
         .enumerate()
         .map(|(c, chunk)| {
             for (i, slot) in chunk.iter_mut().enumerate() {
-                body(c * CHUNK + i, slot)?;
+                body(first + c * CHUNK + i, slot)?;
             }
             Ok(())
         })
@@ -431,25 +474,28 @@ pub(crate) fn admissible_gradient(
 /// material field (a uniform field needs no per-element lookup).
 pub(crate) fn for_each_element_with_model<T: Send>(
     materials: &MaterialField,
+    first: usize,
     buffer: &mut [T],
     body: impl Fn(usize, &mut T, &Model) -> Result<(), AssemblyError> + Sync,
 ) -> Result<(), AssemblyError> {
     match materials {
-        MaterialField::Uniform(m) => for_each_element(buffer, |e, out| body(e, out, m)),
-        MaterialField::PerElement { models, index } => {
-            for_each_element(buffer, |e, out| body(e, out, &models[index[e] as usize]))
-        }
+        MaterialField::Uniform(m) => for_each_element(first, buffer, |e, out| body(e, out, m)),
+        MaterialField::PerElement { models, index } => for_each_element(first, buffer, |e, out| {
+            body(e, out, &models[index[e] as usize])
+        }),
     }
 }
 
+/// The element phase of the elements `first..first + work.len()`, into `work`.
 fn element_phase(
     geo: &Geometry,
     materials: &MaterialField,
     x: &[f64],
     need: Need,
+    first: usize,
     work: &mut [ElementOut],
 ) -> Result<(), AssemblyError> {
-    for_each_element_with_model(materials, work, |e, out, m| {
+    for_each_element_with_model(materials, first, work, |e, out, m| {
         let g = &geo.grads[e];
         let w = geo.volumes[e];
         let f = admissible_gradient(geo, x, e, m)?;
@@ -493,15 +539,6 @@ fn finite9(c: &Matrix9) -> bool {
     c.iter().all(|v| v.is_finite())
 }
 
-/// Sum of element energies in fixed chunks, then over chunks in order.
-fn sum_energy(work: &[ElementOut]) -> f64 {
-    let partial: Vec<f64> = work
-        .par_chunks(CHUNK)
-        .map(|c| c.iter().map(|o| o.energy).sum::<f64>())
-        .collect();
-    partial.iter().sum()
-}
-
 /// Splits a per-vertex output (`stride` values per vertex) into disjoint chunks of
 /// `VERTEX_CHUNK` vertices for parallel gathers: `(first vertex, values)`.
 pub(crate) fn vertex_chunks(
@@ -509,22 +546,27 @@ pub(crate) fn vertex_chunks(
     offsets: impl Fn(usize) -> usize,
     num_vertices: usize,
 ) -> Vec<(usize, &mut [f64])> {
-    let mut chunks = Vec::with_capacity(num_vertices.div_ceil(VERTEX_CHUNK));
+    vertex_range_chunks(values, offsets, 0..num_vertices)
+}
+
+/// [`vertex_chunks`] of the vertices `range`, whose values `values` are (from
+/// `offsets(range.start)` to `offsets(range.end)`).
+fn vertex_range_chunks<T>(
+    values: &mut [T],
+    offsets: impl Fn(usize) -> usize,
+    range: std::ops::Range<usize>,
+) -> Vec<(usize, &mut [T])> {
+    let mut chunks = Vec::with_capacity(range.len().div_ceil(VERTEX_CHUNK));
     let mut rest = values;
-    let mut v = 0;
-    while v < num_vertices {
-        let end = (v + VERTEX_CHUNK).min(num_vertices);
+    let mut v = range.start;
+    while v < range.end {
+        let end = (v + VERTEX_CHUNK).min(range.end);
         let (head, tail) = rest.split_at_mut(offsets(end) - offsets(v));
         chunks.push((v, head));
         rest = tail;
         v = end;
     }
     chunks
-}
-
-/// `f_v = sum of the element forces on v`, in element order.
-pub(crate) fn gather_forces(geo: &Geometry, work: &[ElementOut], f: &mut [f64]) {
-    gather_vertex_vectors(geo, |slot| work[slot / 4].forces[slot % 4], f);
 }
 
 /// Sums per-element corner vectors into a flat `3N` vector, each vertex in element order.
@@ -548,69 +590,134 @@ pub(crate) fn gather_vertex_vectors(
         });
 }
 
-/// Refills K's values: each block is the sum of its element blocks, in element order.
-/// Refills K's values row by row and, when asked, the forces of the same vertices in the
-/// same pass (the element slots are read once for both). For each vertex, its elements (in
-/// element order) add their four blocks of that row into a row accumulator, read together
-/// from the element's buffer; each block and each force is therefore summed in element
-/// order whatever the threads.
-fn gather_rows(
+/// [`vertex_range_chunks`] of an optional output, or as many `None`s.
+fn optional_chunks(
+    out: Option<&mut [f64]>,
+    offsets: impl Fn(usize) -> usize,
+    range: std::ops::Range<usize>,
+    chunks: usize,
+) -> Vec<Option<&mut [f64]>> {
+    match out {
+        Some(o) => vertex_range_chunks(
+            &mut o[offsets(range.start)..offsets(range.end)],
+            offsets,
+            range,
+        )
+        .into_iter()
+        .map(|(_, c)| Some(c))
+        .collect(),
+        None => (0..chunks).map(|_| None).collect(),
+    }
+}
+
+/// Adds the element phase's `work` of the `elements` into K's `values` and the `forces`,
+/// vertex row by vertex row in parallel over the vertices those elements touch. Each
+/// vertex's slots are consumed in element order from its `cursor`, and its row (and force)
+/// is zeroed at its first slot, so each block of K and each force is the sum of its element
+/// terms in element order, whatever the threads and the blocks.
+fn gather_block(
     geo: &Geometry,
     work: &[ElementOut],
-    values: &mut [f64],
+    elements: std::ops::Range<usize>,
+    values: Option<&mut [f64]>,
     forces: Option<&mut [f64]>,
+    cursor: &mut [usize],
 ) {
+    let tets = &geo.tets[elements.clone()];
+    let lo = tets.iter().flatten().copied().min().unwrap_or(0);
+    let hi = tets.iter().flatten().copied().max().map_or(0, |v| v + 1);
     let offsets = geo.pattern.offsets();
-    let n = geo.num_vertices;
-    let rows = vertex_chunks(values, |v| 9 * offsets[v], n);
-    // Both outputs split at the same vertex boundaries.
-    let force_chunks: Vec<Option<&mut [f64]>> = match forces {
-        Some(f) => vertex_chunks(f, |v| 3 * v, n)
-            .into_iter()
-            .map(|(_, c)| Some(c))
-            .collect(),
-        None => (0..rows.len()).map(|_| None).collect(),
-    };
-    rows.into_par_iter()
+    let cursors = vertex_range_chunks(&mut cursor[lo..hi], |v| v, lo..hi);
+    let rows = optional_chunks(values, |v| 9 * offsets[v], lo..hi, cursors.len());
+    let force_chunks = optional_chunks(forces, |v| 3 * v, lo..hi, cursors.len());
+    cursors
+        .into_par_iter()
+        .zip(rows)
         .zip(force_chunks)
-        .for_each(|((v0, out), mut force_out)| {
-            let base = 9 * offsets[v0];
-            let mut acc: Vec<Matrix3<f64>> = Vec::new();
-            let mut v = v0;
-            while v < n && 9 * offsets[v] - base < out.len() {
+        .for_each(|(((v0, cursor), mut row_out), mut force_out)| {
+            let mut acc = Vec::new();
+            for (i, next) in cursor.iter_mut().enumerate() {
+                let v = v0 + i;
+                let (first, end) = (geo.vertex_ptr[v], geo.vertex_ptr[v + 1]);
+                let mut j = *next;
+                if j == end || geo.vertex_slots[j] as usize / 4 >= elements.end {
+                    continue;
+                }
                 let (row_start, row_end) = (offsets[v], offsets[v + 1]);
                 let len = row_end - row_start;
-                acc.clear();
-                acc.resize(len, Matrix3::zeros());
-                let mut force = Vector3::zeros();
-                for j in geo.vertex_ptr[v]..geo.vertex_ptr[v + 1] {
-                    let slot = geo.vertex_slots[j] as usize;
-                    let (e, a) = (slot / 4, slot % 4);
-                    let element = &work[e];
-                    force += element.forces[a];
-                    for b in 0..4 {
-                        let (u, transposed) = upper_slot(a, b);
-                        let m = &element.blocks[u];
-                        let target = &mut acc[geo.row_targets[4 * j + b] as usize];
-                        if transposed {
-                            *target += m.transpose();
-                        } else {
-                            *target += m;
-                        }
-                    }
-                }
-                let row = &mut out[9 * row_start - base..9 * row_end - base];
-                for (k, m) in acc.iter().enumerate() {
-                    for r in 0..3 {
-                        let at = 3 * len * r + 3 * k;
-                        row[at..at + 3].copy_from_slice(&[m[(r, 0)], m[(r, 1)], m[(r, 2)]]);
-                    }
-                }
-                if let Some(fo) = force_out.as_deref_mut() {
-                    let at = 3 * (v - v0);
-                    fo[at..at + 3].copy_from_slice(force.as_slice());
-                }
-                v += 1;
+                let row = row_out
+                    .as_deref_mut()
+                    .map(|o| &mut o[9 * (row_start - offsets[v0])..9 * (row_end - offsets[v0])]);
+                let force = force_out.as_deref_mut().map(|o| &mut o[3 * i..3 * i + 3]);
+                let slots = (first, end);
+                add_vertex_terms(
+                    geo, work, &elements, slots, &mut j, len, row, force, &mut acc,
+                );
+                *next = j;
             }
         });
+}
+
+/// The terms of a vertex's slots `*j..end` (its first is `first`) that lie in `elements`,
+/// added into its K `row` (3 rows of `3 len` values) and its `force` (zero before the
+/// vertex's first slot), through the accumulator `acc` (a 3x3 block per row entry).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn add_vertex_terms(
+    geo: &Geometry,
+    work: &[ElementOut],
+    elements: &std::ops::Range<usize>,
+    (first, end): (usize, usize),
+    j: &mut usize,
+    len: usize,
+    row: Option<&mut [f64]>,
+    force: Option<&mut [f64]>,
+    acc: &mut Vec<Matrix3<f64>>,
+) {
+    let fresh = *j == first;
+    acc.clear();
+    if let Some(r) = &row {
+        if fresh {
+            acc.resize(len, Matrix3::zeros());
+        } else {
+            acc.extend((0..len).map(|k| Matrix3::from_fn(|p, q| r[3 * len * p + 3 * k + q])));
+        }
+    }
+    let mut f_acc = match &force {
+        Some(f) if !fresh => Vector3::new(f[0], f[1], f[2]),
+        _ => Vector3::zeros(),
+    };
+    while *j < end {
+        let slot = geo.vertex_slots[*j] as usize;
+        let (e, a) = (slot / 4, slot % 4);
+        if e >= elements.end {
+            break;
+        }
+        let element = &work[e - elements.start];
+        f_acc += element.forces[a];
+        if row.is_some() {
+            for b in 0..4 {
+                let (u, transposed) = upper_slot(a, b);
+                let m = &element.blocks[u];
+                let target = &mut acc[geo.row_targets[4 * *j + b] as usize];
+                if transposed {
+                    *target += m.transpose();
+                } else {
+                    *target += m;
+                }
+            }
+        }
+        *j += 1;
+    }
+    if let Some(r) = row {
+        for (k, m) in acc.iter().enumerate() {
+            for p in 0..3 {
+                let at = 3 * len * p + 3 * k;
+                r[at..at + 3].copy_from_slice(&[m[(p, 0)], m[(p, 1)], m[(p, 2)]]);
+            }
+        }
+    }
+    if let Some(f) = force {
+        f.copy_from_slice(f_acc.as_slice());
+    }
 }

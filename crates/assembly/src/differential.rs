@@ -52,7 +52,7 @@ impl Assembly {
             *out = c * geo.volumes[e];
             Ok(())
         };
-        for_each_element_with_model(&self.materials, &mut tangents, body)?;
+        for_each_element_with_model(&self.materials, 0, &mut tangents, body)?;
         Ok(ElementTangents {
             geometry: geo,
             tangents,
@@ -82,7 +82,7 @@ impl Assembly {
             *out = corner_products(&dp, g, -geo.volumes[e]);
             Ok(())
         };
-        for_each_element_with_model(&self.materials, &mut corner_forces, body)?;
+        for_each_element_with_model(&self.materials, 0, &mut corner_forces, body)?;
         gather_vertex_vectors(geo, |slot| corner_forces[slot / 4][slot % 4], df);
         finite_or_first_vertex(df)
     }

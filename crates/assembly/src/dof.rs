@@ -172,6 +172,6 @@ impl DofMap {
 pub struct ReducedMatrix {
     /// `A_ff` in CSR.
     pub matrix: CsMat<f64>,
-    gather: Vec<usize>,
-    full_nnz: usize,
+    pub(crate) gather: Vec<usize>,
+    pub(crate) full_nnz: usize,
 }

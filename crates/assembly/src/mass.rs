@@ -5,7 +5,7 @@ use deform_mesh::{ConsistentMass, TetMesh};
 use sprs::CsMat;
 
 use crate::assembly::check_len;
-use crate::{Assembly, AssemblyError};
+use crate::{Assembly, AssemblyError, DofMap, ReducedMatrix};
 
 /// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
 /// (`M_ab = rho W (1 + delta_ab) / 20` per element, one scalar per 3x3 block of K's pattern).
@@ -108,6 +108,57 @@ impl Assembly {
                 };
                 for r in 0..3 {
                     values[9 * start + 3 * len * r + 3 * (blk - start) + r] += c_m * m;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Assembly::combine`] restricted to the free DOFs of `dofs`, straight into `out` (from
+    /// [`DofMap::reduced_matrix`] of K's pattern): the same values as `combine` then
+    /// [`DofMap::restrict_matrix`], without the full matrix between them (2.3 GB at the
+    /// n = 64 beam).
+    ///
+    /// # Errors
+    /// [`AssemblyError::PatternMismatch`] for a `k` or `out` of another pattern or a `dofs`
+    /// of another mesh, or a mass of the wrong size.
+    pub fn combine_reduced(
+        &self,
+        c_m: f64,
+        mass: &Mass,
+        c_k: f64,
+        k: &CsMat<f64>,
+        dofs: &DofMap,
+        out: &mut ReducedMatrix,
+    ) -> Result<(), AssemblyError> {
+        if !self.has_pattern(k)
+            || out.full_nnz != k.nnz()
+            || dofs.num_dofs() != self.num_dofs()
+            || out.matrix.rows() != dofs.num_free()
+        {
+            return Err(AssemblyError::PatternMismatch);
+        }
+        self.check_mass(mass)?;
+        let p = &self.geometry.pattern;
+        let (offsets, columns, indptr) = (p.offsets(), p.columns(), &self.geometry.indptr);
+        let (k, gather, free) = (k.data(), &out.gather, dofs.free_dofs());
+        let mut q = 0;
+        for (row, mut values) in out.matrix.outer_iterator_mut().enumerate() {
+            let i = free[row];
+            let (v, r) = (i / 3, i % 3);
+            for (_, value) in values.iter_mut() {
+                let at = gather[q];
+                q += 1;
+                *value = c_k * k[at];
+                // Row i's entries are its blocks' columns, three per block (see `combine`).
+                let local = at - indptr[i];
+                if local % 3 == r {
+                    let blk = offsets[v] + local / 3;
+                    match mass {
+                        Mass::Lumped(m) if columns[blk] == v => *value += c_m * m[v],
+                        Mass::Lumped(_) => {}
+                        Mass::Consistent(m) => *value += c_m * m.values[blk],
+                    }
                 }
             }
         }

@@ -176,7 +176,7 @@ impl Assembly {
         let mut per_element = vec![0.0; self.num_elements() * terms];
         if terms > 0 {
             let mut chunks: Vec<&mut [f64]> = per_element.chunks_mut(terms).collect();
-            for_each_element_with_model(&self.materials, &mut chunks, |e, out, m| {
+            for_each_element_with_model(&self.materials, 0, &mut chunks, |e, out, m| {
                 let (t, g) = (&geo.tets[e], &geo.grads[e]);
                 let f = admissible_gradient(geo, x, e, m)?;
                 let df = dx.map(|d| gradient(&corners(d, t), g));
@@ -239,7 +239,7 @@ impl Assembly {
             Ok(())
         };
         if terms > 0 {
-            for_each_element_with_model(&self.materials, &mut elements, body)?;
+            for_each_element_with_model(&self.materials, 0, &mut elements, body)?;
         }
         drop(elements);
         let mut data = vec![0.0; self.num_dofs() * cols];

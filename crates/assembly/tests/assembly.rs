@@ -335,6 +335,24 @@ fn mass_and_damping() {
                 "{i}"
             );
         }
+        // Combined straight into the free DOFs: the same values as combining, then
+        // restricting.
+        let clamped: Vec<usize> = (0..mesh.num_vertices())
+            .filter(|&v| mesh.rest_positions()[v].x < 1e-9)
+            .collect();
+        let dofs = DofMap::new(mesh.num_vertices(), &clamped).unwrap();
+        let mut restricted = dofs.reduced_matrix(&a).unwrap();
+        dofs.restrict_matrix(&a, &mut restricted).unwrap();
+        let mut direct = dofs.reduced_matrix(&a).unwrap();
+        direct.matrix.data_mut().fill(f64::NAN);
+        asm.combine_reduced(0.3, mass, 0.01, &k, &dofs, &mut direct)
+            .unwrap();
+        assert_eq!(direct.matrix, restricted.matrix);
+        let other = DofMap::new(mesh.num_vertices() + 1, &[]).unwrap();
+        assert!(matches!(
+            asm.combine_reduced(0.3, mass, 0.01, &k, &other, &mut direct),
+            Err(AssemblyError::PatternMismatch)
+        ));
     }
 }
 
@@ -660,4 +678,71 @@ fn values_on_the_pattern_equal_the_matrix_bit_for_bit() {
         .evaluate_values(&x, None, None, &mut short, Tangent::Exact)
         .unwrap_err();
     assert!(e.to_string().contains("values"), "{e}");
+}
+
+#[test]
+fn results_do_not_depend_on_the_block_size_and_errors_name_the_first_element() {
+    // Beam(3): 648 tets, so blocks of 512 split it in two and every output crosses a block
+    // boundary; a per-element field, so each element's model is looked up by its index.
+    let mesh = BoxGrid::beam(3).build().unwrap();
+    let x = deformed(&mesh, 1.0);
+    let models: Vec<Model> = SPECS.iter().map(|s| model(s)).collect();
+    let index: Vec<u32> = (0..mesh.num_tets())
+        .map(|e| (e % models.len()) as u32)
+        .collect();
+    let field = MaterialField::PerElement { models, index };
+    let run = |block: Option<usize>, x: &[f64]| {
+        let mut asm = Assembly::new(&mesh, field.clone()).unwrap();
+        if let Some(b) = block {
+            asm.set_block_elements(b);
+        }
+        let (mut e, mut f, mut k) = (0.0, vec![0.0; x.len()], asm.stiffness_matrix());
+        let all = asm.evaluate(
+            x,
+            Outputs {
+                energy: Some(&mut e),
+                forces: Some(&mut f),
+                stiffness: Some(&mut k),
+                tangent: Tangent::Exact,
+            },
+        );
+        // Forces alone take the other gather path.
+        let mut g = vec![0.0; x.len()];
+        let alone = asm.forces(x, &mut g).map(|()| g);
+        (all.map(|()| (e, f, k)), alone)
+    };
+    let whole = run(None, &x);
+    for block in [1, 512, 600] {
+        let (all, alone) = run(Some(block), &x);
+        assert_eq!(
+            all.as_ref().unwrap(),
+            whole.0.as_ref().unwrap(),
+            "block {block}"
+        );
+        assert_eq!(alone.as_ref().unwrap(), whole.1.as_ref().unwrap());
+        assert_eq!(&alone.unwrap(), &all.unwrap().1);
+    }
+    // Inverted elements in both blocks: the lowest-indexed one is named whatever the blocks.
+    let mut bad = x.clone();
+    for e in [600, 100] {
+        let v = mesh.tets()[e][0];
+        let opposite = mesh.tets()[e][1..]
+            .iter()
+            .fold(Vector3::zeros(), |s, &w| s + mesh.rest_positions()[w])
+            / 3.0;
+        let p = mesh.rest_positions()[v];
+        let through = opposite + 2.0 * (opposite - p);
+        bad[3 * v..3 * v + 3].copy_from_slice(through.as_slice());
+    }
+    let named = |block: Option<usize>| match run(block, &bad).0 {
+        Err(AssemblyError::Inadmissible { element, .. }) => element,
+        other => panic!(
+            "expected an inadmissible element, got {:?}",
+            other.map(|r| r.0)
+        ),
+    };
+    let first = named(None);
+    assert!(first <= 100, "{first}");
+    assert_eq!(named(Some(512)), first);
+    assert_eq!(named(Some(1)), first);
 }

@@ -87,28 +87,69 @@ fn median_time<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
     (last.expect("at least one run"), median(times))
 }
 
-/// Median wall time of one assembly of energy, forces and K of `material` on the beam of
-/// size `n` at its deformed state.
+/// Which of the assembly's outputs a timing asks for: the Newton loop asks for each of
+/// these (the line search for the energy, a converged check for energy and forces).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AssemblyOutputs {
+    /// The energy alone.
+    Energy,
+    /// Energy and forces.
+    EnergyForces,
+    /// K alone.
+    Stiffness,
+    /// Energy, forces and K in one pass.
+    All,
+}
+
+impl AssemblyOutputs {
+    /// Every kind, cheapest first.
+    pub const ALL: [AssemblyOutputs; 4] = [
+        AssemblyOutputs::Energy,
+        AssemblyOutputs::EnergyForces,
+        AssemblyOutputs::Stiffness,
+        AssemblyOutputs::All,
+    ];
+
+    /// Its name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            AssemblyOutputs::Energy => "energy",
+            AssemblyOutputs::EnergyForces => "energy+forces",
+            AssemblyOutputs::Stiffness => "K",
+            AssemblyOutputs::All => "energy+forces+K",
+        }
+    }
+}
+
+/// Median wall time of one assembly of `outputs` of `material` on the beam of size `n` at
+/// its deformed state.
 ///
 /// # Errors
 /// The assembly's.
 pub fn time_assembly(
     n: usize,
     material: MaterialField,
+    outputs: AssemblyOutputs,
     repeats: usize,
 ) -> Result<f64, deform_assembly::AssemblyError> {
     let (mesh, _, x) = beam(n);
     let mut asm = Assembly::new(&mesh, material)?;
     let mut k = asm.stiffness_matrix();
     let mut f = vec![0.0; x.len()];
+    let (energy, forces, stiffness) = match outputs {
+        AssemblyOutputs::Energy => (true, false, false),
+        AssemblyOutputs::EnergyForces => (true, true, false),
+        AssemblyOutputs::Stiffness => (false, false, true),
+        AssemblyOutputs::All => (true, true, true),
+    };
     let (result, seconds) = median_time(repeats, || {
         let mut e = 0.0;
         asm.evaluate(
             &x,
             deform_assembly::Outputs {
-                energy: Some(&mut e),
-                forces: Some(&mut f),
-                stiffness: Some(&mut k),
+                energy: energy.then_some(&mut e),
+                forces: forces.then_some(&mut f[..]),
+                stiffness: stiffness.then_some(&mut k),
                 tangent: Tangent::Exact,
             },
         )

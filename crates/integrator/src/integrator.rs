@@ -228,7 +228,7 @@ pub struct Integrator {
     /// Per-vertex lumped-mass scales and the mesh's own masses they multiply, when set.
     mass_scale: Option<(Vec<f64>, Vec<f64>)>,
     k: CsMat<f64>,
-    a: CsMat<f64>,
+    /// The Newton matrix on the free DOFs (no full copy is kept).
     a_free: ReducedMatrix,
     solvers: KeptSolvers,
     /// Counterfactual candidates, each with its own kept instance.
@@ -382,8 +382,7 @@ impl Integrator {
         let dofs = DofMap::new(mesh.num_vertices(), &constrained)?;
         let gravity_forces = gravity_forces(&asm, &mass, options.gravity)?;
         let k = asm.stiffness_matrix();
-        let a = asm.stiffness_matrix();
-        let a_free = dofs.reduced_matrix(&a)?;
+        let a_free = dofs.reduced_matrix(&k)?;
         Ok(Self {
             asm,
             mass,
@@ -394,7 +393,6 @@ impl Integrator {
             gravity_forces,
             mass_scale: None,
             k,
-            a,
             a_free,
             solvers: Vec::new(),
             candidates: Vec::new(),
@@ -687,24 +685,7 @@ impl Integrator {
             policy: self.policy.name(),
             ..StepReport::default()
         };
-        // Initial iterate: v^n (dynamic) or x^n (static), constrained DOFs at their targets.
-        let mut x = state.x.clone();
-        let mut u = match mode {
-            Mode::Dynamic { .. } => state.v.clone(),
-            Mode::Static => state.x.clone(),
-        };
-        match mode {
-            Mode::Dynamic { dt } => {
-                self.apply_constraints(&mut x, Some((&mut u, &state.x)), t1, dt);
-                for i in 0..x.len() {
-                    x[i] = state.x[i] + dt * u[i];
-                }
-            }
-            Mode::Static => {
-                self.apply_constraints(&mut x, None, t1, 0.0);
-                u.copy_from_slice(&x);
-            }
-        }
+        let (mut x, mut u) = self.initial_iterate(state, mode, t1);
         let mut tangent = match newton.project {
             Projection::Always => Tangent::Projected,
             Projection::Never | Projection::WhenNeeded => Tangent::Exact,
@@ -712,13 +693,22 @@ impl Integrator {
         // Solves whose result was not used (a failed choice before the fallback, an
         // exact-tangent attempt before projection), charged to the next iteration's report.
         let mut discarded: Vec<CandidateOutcome> = Vec::new();
+        // The energy at `x` when the line search's accepted trial left it, with the forces,
+        // in `w.f`: the residual is then formed without assembling again, and K is assembled
+        // only if Newton goes on (a converged check needs no K).
+        let mut evaluated: Option<f64> = None;
         let mut iteration = 0;
         while iteration <= newton.max_iterations {
             let started = Instant::now();
             let mut stages = StageSeconds::default();
-            let (energy, rn) = self
-                .residual(mode, state, &x, &u, tangent, w)
-                .map_err(|e| e.into_step_error(&report))?;
+            let k_at_x = evaluated.is_none();
+            let (energy, rn) = match evaluated.take() {
+                Some(energy) => self
+                    .form_residual(mode, state, &u, w)
+                    .map(|rn| (energy, rn)),
+                None => self.residual(mode, state, &x, &u, tangent, w),
+            }
+            .map_err(|e| e.into_step_error(&report))?;
             stages.residual = started.elapsed().as_secs_f64();
             if iteration == 0 {
                 report.initial_residual = rn;
@@ -738,6 +728,11 @@ impl Integrator {
                 break;
             }
             let clock = Instant::now();
+            if !k_at_x {
+                self.asm
+                    .stiffness(&x, tangent, &mut self.k)
+                    .map_err(|e| fail_assembly(e, &report))?;
+            }
             let (c_m, c_k) = self
                 .newton_matrix(mode)
                 .map_err(|e| fail_assembly(e, &report))?;
@@ -769,8 +764,11 @@ impl Integrator {
                 .scatter(&w.du_free, &mut w.du)
                 .expect("sizes match");
             let step_length = if newton.line_search && found.slope < 0.0 {
-                self.line_search(mode, state, &u, energy, found.slope, w)
-                    .map_err(|e| fail_assembly(e, &report))?
+                let (step_length, at_trial) = self
+                    .line_search(mode, state, &u, energy, found.slope, w)
+                    .map_err(|e| fail_assembly(e, &report))?;
+                evaluated = at_trial;
+                step_length
             } else {
                 1.0
             };
@@ -815,9 +813,31 @@ impl Integrator {
         })
     }
 
-    /// Stage 1: assembles energy, forces and K at `x` and forms the residual (the gradient
-    /// of the merit function in `u`) on the free DOFs, into `w.r_free`; returns the energy
-    /// and the residual's 2-norm.
+    /// Newton's first iterate `(x, u)` for a step ending at `t1`: `v^n` (dynamic) or `x^n`
+    /// (static), constrained DOFs at their targets.
+    fn initial_iterate(&self, state: &State, mode: Mode, t1: f64) -> (Vec<f64>, Vec<f64>) {
+        let mut x = state.x.clone();
+        let mut u = match mode {
+            Mode::Dynamic { .. } => state.v.clone(),
+            Mode::Static => state.x.clone(),
+        };
+        match mode {
+            Mode::Dynamic { dt } => {
+                self.apply_constraints(&mut x, Some((&mut u, &state.x)), t1, dt);
+                for i in 0..x.len() {
+                    x[i] = state.x[i] + dt * u[i];
+                }
+            }
+            Mode::Static => {
+                self.apply_constraints(&mut x, None, t1, 0.0);
+                u.copy_from_slice(&x);
+            }
+        }
+        (x, u)
+    }
+
+    /// Stage 1: assembles energy, forces and K at `x` and [forms the
+    /// residual](Self::form_residual); returns the energy and the residual's 2-norm.
     fn residual(
         &mut self,
         mode: Mode,
@@ -837,6 +857,19 @@ impl Integrator {
                 tangent,
             },
         )?;
+        Ok((energy, self.form_residual(mode, state, u, w)?))
+    }
+
+    /// The residual (the gradient of the merit function in `u`) on the free DOFs, into
+    /// `w.r_free`, from the elastic forces in `w.f` (and K, for stiffness damping); returns
+    /// its 2-norm.
+    fn form_residual(
+        &self,
+        mode: Mode,
+        state: &State,
+        u: &[f64],
+        w: &mut Work,
+    ) -> Result<f64, StageError> {
         match mode {
             Mode::Dynamic { dt } => {
                 let o = &self.options;
@@ -864,7 +897,15 @@ impl Integrator {
         if !rn.is_finite() {
             return Err(StageError::NonFinite("residual"));
         }
-        Ok((energy, rn))
+        Ok(rn)
+    }
+
+    /// Whether the residual needs K: only for the Rayleigh stiffness-damping force.
+    fn residual_needs_k(&self, mode: Mode) -> bool {
+        match mode {
+            Mode::Dynamic { dt } => self.options.stiffness_damping(dt) != 0.0,
+            Mode::Static => false,
+        }
     }
 
     /// Stage 2: `||r|| <= max(abs, rel ||r_0||)` (at iteration 0 only `abs`), or the last
@@ -901,8 +942,7 @@ impl Integrator {
             Mode::Static => (0.0, 1.0),
         };
         self.asm
-            .combine(c_m, &self.mass, c_k, &self.k, &mut self.a)?;
-        self.dofs.restrict_matrix(&self.a, &mut self.a_free)?;
+            .combine_reduced(c_m, &self.mass, c_k, &self.k, &self.dofs, &mut self.a_free)?;
         Ok((c_m, c_k))
     }
 
@@ -992,7 +1032,9 @@ impl Integrator {
     }
 
     /// Stage 5: backtracking (Armijo) on the merit function along `w.du` from `u`, K frozen
-    /// at this iterate; returns the step length.
+    /// at this iterate; returns the step length and, when the residual needs no K, the
+    /// energy at the accepted trial, whose forces it leaves in `w.f` (each trial assembles
+    /// energy and forces then, so the next residual is formed without another pass).
     fn line_search(
         &mut self,
         mode: Mode,
@@ -1001,15 +1043,16 @@ impl Integrator {
         energy: f64,
         slope: f64,
         w: &mut Work,
-    ) -> Result<f64, AssemblyError> {
+    ) -> Result<(f64, Option<f64>), AssemblyError> {
         let phi0 = self.merit(mode, state, u, energy, w);
         // Near the solution the predicted decrease falls below the rounding noise of the
         // merit function; Armijo's test is then meaningless, so take the step.
         let noise = 1e-12 * phi0.abs();
+        let with_forces = !self.residual_needs_k(mode);
         let mut step_length = 1.0;
         loop {
             if -slope * step_length <= noise {
-                return Ok(step_length);
+                return Ok((step_length, None));
             }
             let mut trial = std::mem::take(&mut w.trial);
             let mut xt = std::mem::take(&mut w.xt);
@@ -1017,14 +1060,20 @@ impl Integrator {
                 *t = a + step_length * b;
             }
             self.positions_into(mode, state, &trial, &mut xt);
-            let phi = match self.asm.energy(&xt) {
-                Ok(e) => self.merit(mode, state, &trial, e, w),
-                Err(AssemblyError::Inadmissible { .. }) => f64::INFINITY,
+            let mut e = 0.0;
+            let outputs = Outputs {
+                energy: Some(&mut e),
+                forces: with_forces.then_some(&mut w.f[..]),
+                ..Outputs::default()
+            };
+            let (phi, evaluated) = match self.asm.evaluate(&xt, outputs) {
+                Ok(()) => (self.merit(mode, state, &trial, e, w), with_forces),
+                Err(AssemblyError::Inadmissible { .. }) => (f64::INFINITY, false),
                 Err(e) => return Err(e),
             };
             (w.trial, w.xt) = (trial, xt);
             if phi <= phi0 + 1e-4 * step_length * slope + noise || step_length < 1e-4 {
-                return Ok(step_length);
+                return Ok((step_length, evaluated.then_some(e)));
             }
             step_length *= 0.5;
         }

@@ -46,14 +46,17 @@ pub struct IterationReport {
 /// Wall time of each stage of a Newton iteration, seconds.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct StageSeconds {
-    /// Assembly of energy, forces and K, and the residual.
+    /// The residual, with the assembly of energy, forces and K (energy and forces come
+    /// from the line search's accepted trial when the residual needs no K: without
+    /// Rayleigh stiffness damping).
     pub residual: f64,
-    /// The Newton matrix `c_m M + c_k K` on the free DOFs.
+    /// The Newton matrix `c_m M + c_k K` on the free DOFs (and K, when the residual came
+    /// from the line search).
     pub matrix: f64,
     /// The direction: linear solves (the fallback and discarded ones included) and the
     /// counterfactual candidates.
     pub direction: f64,
-    /// The line search.
+    /// The line search (energy, and forces when the residual needs no K, at each trial).
     pub line_search: f64,
 }
 

@@ -693,7 +693,6 @@ struct Rollout<'a> {
 /// The adjoint's matrices, allocated once per evaluation and refilled at every step.
 struct Adjoint {
     kmat: CsMat<f64>,
-    a: CsMat<f64>,
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
@@ -710,11 +709,10 @@ impl Adjoint {
         unscaled: Option<Vec<f64>>,
         damping: bool,
     ) -> Result<Self, FitError> {
-        let a = sim.assembly().stiffness_matrix();
+        let kmat = sim.assembly().stiffness_matrix();
         Ok(Self {
-            kmat: sim.assembly().stiffness_matrix(),
-            reduced: sim.dofs().reduced_matrix(&a)?,
-            a,
+            reduced: sim.dofs().reduced_matrix(&kmat)?,
+            kmat,
             mass: sim.mass().clone(),
             grouping,
             unscaled,
@@ -749,16 +747,16 @@ impl Adjoint {
             let asm = sim.assembly_mut();
             asm.stiffness(&next.x, Tangent::Exact, &mut self.kmat)
                 .map_err(fail)?;
-            asm.combine(
-                1.0 + dt * alpha,
-                &self.mass,
-                dt * gamma + dt * dt,
-                &self.kmat,
-                &mut self.a,
-            )
-            .map_err(fail)?;
             let dofs = sim.dofs();
-            dofs.restrict_matrix(&self.a, &mut self.reduced)
+            sim.assembly()
+                .combine_reduced(
+                    1.0 + dt * alpha,
+                    &self.mass,
+                    dt * gamma + dt * dt,
+                    &self.kmat,
+                    dofs,
+                    &mut self.reduced,
+                )
                 .map_err(fail)?;
             // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
             let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
