@@ -57,7 +57,8 @@ pub enum AssemblyError {
         /// Number of vertices.
         num_vertices: usize,
     },
-    /// The mesh is too large for the 32-bit scatter maps.
-    #[error("the mesh has too many elements ({0}) for the scatter maps")]
+    /// The mesh is too large for the 32-bit scatter maps: the count of elements (above 200
+    /// million) or of matrix entries (above 2^32) that is too many.
+    #[error("the mesh is too large for the 32-bit scatter maps ({0} elements or matrix entries)")]
     TooLarge(usize),
 }

@@ -147,7 +147,7 @@ impl Assembly {
             let i = free[row];
             let (v, r) = (i / 3, i % 3);
             for (_, value) in values.iter_mut() {
-                let at = gather[q];
+                let at = gather[q] as usize;
                 q += 1;
                 *value = c_k * k[at];
                 // Row i's entries are its blocks' columns, three per block (see `combine`).

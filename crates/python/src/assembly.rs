@@ -24,10 +24,10 @@ impl Pattern {
         let (indptr, indices) = asm.stiffness_pattern();
         if indices.len() < i32::MAX as usize {
             let small = |v: &[usize]| v.iter().map(|&i| i as i32).collect();
-            Pattern::I32(small(indptr), small(indices))
+            Pattern::I32(small(&indptr), small(&indices))
         } else {
             let wide = |v: &[usize]| v.iter().map(|&i| i as i64).collect();
-            Pattern::I64(wide(indptr), wide(indices))
+            Pattern::I64(wide(&indptr), wide(&indices))
         }
     }
 
@@ -138,7 +138,7 @@ impl Assembly {
         let values = py
             .detach(|| {
                 let mut asm = self.lock();
-                let mut values = vec![0.0; asm.stiffness_pattern().1.len()];
+                let mut values = vec![0.0; 9 * asm.pattern().num_blocks()];
                 asm.evaluate_values(&x, None, None, &mut values, tangent)
                     .map(|()| values)
             })
@@ -161,7 +161,7 @@ impl Assembly {
             .detach(|| {
                 let mut asm = self.lock();
                 let (mut energy, mut f) = (0.0, vec![0.0; x.len()]);
-                let mut values = vec![0.0; asm.stiffness_pattern().1.len()];
+                let mut values = vec![0.0; 9 * asm.pattern().num_blocks()];
                 asm.evaluate_values(&x, Some(&mut energy), Some(&mut f), &mut values, tangent)
                     .map(|()| (energy, f, values))
             })
