@@ -48,6 +48,9 @@ pub struct AssemblyArgs {
     /// for in its stages).
     #[arg(long)]
     pub outputs: bool,
+    /// Elements per block of the assembly (its default when not given).
+    #[arg(long)]
+    pub block_elements: Option<usize>,
 }
 
 /// `bench solvers`.
@@ -121,7 +124,13 @@ fn assembly(args: AssemblyArgs) -> Result<()> {
         &[AssemblyOutputs::All]
     };
     for &outputs in kinds {
-        let s = time_assembly(args.n, material.clone(), outputs, args.repeats)?;
+        let s = time_assembly(
+            args.n,
+            material.clone(),
+            outputs,
+            args.block_elements,
+            args.repeats,
+        )?;
         println!(
             r#"{{"what": "assembly", "impl": "deform", "model": "{}", "outputs": "{}", "tets": {}, "threads": {}, "seconds": {s:.6}, "tets_per_second": {:.0}}}"#,
             args.model,

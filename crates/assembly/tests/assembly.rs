@@ -660,7 +660,18 @@ fn values_on_the_pattern_equal_the_matrix_bit_for_bit() {
     };
     asm.evaluate(&x, out).unwrap();
     let (indptr, indices) = asm.stiffness_pattern();
-    assert_eq!((indptr, indices), (k.indptr().raw_storage(), k.indices()));
+    assert_eq!(
+        (indptr.as_slice(), indices.as_slice()),
+        (k.indptr().raw_storage(), k.indices())
+    );
+    // The same row pointers with another column in row 0 (its last, moved to the last
+    // column) are not the pattern.
+    let mut moved = indices.clone();
+    let last = indptr[1] - 1;
+    assert!(moved[last] < k.cols() - 1);
+    moved[last] = k.cols() - 1;
+    let other = CsMat::new(k.shape(), indptr.clone(), moved, k.data().to_vec());
+    assert!(asm.has_pattern(&k) && !asm.has_pattern(&other));
     let mut values = vec![0.0; indices.len()];
     let (mut e2, mut f2) = (0.0, vec![0.0; x.len()]);
     asm.evaluate_values(

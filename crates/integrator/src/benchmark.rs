@@ -122,7 +122,7 @@ impl AssemblyOutputs {
 }
 
 /// Median wall time of one assembly of `outputs` of `material` on the beam of size `n` at
-/// its deformed state.
+/// its deformed state (in blocks of `block_elements`, or the assembly's default).
 ///
 /// # Errors
 /// The assembly's.
@@ -130,10 +130,14 @@ pub fn time_assembly(
     n: usize,
     material: MaterialField,
     outputs: AssemblyOutputs,
+    block_elements: Option<usize>,
     repeats: usize,
 ) -> Result<f64, deform_assembly::AssemblyError> {
     let (mesh, _, x) = beam(n);
     let mut asm = Assembly::new(&mesh, material)?;
+    if let Some(b) = block_elements {
+        asm.set_block_elements(b);
+    }
     let mut k = asm.stiffness_matrix();
     let mut f = vec![0.0; x.len()];
     let (energy, forces, stiffness) = match outputs {
