@@ -245,11 +245,11 @@ impl Assembly {
                     let row = &columns[offsets[v]..offsets[v + 1]];
                     (0..3).all(|r| {
                         let found = &indices[indptr[3 * v + r]..indptr[3 * v + r + 1]];
+                        // Element by element (a slice comparison per block is a call).
                         found.len() == 3 * row.len()
-                            && found
-                                .chunks_exact(3)
-                                .zip(row)
-                                .all(|(f, &j)| f == [3 * j, 3 * j + 1, 3 * j + 2])
+                            && found.chunks_exact(3).zip(row).all(|(f, &j)| {
+                                (f[0] == 3 * j) & (f[1] == 3 * j + 1) & (f[2] == 3 * j + 2)
+                            })
                     })
                 })
     }
