@@ -312,7 +312,7 @@ pub fn time_iterative(
 }
 
 /// The solver policies `cargo xtask bench step` compares, by name.
-pub const STEP_POLICIES: [(&str, &str); 11] = [
+pub const STEP_POLICIES: [(&str, &str); 12] = [
     ("direct", "Fixed(Direct())"),
     ("direct_one_thread", "Fixed(Direct(parallel: false))"),
     ("direct_mixed", "Fixed(Direct(precision: Mixed))"),
@@ -353,6 +353,10 @@ pub const STEP_POLICIES: [(&str, &str); 11] = [
     (
         "pcg_amg_refresh",
         "Fixed(Pcg(preconditioner: Amg(max_age: 20), tolerance: (rel: 1e-8)))",
+    ),
+    (
+        "amg_rebuild_above_40",
+        "StaleFactor(solver: Pcg(preconditioner: Amg(max_age: 1000), tolerance: (rel: 1e-8)), refactor_above: 40)",
     ),
 ];
 

@@ -243,9 +243,11 @@ impl SolverPolicy for EisenstatWalker {
 /// (factorised at the first solve), refactorised before the next solve whenever the last one
 /// needed more than `refactor_above` iterations or fell back to the direct solver. The factor
 /// then serves later Newton iterations and time steps while it stays a good preconditioner.
+/// With an AMG preconditioner the same rule rebuilds the hierarchy (its operators are
+/// refreshed at every set-up in between, up to its `max_age`).
 #[derive(Debug, Clone)]
 pub struct StaleFactor {
-    /// PCG with a `StaleCholesky` preconditioner (its `max_age` caps the reuse).
+    /// PCG with a `StaleCholesky` or `Amg` preconditioner (its `max_age` caps the reuse).
     pub solver: SolverSpec,
     /// Refactorise after a solve that took more iterations than this.
     pub refactor_above: usize,
@@ -253,7 +255,8 @@ pub struct StaleFactor {
 }
 
 impl StaleFactor {
-    /// `solver` must precondition with a stale Cholesky factor (see [`PolicySpec::build`]).
+    /// `solver` must keep its preconditioner (stale Cholesky or AMG; see
+    /// [`PolicySpec::build`]).
     pub fn new(solver: SolverSpec, refactor_above: usize) -> Self {
         Self {
             solver,
@@ -320,7 +323,7 @@ pub enum PolicySpec {
     },
     /// Stale-factor reuse ([`StaleFactor`]).
     StaleFactor {
-        /// PCG with a `StaleCholesky` preconditioner.
+        /// PCG with a `StaleCholesky` or `Amg` preconditioner.
         solver: SolverSpec,
         /// Refactorise after a solve that took more iterations than this.
         #[serde(default = "default_refactor_above")]
@@ -439,10 +442,10 @@ impl PolicySpec {
                 refactor_above,
             } => {
                 check(solver)?;
-                if !solver.is_stale_cholesky() {
+                if !solver.keeps_preconditioner() {
                     return invalid(
                         "solver",
-                        "StaleFactor needs Pcg(preconditioner: StaleCholesky(..))",
+                        "StaleFactor needs Pcg(preconditioner: StaleCholesky(..) or Amg(..))",
                     );
                 }
                 Box::new(StaleFactor::new(solver.clone(), *refactor_above))

@@ -276,6 +276,7 @@ fn every_policy_gives_the_same_trajectory() {
         "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-12)))",
         "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
         "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-12)), refactor_above: 6)",
+        "StaleFactor(solver: Pcg(preconditioner: Amg(max_age: 1000), tolerance: (rel: 1e-12)), refactor_above: 6)",
         "Fixed(MatrixFree(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12))))",
     ] {
         let (state, reports) = run(p);
@@ -306,7 +307,8 @@ fn every_policy_gives_the_same_trajectory() {
             assert!(reused > 0);
         }
         if p.starts_with("StaleFactor") {
-            // A fresh factor exactly when the previous solve took more than 6 iterations.
+            // A fresh factor (or AMG hierarchy) exactly when the previous solve took more
+            // than 6 iterations.
             let its: Vec<&IterationReport> = reports.iter().flat_map(|r| &r.iterations).collect();
             assert!(!its[0].setup.reused);
             for w in its.windows(2) {

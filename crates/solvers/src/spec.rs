@@ -110,6 +110,19 @@ impl SolverSpec {
         )
     }
 
+    /// PCG whose preconditioner set-up is kept across solves and rebuilt on request: a stale
+    /// Cholesky factor, or an AMG hierarchy (refreshed in between).
+    pub fn keeps_preconditioner(&self) -> bool {
+        matches!(
+            self,
+            SolverSpec::Pcg {
+                preconditioner: PreconditionerSpec::StaleCholesky { .. }
+                    | PreconditionerSpec::Amg { .. },
+                ..
+            }
+        )
+    }
+
     /// The same iterative solver with its relative tolerance replaced; `None` for the
     /// direct solver.
     pub fn with_relative_tolerance(&self, rel: f64) -> Option<SolverSpec> {
