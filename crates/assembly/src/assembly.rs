@@ -112,6 +112,8 @@ pub struct Assembly {
     pub(crate) geometry: Geometry,
     pub(crate) materials: MaterialField,
     work: Vec<ElementOut>,
+    /// Each vertex's next element slot during an evaluation (allocated once).
+    cursor: Vec<usize>,
     /// Elements per block of an evaluation (a multiple of `CHUNK`).
     block: usize,
 }
@@ -172,6 +174,7 @@ impl Assembly {
             geometry,
             materials,
             work: Vec::new(),
+            cursor: Vec::new(),
             block: BLOCK,
         })
     }
@@ -372,7 +375,9 @@ impl Assembly {
         let block = self.block;
         self.work.resize(ne.min(block), ElementOut::default());
         // Each vertex's next element slot: the gathers consume them block by block.
-        let mut cursor = geo.vertex_ptr[..geo.num_vertices].to_vec();
+        self.cursor.clear();
+        self.cursor
+            .extend_from_slice(&geo.vertex_ptr[..geo.num_vertices]);
         let mut partials = Vec::new();
         let (mut forces, mut values) = (forces, stiffness.map(|(v, _)| v));
         for first in (0..ne).step_by(block) {
@@ -394,7 +399,7 @@ impl Assembly {
                     elements,
                     values.as_deref_mut(),
                     forces.as_deref_mut(),
-                    &mut cursor,
+                    &mut self.cursor,
                 );
             }
         }

@@ -34,6 +34,18 @@ impl Mass {
     }
 }
 
+impl Mass {
+    /// The scalar `m` of block `blk` (in row `v`, `columns` the pattern's) where the mass
+    /// matrix has `m I3`, or `None` where it has no block (a lumped mass off the diagonal).
+    fn block(&self, columns: &[usize], v: usize, blk: usize) -> Option<f64> {
+        match self {
+            Mass::Lumped(m) if columns[blk] == v => Some(m[v]),
+            Mass::Lumped(_) => None,
+            Mass::Consistent(m) => Some(m.values[blk]),
+        }
+    }
+}
+
 impl Assembly {
     /// `y = M x`.
     ///
@@ -101,10 +113,8 @@ impl Assembly {
         for v in 0..p.num_rows() {
             let (start, len) = (offsets[v], offsets[v + 1] - offsets[v]);
             for blk in start..offsets[v + 1] {
-                let m = match mass {
-                    Mass::Lumped(m) if p.columns()[blk] == v => m[v],
-                    Mass::Lumped(_) => continue,
-                    Mass::Consistent(m) => m.values[blk],
+                let Some(m) = mass.block(p.columns(), v, blk) else {
+                    continue;
                 };
                 for r in 0..3 {
                     values[9 * start + 3 * len * r + 3 * (blk - start) + r] += c_m * m;
@@ -152,13 +162,10 @@ impl Assembly {
                 *value = c_k * k[at];
                 // Row i's entries are its blocks' columns, three per block (see `combine`).
                 let local = at - indptr[i];
-                if local % 3 == r {
-                    let blk = offsets[v] + local / 3;
-                    match mass {
-                        Mass::Lumped(m) if columns[blk] == v => *value += c_m * m[v],
-                        Mass::Lumped(_) => {}
-                        Mass::Consistent(m) => *value += c_m * m.values[blk],
-                    }
+                if local % 3 == r
+                    && let Some(m) = mass.block(columns, v, offsets[v] + local / 3)
+                {
+                    *value += c_m * m;
                 }
             }
         }

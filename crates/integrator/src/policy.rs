@@ -332,7 +332,7 @@ pub enum PolicySpec {
 }
 
 /// Where the default policy leaves the direct solver: at 55k free DOFs a factorisation takes
-/// 0.6 s and 0.3 GB, at 418k 26 s and 4.1 GB, where PCG-AMG takes 6 s a step in 3.1 GB
+/// 0.6 s and 0.3 GB, at 418k 26 s and 4.1 GB, where PCG-AMG takes 4-6 s a step in 2.1 GB
 /// (docs/benchmarks.md).
 fn default_large_from() -> usize {
     150_000
