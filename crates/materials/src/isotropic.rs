@@ -12,53 +12,11 @@
 //! singular values need no special case; projection to PSD clamps `H`'s eigenvalues and
 //! `a`, `b` at zero.
 
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Matrix3, Vector3};
 
-use crate::material::{Matrix9, Vector9};
-
-/// Rotation-fixed SVD: `f = u * diag(s) * v^T` with `det u = det v = 1`.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct SignedSvd {
-    pub u: Matrix3<f64>,
-    pub s: Vector3<f64>,
-    pub v: Matrix3<f64>,
-}
-
-impl SignedSvd {
-    pub fn new(f: &Matrix3<f64>) -> Self {
-        let svd = f.svd(true, true);
-        let mut u = svd.u.unwrap_or_else(Matrix3::identity);
-        let mut v = svd.v_t.map_or_else(Matrix3::identity, |vt| vt.transpose());
-        let mut s = svd.singular_values;
-        // nalgebra sorts singular values in decreasing order; flip the smallest one's sign.
-        let k = s.imin();
-        if u.determinant() < 0.0 {
-            u.column_mut(k).neg_mut();
-            s[k] = -s[k];
-        }
-        if v.determinant() < 0.0 {
-            v.column_mut(k).neg_mut();
-            s[k] = -s[k];
-        }
-        Self { u, s, v }
-    }
-
-    /// The closest rotation `R = U V^T` (polar decomposition `F = R S`).
-    pub fn rotation(&self) -> Matrix3<f64> {
-        self.u * self.v.transpose()
-    }
-
-    /// `vec(u_i v_j^T)`.
-    fn mode(&self, i: usize, j: usize) -> Vector9 {
-        let mut out = Vector9::zeros();
-        for c in 0..3 {
-            for r in 0..3 {
-                out[3 * c + r] = self.u[(r, i)] * self.v[(c, j)];
-            }
-        }
-        out
-    }
-}
+use crate::material::Matrix9;
+pub(crate) use crate::svd3::SignedSvd;
+use crate::svd3::sym_eigen;
 
 /// The three index pairs `(i, j)` and the remaining index `k`.
 pub(crate) const PAIRS: [(usize, usize, usize); 3] = [(0, 1, 2), (0, 2, 1), (1, 2, 0)];
@@ -87,40 +45,72 @@ pub(crate) fn first_piola(m: &impl Isotropic, svd: &SignedSvd) -> Matrix3<f64> {
 }
 
 /// Full tangent from the eigensystem; with `project`, negative eigenvalues are clamped.
+///
+/// Written as `A D A^T`: the columns of `A` are the orthonormal modes `vec(u_i v_i^T)` and
+/// the flips and twists, `D` is `H` on the first three and diagonal on the rest, so the
+/// 9x9 costs one pass of 81 nine-long multiply-adds over fixed arrays.
 pub(crate) fn tangent(m: &impl Isotropic, svd: &SignedSvd, project: bool) -> Matrix9 {
-    let mut out = Matrix9::zeros();
-    let d = [svd.mode(0, 0), svd.mode(1, 1), svd.mode(2, 2)];
-    let h = m.hess_s(&svd.s);
-    if project {
-        let eig = SymmetricEigen::new(h);
-        for (k, &l) in eig.eigenvalues.iter().enumerate() {
-            if l > 0.0 {
-                let q = eig.eigenvectors.column(k);
-                let mode = d[0] * q[0] + d[1] * q[1] + d[2] * q[2];
-                out.ger(l, &mode, &mode, 1.0);
-            }
-        }
-    } else {
-        for i in 0..3 {
-            for j in 0..3 {
-                out.ger(h[(i, j)], &d[i], &d[j], 1.0);
+    let mut h = m.hess_s(&svd.s);
+    if project && !positive_definite(&h) {
+        let (l, q) = sym_eigen(&h);
+        h = q * Matrix3::from_diagonal(&l.map(|x| x.max(0.0))) * q.transpose();
+    }
+    // modes[k][r]: row r of column k of A; uv[i][j] = vec(u_i v_j^T).
+    let mut uv = [[[0.0; 9]; 3]; 3];
+    for (i, row) in uv.iter_mut().enumerate() {
+        for (j, mode) in row.iter_mut().enumerate() {
+            for c in 0..3 {
+                for r in 0..3 {
+                    mode[3 * c + r] = svd.u[(r, i)] * svd.v[(c, j)];
+                }
             }
         }
     }
+    let mut modes = [[0.0; 9]; 9];
+    let mut weights = [0.0; 9];
+    for k in 0..3 {
+        modes[k] = uv[k][k];
+    }
     let half = std::f64::consts::FRAC_1_SQRT_2;
-    for (i, j, k) in PAIRS {
+    for (n, (i, j, k)) in PAIRS.into_iter().enumerate() {
         let (mut a, mut b) = m.pair(&svd.s, i, j, k);
         if project {
             a = a.max(0.0);
             b = b.max(0.0);
         }
-        let (mij, mji) = (svd.mode(i, j), svd.mode(j, i));
-        let flip = (mij + mji) * half;
-        let twist = (mij - mji) * half;
-        out.ger(a, &flip, &flip, 1.0);
-        out.ger(b, &twist, &twist, 1.0);
+        weights[3 + n] = a;
+        weights[6 + n] = b;
+        for r in 0..9 {
+            modes[3 + n][r] = (uv[i][j][r] + uv[j][i][r]) * half;
+            modes[6 + n][r] = (uv[i][j][r] - uv[j][i][r]) * half;
+        }
+    }
+    // (A D)[r][k], then column r of the symmetric result is sum_k (A D)[r][k] A[:, k].
+    let mut out = Matrix9::zeros();
+    for r in 0..9 {
+        let mut ad = [0.0; 9];
+        for k in 0..3 {
+            ad[k] = (0..3).map(|l| modes[l][r] * h[(l, k)]).sum();
+        }
+        for k in 3..9 {
+            ad[k] = modes[k][r] * weights[k];
+        }
+        let mut col = [0.0; 9];
+        for (k, mode) in modes.iter().enumerate() {
+            for (c, m) in col.iter_mut().zip(mode) {
+                *c += ad[k] * m;
+            }
+        }
+        out.column_mut(r).copy_from_slice(&col);
     }
     out
+}
+
+/// Sylvester's criterion: the leading minors of the symmetric `h` are all positive, so
+/// projection would clamp nothing (the common case, spared the eigen-decomposition).
+fn positive_definite(h: &Matrix3<f64>) -> bool {
+    let m2 = h[(0, 0)] * h[(1, 1)] - h[(0, 1)] * h[(1, 0)];
+    h[(0, 0)] > 0.0 && m2 > 0.0 && h.determinant() > 0.0
 }
 
 /// `dP = dP/dF : dF` without forming the 9x9 tangent: rotate `dF` into the singular frame,

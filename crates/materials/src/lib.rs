@@ -39,6 +39,7 @@ mod material;
 mod model;
 mod models;
 mod spec;
+mod svd3;
 
 pub use error::MaterialError;
 pub use lame::{Lame, Moduli};
