@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use sprs::CsMat;
 
 use crate::kernel::{corner_products, gradient, stiffness_blocks, upper_slot};
+use crate::matrix::{PatternId, StiffnessMatrix};
 use crate::{AssemblyError, MaterialField};
 
 /// Elements per parallel task.
@@ -48,8 +49,8 @@ pub struct Outputs<'a> {
     pub energy: Option<&'a mut f64>,
     /// Receives the elastic forces `f = -dE/dx` (length `3N`).
     pub forces: Option<&'a mut [f64]>,
-    /// Refilled with `K = d2E/dx2` (a matrix from [`Assembly::stiffness_matrix`]).
-    pub stiffness: Option<&'a mut CsMat<f64>>,
+    /// Refilled with `K = d2E/dx2`.
+    pub stiffness: Option<&'a mut StiffnessMatrix>,
     /// The tangent used for `stiffness`.
     pub tangent: Tangent,
 }
@@ -63,6 +64,7 @@ pub(crate) struct Geometry {
     pub volumes: Vec<f64>,
     pub regions: Vec<u32>,
     pub pattern: BlockPattern,
+    pub pattern_id: PatternId,
     /// K's scalar CSR row pointers (its column indices follow from `pattern`).
     pub indptr: Vec<usize>,
     /// Vertex `v`'s element slots `4 e + a`, in element order.
@@ -165,6 +167,7 @@ impl Assembly {
             volumes: mesh.volumes().to_vec(),
             regions: mesh.regions().to_vec(),
             pattern,
+            pattern_id: PatternId::fresh(),
             indptr,
             vertex_ptr,
             vertex_slots,
@@ -222,13 +225,32 @@ impl Assembly {
         &self.geometry.pattern
     }
 
-    /// A `3N x 3N` CSR matrix with K's pattern (full symmetric storage) and zero values,
-    /// to be refilled by [`Assembly::stiffness`] as often as needed.
-    pub fn stiffness_matrix(&self) -> CsMat<f64> {
+    /// A `3N x 3N` matrix with K's pattern (full symmetric storage) and zero values, to be
+    /// refilled by [`Assembly::stiffness`] as often as needed.
+    pub fn stiffness_matrix(&self) -> StiffnessMatrix {
         let n = self.num_dofs();
         let (indptr, indices) = self.stiffness_pattern();
         let nnz = indices.len();
-        CsMat::new((n, n), indptr, indices, vec![0.0; nnz])
+        let csr = CsMat::new((n, n), indptr, indices, vec![0.0; nnz]);
+        StiffnessMatrix::new(csr, self.geometry.pattern_id)
+    }
+
+    /// `k` as a [`StiffnessMatrix`] of this assembly, its values kept, after checking once
+    /// that it has this mesh's pattern ([`Assembly::has_pattern`]).
+    ///
+    /// # Errors
+    /// [`AssemblyError::PatternMismatch`].
+    pub fn adopt_stiffness_matrix(&self, k: CsMat<f64>) -> Result<StiffnessMatrix, AssemblyError> {
+        if self.has_pattern(&k) {
+            Ok(StiffnessMatrix::new(k, self.geometry.pattern_id))
+        } else {
+            Err(AssemblyError::PatternMismatch)
+        }
+    }
+
+    /// Whether `k` was made for this assembly's pattern (by it or a clone).
+    pub(crate) fn owns(&self, k: &StiffnessMatrix) -> bool {
+        k.pattern() == self.geometry.pattern_id
     }
 
     /// Whether `k` has this mesh's pattern. Its column indices are compared with the block
@@ -248,11 +270,14 @@ impl Assembly {
                     let row = &columns[offsets[v]..offsets[v + 1]];
                     (0..3).all(|r| {
                         let found = &indices[indptr[3 * v + r]..indptr[3 * v + r + 1]];
-                        // Element by element (a slice comparison per block is a call).
+                        // Branch-free: the differences OR-ed over the row (a slice
+                        // comparison per block is a call, a short circuit a branch).
                         found.len() == 3 * row.len()
-                            && found.chunks_exact(3).zip(row).all(|(f, &j)| {
-                                (f[0] == 3 * j) & (f[1] == 3 * j + 1) & (f[2] == 3 * j + 2)
-                            })
+                            && found.chunks_exact(3).zip(row).fold(0, |diff, (f, &j)| {
+                                diff | (f[0] ^ (3 * j))
+                                    | (f[1] ^ (3 * j + 1))
+                                    | (f[2] ^ (3 * j + 2))
+                            }) == 0
                     })
                 })
     }
@@ -295,7 +320,7 @@ impl Assembly {
         &mut self,
         x: &[f64],
         tangent: Tangent,
-        k: &mut CsMat<f64>,
+        k: &mut StiffnessMatrix,
     ) -> Result<(), AssemblyError> {
         self.evaluate(
             x,
@@ -317,12 +342,12 @@ impl Assembly {
     /// result is not finite. On error the outputs are left unspecified.
     pub fn evaluate(&mut self, x: &[f64], out: Outputs<'_>) -> Result<(), AssemblyError> {
         if let Some(k) = &out.stiffness
-            && !self.has_pattern(k)
+            && !self.owns(k)
         {
             return Err(AssemblyError::PatternMismatch);
         }
         let tangent = out.tangent;
-        let values = out.stiffness.map(|k| (k.data_mut(), tangent));
+        let values = out.stiffness.map(|k| (k.values_mut(), tangent));
         self.evaluate_parts(x, out.energy, out.forces, values)
     }
 
@@ -565,8 +590,15 @@ fn element_phase(
     })
 }
 
-fn finite9(c: &Matrix9) -> bool {
-    c.iter().all(|v| v.is_finite())
+/// Whether every entry of `c` is finite: over the contiguous slice and without an early exit,
+/// so it compiles to a few vector compares (nalgebra's matrix iterator with `all` took about
+/// a tenth of an energy + forces + K assembly).
+pub(crate) fn finite9(c: &Matrix9) -> bool {
+    let mut bad = false;
+    for v in c.as_slice() {
+        bad |= !v.is_finite();
+    }
+    !bad
 }
 
 /// Splits a per-vertex output (`stride` values per vertex) into disjoint chunks of

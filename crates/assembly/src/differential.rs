@@ -6,7 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::assembly::{
-    Geometry, Tangent, admissible_gradient, check_len, check_positions, corners,
+    Geometry, Tangent, admissible_gradient, check_len, check_positions, corners, finite9,
     for_each_element_with_model, gather_vertex_vectors,
 };
 use crate::kernel::{corner_products, gradient, stiffness_blocks};
@@ -43,7 +43,7 @@ impl Assembly {
             } else {
                 m.dp_df(&f)
             };
-            if !c.iter().all(|v| v.is_finite()) {
+            if !finite9(&c) {
                 return Err(AssemblyError::NonFiniteElement {
                     element: e,
                     what: "tangent",

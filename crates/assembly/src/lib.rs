@@ -17,6 +17,7 @@ mod error;
 mod field;
 mod kernel;
 mod mass;
+mod matrix;
 mod params;
 
 pub use assembly::{Assembly, Outputs, Tangent};
@@ -25,4 +26,5 @@ pub use dof::{DofMap, ReducedMatrix};
 pub use error::AssemblyError;
 pub use field::MaterialField;
 pub use mass::Mass;
+pub use matrix::StiffnessMatrix;
 pub use params::{Grouping, TermJacobian};

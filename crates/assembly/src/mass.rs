@@ -2,10 +2,9 @@
 
 use deform_mesh::topology::BlockPattern;
 use deform_mesh::{ConsistentMass, TetMesh};
-use sprs::CsMat;
 
 use crate::assembly::check_len;
-use crate::{Assembly, AssemblyError, DofMap, ReducedMatrix};
+use crate::{Assembly, AssemblyError, DofMap, ReducedMatrix, StiffnessMatrix};
 
 /// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
 /// (`M_ab = rho W (1 + delta_ab) / 20` per element, one scalar per 3x3 block of K's pattern).
@@ -97,16 +96,16 @@ impl Assembly {
         c_m: f64,
         mass: &Mass,
         c_k: f64,
-        k: &CsMat<f64>,
-        out: &mut CsMat<f64>,
+        k: &StiffnessMatrix,
+        out: &mut StiffnessMatrix,
     ) -> Result<(), AssemblyError> {
-        if !self.has_pattern(k) || !self.has_pattern(out) {
+        if !self.owns(k) || !self.owns(out) {
             return Err(AssemblyError::PatternMismatch);
         }
         self.check_mass(mass)?;
         let p = &self.geometry.pattern;
         let offsets = p.offsets();
-        let values = out.data_mut();
+        let values = out.values_mut();
         for (o, kv) in values.iter_mut().zip(k.data()) {
             *o = c_k * kv;
         }
@@ -137,11 +136,11 @@ impl Assembly {
         c_m: f64,
         mass: &Mass,
         c_k: f64,
-        k: &CsMat<f64>,
+        k: &StiffnessMatrix,
         dofs: &DofMap,
         out: &mut ReducedMatrix,
     ) -> Result<(), AssemblyError> {
-        if !self.has_pattern(k)
+        if !self.owns(k)
             || out.full_nnz != k.nnz()
             || dofs.num_dofs() != self.num_dofs()
             || out.matrix.rows() != dofs.num_free()
@@ -182,7 +181,7 @@ impl Assembly {
         alpha: f64,
         gamma: f64,
         mass: &Mass,
-        k: &CsMat<f64>,
+        k: &StiffnessMatrix,
         v: &[f64],
         out: &mut [f64],
     ) -> Result<(), AssemblyError> {
@@ -193,7 +192,7 @@ impl Assembly {
             out.iter_mut().for_each(|o| *o *= -alpha);
             return Ok(());
         }
-        if !self.has_pattern(k) {
+        if !self.owns(k) {
             return Err(AssemblyError::PatternMismatch);
         }
         self.mass_apply(mass, v, out)?;

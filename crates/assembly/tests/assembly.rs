@@ -4,7 +4,8 @@
 use std::collections::BTreeMap;
 
 use deform_assembly::{
-    Assembly, AssemblyError, DofMap, Grouping, Mass, MaterialField, Outputs, Tangent,
+    Assembly, AssemblyError, DofMap, Grouping, Mass, MaterialField, Outputs, StiffnessMatrix,
+    Tangent,
 };
 use deform_materials::{MaterialSpec, Model};
 use deform_mesh::TetMesh;
@@ -70,7 +71,7 @@ fn forces(asm: &mut Assembly, x: &[f64]) -> Vec<f64> {
     f
 }
 
-fn stiffness(asm: &mut Assembly, x: &[f64], tangent: Tangent) -> CsMat<f64> {
+fn stiffness(asm: &mut Assembly, x: &[f64], tangent: Tangent) -> StiffnessMatrix {
     let mut k = asm.stiffness_matrix();
     asm.stiffness(x, tangent, &mut k).unwrap();
     k
@@ -483,11 +484,23 @@ fn inverted_elements_and_bad_input_give_typed_errors() {
         snh.energy(&nan[..6]),
         Err(AssemblyError::DimensionMismatch { what: "x", .. })
     ));
-    let mut wrong: CsMat<f64> = CsMat::eye(x.len());
+    // A foreign matrix is checked once when adopted; another assembly's is refused at use,
+    // even on the same mesh (each assembly's pattern has its own identity).
+    assert!(matches!(
+        snh.adopt_stiffness_matrix(CsMat::eye(x.len())),
+        Err(AssemblyError::PatternMismatch)
+    ));
+    let other = Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[0]))).unwrap();
+    let mut wrong = other.stiffness_matrix();
     assert!(matches!(
         snh.stiffness(&x, Tangent::Exact, &mut wrong),
         Err(AssemblyError::PatternMismatch)
     ));
+    let mut adopted = snh
+        .adopt_stiffness_matrix(wrong.into_csr())
+        .expect("the same mesh's pattern");
+    snh.stiffness(&x, Tangent::Exact, &mut adopted).unwrap();
+    assert_eq!(adopted, stiffness(&mut snh, &x, Tangent::Exact));
     assert!(
         Assembly::new(
             &mesh,

@@ -3,7 +3,8 @@
 use std::time::Instant;
 
 use deform_assembly::{
-    Assembly, AssemblyError, DofMap, Mass, MaterialField, Outputs, ReducedMatrix, Tangent,
+    Assembly, AssemblyError, DofMap, Mass, MaterialField, Outputs, ReducedMatrix, StiffnessMatrix,
+    Tangent,
 };
 use deform_mesh::TetMesh;
 use deform_solvers::{
@@ -227,7 +228,7 @@ pub struct Integrator {
     gravity_forces: Vec<f64>,
     /// Per-vertex lumped-mass scales and the mesh's own masses they multiply, when set.
     mass_scale: Option<(Vec<f64>, Vec<f64>)>,
-    k: CsMat<f64>,
+    k: StiffnessMatrix,
     /// The Newton matrix on the free DOFs (no full copy is kept).
     a_free: ReducedMatrix,
     solvers: KeptSolvers,

@@ -840,7 +840,7 @@ fn matrix_free_force_differentials_drive_cg_like_the_assembled_matrix() {
         solver.solve(operator, &b, &mut sol).unwrap();
         sol
     };
-    let (s1, s2) = (solve(&a), solve(&op));
+    let (s1, s2) = (solve(a.csr()), solve(&op));
     let norm = s1.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     assert!(
         s1.iter()

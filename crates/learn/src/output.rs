@@ -32,12 +32,11 @@ use argmin::core::{
 };
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
-use deform_assembly::{Grouping, Mass, MaterialField, ReducedMatrix, Tangent};
+use deform_assembly::{Grouping, Mass, MaterialField, ReducedMatrix, StiffnessMatrix, Tangent};
 use deform_integrator::{Integrator, OnStep, RunOptions, State, StepReport};
 use deform_materials::{MaterialError, Model};
 use deform_solvers::{Cholesky, Indefinite, LinearSolver, Ordering};
 use serde::{Deserialize, Serialize};
-use sprs::CsMat;
 
 use crate::basis::Basis;
 use crate::dataset::{Trajectory, state_at};
@@ -692,7 +691,7 @@ struct Rollout<'a> {
 
 /// The adjoint's matrices, allocated once per evaluation and refilled at every step.
 struct Adjoint {
-    kmat: CsMat<f64>,
+    kmat: StiffnessMatrix,
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
@@ -810,7 +809,7 @@ impl Adjoint {
                     .mass_apply(&self.mass, &next.v, &mut mv)
                     .map_err(fail)?;
                 let mut kv = vec![0.0; n];
-                deform_solvers::LinearOperator::apply(&self.kmat, &next.v, &mut kv);
+                deform_solvers::LinearOperator::apply(self.kmat.csr(), &next.v, &mut kv);
                 let dot = |a: &[f64]| lambda.iter().zip(a).map(|(l, x)| l * x).sum::<f64>();
                 let last = grad.len() - 2;
                 grad[last] -= dt * dot(&mv);
@@ -820,7 +819,7 @@ impl Adjoint {
             // dr/dx_k = dt K and dr/dv_k = -M enter through lambda. Constrained DOFs are
             // prescribed: their adjoints vanish.
             let mut k_lambda = vec![0.0; n];
-            deform_solvers::LinearOperator::apply(&self.kmat, &lambda, &mut k_lambda);
+            deform_solvers::LinearOperator::apply(self.kmat.csr(), &lambda, &mut k_lambda);
             let mut m_lambda = vec![0.0; n];
             sim.assembly()
                 .mass_apply(&self.mass, &lambda, &mut m_lambda)

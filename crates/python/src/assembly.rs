@@ -203,7 +203,7 @@ impl Assembly {
         let mut m = asm.stiffness_matrix();
         asm.combine(1.0, &mass, 0.0, &k, &mut m)
             .map_err(errors::assembly)?;
-        let (_, _, values) = m.into_raw_storage();
+        let (_, _, values) = m.into_csr().into_raw_storage();
         self.pattern.matrix(py, values, asm.num_dofs())
     }
 }
