@@ -31,9 +31,7 @@ impl Mass {
     pub fn consistent(mesh: &TetMesh, density: f64, pattern: &BlockPattern) -> Self {
         Mass::Consistent(mesh.consistent_mass(density, pattern))
     }
-}
 
-impl Mass {
     /// The scalar `m` of block `blk` (in row `v`, `columns` the pattern's) where the mass
     /// matrix has `m I3`, or `None` where it has no block (a lumped mass off the diagonal).
     fn block(&self, columns: &[usize], v: usize, blk: usize) -> Option<f64> {
