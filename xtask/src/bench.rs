@@ -10,8 +10,8 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use deform_fs::write_atomic;
 use deform_integrator::benchmark::{
-    AssemblyOutputs, STEP_POLICIES, beam, beam_free_coordinates, beam_integrator, beam_system,
-    time_assembly, time_direct, time_iterative,
+    AssemblyOutputs, ITERATIVE_SOLVERS, STEP_POLICIES, beam, beam_free_coordinates,
+    beam_integrator, beam_system, time_assembly, time_direct, time_iterative,
 };
 use deform_integrator::{MaterialField, Model, OnStep, RunOptions, State, StepReport};
 use deform_materials::StableNeoHookean;
@@ -72,6 +72,10 @@ pub struct SolversArgs {
     /// Skip the direct solver (its factor needs several GB at n = 32).
     #[arg(long)]
     pub no_direct: bool,
+    /// Only these iterative solvers (comma-separated names, e.g. `pcg_ic0_1e-6,pcg_amg_1e-6`);
+    /// all by default.
+    #[arg(long, value_delimiter = ',')]
+    pub solvers: Vec<String>,
 }
 
 /// `bench step`.
@@ -143,6 +147,30 @@ fn assembly(args: AssemblyArgs) -> Result<()> {
     Ok(())
 }
 
+/// The entries of `all` named in `names` (all of them when `names` is empty), in `all`'s
+/// order; an unknown name is an error listing the known ones.
+fn chosen<'a>(
+    all: &[(&'static str, &'a str)],
+    names: &[String],
+    option: &str,
+) -> Result<Vec<(&'static str, &'a str)>> {
+    if let Some(unknown) = names
+        .iter()
+        .find(|p| !all.iter().any(|(name, _)| name == p))
+    {
+        let known: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
+        bail!(
+            "{option}: unknown name {unknown:?}; expected some of {}",
+            known.join(", ")
+        );
+    }
+    Ok(all
+        .iter()
+        .filter(|(name, _)| names.is_empty() || names.iter().any(|n| n == name))
+        .copied()
+        .collect())
+}
+
 fn solvers(args: SolversArgs) -> Result<()> {
     let a = beam_system(args.n);
     if let Some(path) = &args.export {
@@ -185,7 +213,8 @@ fn solvers(args: SolversArgs) -> Result<()> {
             );
         }
     }
-    for t in time_iterative(&a, &b, &coordinates, args.repeats)? {
+    let iterative = chosen(&ITERATIVE_SOLVERS, &args.solvers, "--solvers")?;
+    for t in time_iterative(&a, &b, &coordinates, &iterative, args.repeats)? {
         report(
             t.name,
             format!(
@@ -202,19 +231,7 @@ fn solvers(args: SolversArgs) -> Result<()> {
 
 fn step(args: StepArgs) -> Result<()> {
     let tets = beam(args.n).0.num_tets();
-    if let Some(unknown) = args
-        .policies
-        .iter()
-        .find(|p| !STEP_POLICIES.iter().any(|(name, _)| name == p))
-    {
-        let names: Vec<&str> = STEP_POLICIES.iter().map(|(name, _)| *name).collect();
-        bail!(
-            "--policies: unknown policy {unknown:?}; expected some of {}",
-            names.join(", ")
-        );
-    }
-    let chosen = |name: &str| args.policies.is_empty() || args.policies.iter().any(|p| p == name);
-    for (name, policy) in STEP_POLICIES.into_iter().filter(|(name, _)| chosen(name)) {
+    for (name, policy) in chosen(&STEP_POLICIES, &args.policies, "--policies")? {
         let (mut sim, mut state) = beam_integrator(args.n, policy)?;
         let mut last = Instant::now();
         let run = sim.run(

@@ -254,8 +254,37 @@ pub struct IterativeTiming {
     pub seconds: f64,
 }
 
-/// CG and PCG (Jacobi, IC(0), smoothed-aggregation AMG with the rigid-body modes of
-/// `coordinates`) on `a x = b` from a cold start, medians over `repeats`.
+/// The iterative solvers `cargo xtask bench solvers` compares, by name: CG and PCG
+/// (Jacobi, IC(0), smoothed-aggregation AMG).
+pub const ITERATIVE_SOLVERS: [(&str, &str); 6] = [
+    (
+        "cg_1e-6",
+        "Cg(tolerance: (rel: 1e-6, max_iterations: 100000))",
+    ),
+    (
+        "pcg_jacobi_1e-6",
+        "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-6, max_iterations: 100000))",
+    ),
+    (
+        "pcg_jacobi_1e-8",
+        "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8, max_iterations: 100000))",
+    ),
+    (
+        "pcg_ic0_1e-6",
+        "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-6, max_iterations: 100000))",
+    ),
+    (
+        "pcg_amg_1e-6",
+        "Pcg(preconditioner: Amg(), tolerance: (rel: 1e-6, max_iterations: 100000))",
+    ),
+    (
+        "pcg_amg_jacobi_1e-6",
+        "Pcg(preconditioner: Amg(smoother: Jacobi(sweeps: 1)), tolerance: (rel: 1e-6, max_iterations: 100000))",
+    ),
+];
+
+/// `solvers` (names and specs, e.g. from [`ITERATIVE_SOLVERS`]) on `a x = b` from a cold
+/// start, with the rigid-body modes of `coordinates` for AMG, medians over `repeats`.
 ///
 /// # Errors
 /// The solver's.
@@ -263,35 +292,11 @@ pub fn time_iterative(
     a: &CsMat<f64>,
     b: &[f64],
     coordinates: &[[f64; 3]],
+    solvers: &[(&'static str, &str)],
     repeats: usize,
 ) -> Result<Vec<IterativeTiming>, deform_solvers::SolverError> {
     let mut out = Vec::new();
-    for (name, spec) in [
-        (
-            "cg_1e-6",
-            "Cg(tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_jacobi_1e-6",
-            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_jacobi_1e-8",
-            "Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8, max_iterations: 100000))",
-        ),
-        (
-            "pcg_ic0_1e-6",
-            "Pcg(preconditioner: Ic0, tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_amg_1e-6",
-            "Pcg(preconditioner: Amg(), tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-        (
-            "pcg_amg_jacobi_1e-6",
-            "Pcg(preconditioner: Amg(smoother: Jacobi(sweeps: 1)), tolerance: (rel: 1e-6, max_iterations: 100000))",
-        ),
-    ] {
+    for &(name, spec) in solvers {
         let spec: deform_solvers::SolverSpec = ron::from_str(spec).expect("a valid spec");
         let mut setups = Vec::new();
         let (iterations, seconds) = median_time(repeats, || {

@@ -40,6 +40,7 @@
 //! ```
 
 mod amg;
+mod blocks;
 mod direct;
 mod error;
 mod iterative;

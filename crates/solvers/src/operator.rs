@@ -5,6 +5,7 @@ use rayon::prelude::*;
 use sprs::CsMat;
 
 use crate::SolverError;
+use crate::blocks::Blocks;
 
 /// A square symmetric linear operator `y = A x` on flat vectors.
 ///
@@ -176,61 +177,15 @@ pub(crate) fn for_each_entry(y: &mut [f64], f: impl Fn(usize, &mut f64) + Sync +
 /// memory-bound product moves about half the data. Each row is still summed in column order,
 /// so the product equals the CSR product bit for bit.
 pub(crate) struct Bsr3<'a> {
-    ptr: Vec<usize>,
-    cols: Vec<u32>,
-    values: Vec<[f64; 9]>,
+    blocks: Blocks,
     csr: &'a CsMat<f64>,
 }
 
 impl<'a> Bsr3<'a> {
     /// The block copy, or `None` when the pattern is not made of aligned 3x3 blocks.
     pub fn from_csr(a: &'a CsMat<f64>) -> Option<Self> {
-        let n = a.rows();
-        if !n.is_multiple_of(3) || a.cols() != n || !a.is_csr() || n / 3 > u32::MAX as usize {
-            return None;
-        }
-        let (indptr, indices, data) = (a.indptr(), a.indices(), a.data());
-        let indptr = indptr.raw_storage();
-        let mut ptr = Vec::with_capacity(n / 3 + 1);
-        let mut cols = Vec::with_capacity(a.nnz() / 9);
-        let mut values = Vec::with_capacity(a.nnz() / 9);
-        ptr.push(0);
-        for v in 0..n / 3 {
-            let rows = [3 * v, 3 * v + 1, 3 * v + 2];
-            let len = indptr[rows[0] + 1] - indptr[rows[0]];
-            if !len.is_multiple_of(3) {
-                return None;
-            }
-            for &r in &rows[1..] {
-                if indptr[r + 1] - indptr[r] != len
-                    || indices[indptr[r]..indptr[r + 1]]
-                        != indices[indptr[rows[0]]..indptr[rows[0] + 1]]
-                {
-                    return None;
-                }
-            }
-            let row_cols = &indices[indptr[rows[0]]..indptr[rows[0] + 1]];
-            for (b, triple) in row_cols.chunks_exact(3).enumerate() {
-                if !triple[0].is_multiple_of(3)
-                    || triple[1] != triple[0] + 1
-                    || triple[2] != triple[0] + 2
-                {
-                    return None;
-                }
-                cols.push((triple[0] / 3) as u32);
-                let mut block = [0.0; 9];
-                for (i, &r) in rows.iter().enumerate() {
-                    let at = indptr[r] + 3 * b;
-                    block[3 * i..3 * i + 3].copy_from_slice(&data[at..at + 3]);
-                }
-                values.push(block);
-            }
-            ptr.push(cols.len());
-        }
         Some(Self {
-            ptr,
-            cols,
-            values,
+            blocks: Blocks::from_aligned_csr(a, 3)?,
             csr: a,
         })
     }
@@ -238,28 +193,11 @@ impl<'a> Bsr3<'a> {
 
 impl LinearOperator for Bsr3<'_> {
     fn nrows(&self) -> usize {
-        3 * (self.ptr.len() - 1)
+        self.csr.rows()
     }
 
     fn apply(&self, x: &[f64], y: &mut [f64]) {
-        let rows = |(c, ys): (usize, &mut [f64])| {
-            for (local, yv) in ys.chunks_exact_mut(3).enumerate() {
-                let v = c * (ROW_CHUNK / 3) + local;
-                let mut acc = [0.0; 3];
-                for k in self.ptr[v]..self.ptr[v + 1] {
-                    let j = 3 * self.cols[k] as usize;
-                    let (b, xj) = (&self.values[k], &x[j..j + 3]);
-                    for r in 0..3 {
-                        acc[r] += b[3 * r] * xj[0];
-                        acc[r] += b[3 * r + 1] * xj[1];
-                        acc[r] += b[3 * r + 2] * xj[2];
-                    }
-                }
-                yv.copy_from_slice(&acc);
-            }
-        };
-        // ROW_CHUNK is a multiple of 3, so chunks hold whole block rows.
-        y.par_chunks_mut(ROW_CHUNK).enumerate().for_each(rows);
+        self.blocks.multiply_vector(x, y);
     }
 
     fn diagonal(&self, out: &mut [f64]) {

@@ -246,7 +246,7 @@ impl Preconditioner {
                     .solve_in_place(z)
                     .expect("a held factor solves vectors of its size");
             }
-            Preconditioner::Amg { amg, .. } => amg.apply(a, r, z),
+            Preconditioner::Amg { amg, .. } => amg.apply(r, z),
             Preconditioner::Ic0 { l, .. } => {
                 // L y = r (forward), then L^T z = y (backward, column sweep over L's rows).
                 let n = l.indptr.len() - 1;
@@ -279,7 +279,7 @@ impl Preconditioner {
             Preconditioner::Ssor { .. } => a.apply_flops() + 4 * n as u64,
             Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
             Preconditioner::Cholesky { factor, .. } => factor.solve_flops(),
-            Preconditioner::Amg { amg, .. } => amg.flops(a),
+            Preconditioner::Amg { amg, .. } => amg.flops(),
         }
     }
 

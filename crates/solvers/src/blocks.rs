@@ -1,0 +1,685 @@
+//! Block CSR matrices with dense `r x c` blocks: the 3x3 vertex-block copy iterative solvers
+//! multiply with, and the storage of the multigrid hierarchy (the finest operator in its
+//! vertices' 3x3 blocks, prolongators in `3 x 6` (finest) or `6 x 6` blocks, coarse
+//! operators in `6 x 6` blocks). Products work a block at a time (one lookup per block
+//! instead of per entry), with block rows in parallel and each output row summed in a fixed
+//! order, so every result is identical for any thread count. Values are `f64` where
+//! matrices are multiplied together, and may be `f32` where a matrix only multiplies
+//! vectors: that product is bound by memory traffic, and the sums stay in `f64`.
+
+use rayon::prelude::*;
+use sprs::CsMat;
+
+use crate::operator::LinearOperator;
+
+/// Block rows per parallel task.
+const BLOCK_ROWS_PER_TASK: usize = 256;
+/// Below this many stored entries, products with vectors run on one thread.
+const PARALLEL_NNZ: usize = 200_000;
+
+/// The value type of a block matrix.
+pub(crate) trait Scalar: Copy + Default + Send + Sync + Into<f64> + 'static {}
+impl Scalar for f64 {}
+impl Scalar for f32 {}
+
+/// A block CSR matrix: block row `i` holds blocks `ptr[i]..ptr[i + 1]`, at block columns
+/// `idx` (sorted), each `r x c` row-major in `val`.
+#[derive(Debug, Clone)]
+pub(crate) struct Blocks<T = f64> {
+    pub r: usize,
+    pub c: usize,
+    pub rows: usize,
+    pub cols: usize,
+    pub ptr: Vec<usize>,
+    pub idx: Vec<u32>,
+    pub val: Vec<T>,
+}
+
+impl<T: Scalar> Blocks<T> {
+    /// Scalar rows and columns.
+    pub fn shape(&self) -> (usize, usize) {
+        (self.rows * self.r, self.cols * self.c)
+    }
+
+    /// Stored entries (blocks times block size).
+    pub fn nnz(&self) -> usize {
+        self.val.len()
+    }
+
+    /// Block `k`'s values.
+    pub fn block(&self, k: usize) -> &[T] {
+        let size = self.r * self.c;
+        &self.val[k * size..(k + 1) * size]
+    }
+
+    /// `y = self x` (any shape). Each row is one running sum over its blocks in column
+    /// order, so a 3x3-block copy of a CSR matrix multiplies exactly like the CSR matrix.
+    pub fn multiply_vector(&self, x: &[f64], y: &mut [f64]) {
+        match (self.r, self.c) {
+            (3, 3) => self.multiply_fixed::<3, 3>(x, y),
+            (3, 6) => self.multiply_fixed::<3, 6>(x, y),
+            (6, 3) => self.multiply_fixed::<6, 3>(x, y),
+            (6, 6) => self.multiply_fixed::<6, 6>(x, y),
+            (r, c) => self.for_row_tasks(y, |i, yi| {
+                yi.fill(0.0);
+                for k in self.ptr[i]..self.ptr[i + 1] {
+                    let (block, xj) = (self.block(k), &x[self.idx[k] as usize * c..][..c]);
+                    for (row, yv) in yi.iter_mut().enumerate() {
+                        for (b, v) in block[row * c..(row + 1) * c].iter().zip(xj) {
+                            *yv += (*b).into() * v;
+                        }
+                    }
+                }
+                debug_assert_eq!(yi.len(), r);
+            }),
+        }
+    }
+
+    /// [`Self::multiply_vector`] with the block shape known at compile time (unrolled).
+    fn multiply_fixed<const R: usize, const C: usize>(&self, x: &[f64], y: &mut [f64]) {
+        self.for_row_tasks(y, |i, yi| {
+            let mut acc = [0.0; R];
+            for k in self.ptr[i]..self.ptr[i + 1] {
+                let j = self.idx[k] as usize * C;
+                let (block, xj) = (&self.val[k * R * C..(k + 1) * R * C], &x[j..j + C]);
+                for (row, a) in acc.iter_mut().enumerate() {
+                    for col in 0..C {
+                        *a += block[row * C + col].into() * xj[col];
+                    }
+                }
+            }
+            yi.copy_from_slice(&acc);
+        });
+    }
+
+    /// Calls `f(i, y_i)` for every block row `i` and its `r` entries of `y`, in parallel
+    /// tasks of whole block rows when the matrix is large.
+    fn for_row_tasks(&self, y: &mut [f64], f: impl Fn(usize, &mut [f64]) + Sync + Send) {
+        let r = self.r;
+        let task = |(t, ys): (usize, &mut [f64])| {
+            for (local, yi) in ys.chunks_exact_mut(r).enumerate() {
+                f(t * BLOCK_ROWS_PER_TASK + local, yi);
+            }
+        };
+        if self.nnz() < PARALLEL_NNZ {
+            y.chunks_mut(r * BLOCK_ROWS_PER_TASK)
+                .enumerate()
+                .for_each(task);
+        } else {
+            y.par_chunks_mut(r * BLOCK_ROWS_PER_TASK)
+                .enumerate()
+                .for_each(task);
+        }
+    }
+
+    /// The scalar diagonal of a square matrix with square blocks.
+    pub fn scalar_diagonal(&self, out: &mut [f64]) {
+        let b = self.r;
+        for i in 0..self.rows {
+            let row = &self.idx[self.ptr[i]..self.ptr[i + 1]];
+            let block = row
+                .binary_search(&(i as u32))
+                .ok()
+                .map(|k| self.block(self.ptr[i] + k));
+            for d in 0..b {
+                out[i * b + d] = block.map_or(0.0, |v| v[d * b + d].into());
+            }
+        }
+    }
+}
+
+impl Blocks<f64> {
+    /// `a` in `b x b` blocks (a block is stored where `a` has any entry; missing entries of
+    /// a stored block are zero). `None` unless `a` is square with a multiple of `b` rows.
+    pub fn from_csr(a: &CsMat<f64>, b: usize) -> Option<Self> {
+        Self::copy_csr(a, b, true)
+    }
+
+    /// `a` in `b x b` blocks when every block row of `a` is made of whole aligned blocks
+    /// (how deform assembles every FEM matrix); `None` otherwise.
+    pub fn from_aligned_csr(a: &CsMat<f64>, b: usize) -> Option<Self> {
+        Self::copy_csr(a, b, false)
+    }
+
+    /// The copy in two parallel passes: blocks per block row, then each row's blocks
+    /// written in place; a row not made of whole blocks is padded when `pad`, else refused.
+    fn copy_csr(a: &CsMat<f64>, b: usize, pad: bool) -> Option<Self> {
+        let n = a.rows();
+        if a.cols() != n || !n.is_multiple_of(b) || !a.is_csr() || n / b > u32::MAX as usize {
+            return None;
+        }
+        let (indptr, indices, data) = (a.indptr(), a.indices(), a.data());
+        let indptr = indptr.raw_storage();
+        let rows = n / b;
+        let size = b * b;
+        // Each block row's blocks and whether they are aligned (`None`: refused).
+        let counts: Vec<Option<(usize, bool)>> = (0..rows)
+            .into_par_iter()
+            .with_min_len(BLOCK_ROWS_PER_TASK)
+            .map(|i| match aligned_blocks(indptr, indices, b, i) {
+                Some(count) => Some((count, true)),
+                None => pad.then(|| (padded_columns(indptr, indices, b, i).len(), false)),
+            })
+            .collect();
+        let mut ptr = Vec::with_capacity(rows + 1);
+        let mut aligned = Vec::with_capacity(rows);
+        ptr.push(0);
+        for count in &counts {
+            let (count, whole) = (*count)?;
+            ptr.push(ptr[ptr.len() - 1] + count);
+            aligned.push(whole);
+        }
+        let blocks = ptr[rows];
+        let mut copy = Self {
+            r: b,
+            c: b,
+            rows,
+            cols: rows,
+            ptr,
+            idx: vec![0; blocks],
+            val: vec![0.0; blocks * size],
+        };
+        copy.for_each_row_mut(|i, idx, val| {
+            if aligned[i] {
+                let first = &indices[indptr[b * i]..indptr[b * i + 1]];
+                for (slot, g) in idx.iter_mut().zip(first.chunks_exact(b)) {
+                    *slot = (g[0] / b) as u32;
+                }
+                for (local, row) in (b * i..b * (i + 1)).enumerate() {
+                    for block in 0..idx.len() {
+                        let from = &data[indptr[row] + block * b..][..b];
+                        val[block * size + local * b..][..b].copy_from_slice(from);
+                    }
+                }
+            } else {
+                let columns = padded_columns(indptr, indices, b, i);
+                for (slot, &j) in idx.iter_mut().zip(&columns) {
+                    *slot = j as u32;
+                }
+                for (local, row) in (b * i..b * (i + 1)).enumerate() {
+                    for k in indptr[row]..indptr[row + 1] {
+                        let j = indices[k];
+                        let slot = columns.binary_search(&(j / b)).expect("listed");
+                        val[slot * size + local * b + j % b] = data[k];
+                    }
+                }
+            }
+        });
+        Some(copy)
+    }
+
+    /// Calls `f(i, columns, values)` with each block row's columns and values, in parallel
+    /// tasks of whole block rows.
+    pub fn for_each_row_mut(&mut self, f: impl Fn(usize, &mut [u32], &mut [f64]) + Sync + Send) {
+        let (rows, size, ptr) = (self.rows, self.r * self.c, &self.ptr);
+        let mut tasks = Vec::with_capacity(rows.div_ceil(BLOCK_ROWS_PER_TASK));
+        let (mut idx_rest, mut val_rest) = (self.idx.as_mut_slice(), self.val.as_mut_slice());
+        for first in (0..rows).step_by(BLOCK_ROWS_PER_TASK) {
+            let last = (first + BLOCK_ROWS_PER_TASK).min(rows);
+            let len = ptr[last] - ptr[first];
+            let (idx, rest) = std::mem::take(&mut idx_rest).split_at_mut(len);
+            let (val, val_tail) = std::mem::take(&mut val_rest).split_at_mut(len * size);
+            (idx_rest, val_rest) = (rest, val_tail);
+            tasks.push((first..last, idx, val));
+        }
+        tasks.into_par_iter().for_each(|(range, idx, val)| {
+            let offset = ptr[range.start];
+            for i in range {
+                let (at, count) = (ptr[i] - offset, ptr[i + 1] - ptr[i]);
+                f(
+                    i,
+                    &mut idx[at..at + count],
+                    &mut val[at * size..][..count * size],
+                );
+            }
+        });
+    }
+
+    /// These values in single precision, for products with vectors.
+    pub fn to_single(&self) -> Blocks<f32> {
+        Blocks {
+            r: self.r,
+            c: self.c,
+            rows: self.rows,
+            cols: self.cols,
+            ptr: self.ptr.clone(),
+            idx: self.idx.clone(),
+            val: self.val.par_iter().map(|&v| v as f32).collect(),
+        }
+    }
+
+    fn concatenate(
+        r: usize,
+        c: usize,
+        rows: usize,
+        cols: usize,
+        tasks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)>,
+    ) -> Self {
+        let mut ptr = Vec::with_capacity(rows + 1);
+        ptr.push(0);
+        for len in tasks.iter().flat_map(|t| &t.0) {
+            ptr.push(ptr[ptr.len() - 1] + len);
+        }
+        let blocks = ptr[rows];
+        let mut joined = Self {
+            r,
+            c,
+            rows,
+            cols,
+            ptr,
+            idx: vec![0; blocks],
+            val: vec![0.0; blocks * r * c],
+        };
+        // Each task's rows are one contiguous range of the result: copied in parallel.
+        let size = r * c;
+        let mut parts = Vec::with_capacity(tasks.len());
+        let (mut idx_rest, mut val_rest) = (joined.idx.as_mut_slice(), joined.val.as_mut_slice());
+        for (_, i, v) in &tasks {
+            let (idx, rest) = std::mem::take(&mut idx_rest).split_at_mut(i.len());
+            let (val, val_tail) = std::mem::take(&mut val_rest).split_at_mut(i.len() * size);
+            (idx_rest, val_rest) = (rest, val_tail);
+            parts.push((idx, val, i, v));
+        }
+        parts.into_par_iter().for_each(|(idx, val, i, v)| {
+            idx.copy_from_slice(i);
+            val.copy_from_slice(v);
+        });
+        joined
+    }
+
+    /// The same matrix as scalar CSR (every stored block entry, zeros included).
+    pub fn to_csr(&self) -> CsMat<f64> {
+        let (n, m) = self.shape();
+        let mut indptr = Vec::with_capacity(n + 1);
+        let mut indices = Vec::with_capacity(self.nnz());
+        let mut data = Vec::with_capacity(self.nnz());
+        indptr.push(0);
+        for i in 0..self.rows {
+            for local in 0..self.r {
+                for k in self.ptr[i]..self.ptr[i + 1] {
+                    let j = self.idx[k] as usize;
+                    let block = self.block(k);
+                    for col in 0..self.c {
+                        indices.push(j * self.c + col);
+                        data.push(block[local * self.c + col]);
+                    }
+                }
+                indptr.push(indices.len());
+            }
+        }
+        CsMat::new((n, m), indptr, indices, data)
+    }
+
+    /// `self * other`: block rows in parallel; each output block accumulates its products in
+    /// the order of `self`'s blocks, then `other`'s.
+    pub fn multiply(&self, other: &Blocks) -> Blocks {
+        self.product(other, false)
+    }
+
+    /// `self * other` for a product known to be symmetric (a Galerkin operator `P^T (A P)`):
+    /// the blocks on and above the diagonal are computed as by [`Self::multiply`] and mirrored
+    /// below it, so the result is exactly symmetric at about half the arithmetic.
+    pub fn multiply_symmetric(&self, other: &Blocks) -> Blocks {
+        assert_eq!(
+            (self.rows, self.r),
+            (other.cols, other.c),
+            "a square product"
+        );
+        let mut upper = self.product(other, true);
+        let b = upper.r;
+        upper.for_each_row_mut(|i, idx, val| {
+            // The diagonal block, first in an upper row, mirrored within itself too.
+            if idx.first() == Some(&(i as u32)) {
+                for x in 0..b {
+                    for y in 0..x {
+                        val[x * b + y] = val[y * b + x];
+                    }
+                }
+            }
+        });
+        let mut strict = upper.clone();
+        strict.for_each_row_mut(|i, idx, val| {
+            // The diagonal block is not mirrored: zero it here and skip it below.
+            if idx.first() == Some(&(i as u32)) {
+                val[..upper.r * upper.c].fill(0.0);
+            }
+        });
+        let lower = strict.transpose();
+        let size = upper.r * upper.c;
+        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        for i in 0..upper.rows {
+            // Rows of the transpose list their columns (< i, and i for the zeroed diagonal).
+            for k in lower.ptr[i]..lower.ptr[i + 1] {
+                if lower.idx[k] as usize != i {
+                    idx.push(lower.idx[k]);
+                    val.extend_from_slice(lower.block(k));
+                }
+            }
+            idx.extend_from_slice(&upper.idx[upper.ptr[i]..upper.ptr[i + 1]]);
+            val.extend_from_slice(&upper.val[upper.ptr[i] * size..upper.ptr[i + 1] * size]);
+            ptr.push(idx.len());
+        }
+        Blocks {
+            ptr,
+            idx,
+            val,
+            ..upper
+        }
+    }
+
+    /// `self * other`, only the blocks on and above the diagonal when `upper`.
+    fn product(&self, other: &Blocks, upper: bool) -> Blocks {
+        assert_eq!(self.c, other.r, "inner block sizes");
+        assert_eq!(self.cols, other.rows, "inner dimensions");
+        let (r, inner, c) = (self.r, self.c, other.c);
+        let size = r * c;
+        let tasks = (0..self.rows.div_ceil(BLOCK_ROWS_PER_TASK))
+            .into_par_iter()
+            .map_init(
+                || vec![usize::MAX; other.cols],
+                |slot, task| {
+                    let (mut lengths, mut idx, mut val) = (Vec::new(), Vec::new(), Vec::new());
+                    let mut columns: Vec<u32> = Vec::new();
+                    let mut acc: Vec<f64> = Vec::new();
+                    let end = ((task + 1) * BLOCK_ROWS_PER_TASK).min(self.rows);
+                    for i in task * BLOCK_ROWS_PER_TASK..end {
+                        columns.clear();
+                        acc.clear();
+                        for ka in self.ptr[i]..self.ptr[i + 1] {
+                            let j = self.idx[ka] as usize;
+                            let a = self.block(ka);
+                            let row = &other.idx[other.ptr[j]..other.ptr[j + 1]];
+                            let first = if upper {
+                                row.partition_point(|&col| (col as usize) < i)
+                            } else {
+                                0
+                            };
+                            for kb in other.ptr[j] + first..other.ptr[j + 1] {
+                                let col = other.idx[kb] as usize;
+                                if slot[col] == usize::MAX {
+                                    slot[col] = columns.len();
+                                    columns.push(col as u32);
+                                    acc.resize(acc.len() + size, 0.0);
+                                }
+                                let out = &mut acc[slot[col] * size..(slot[col] + 1) * size];
+                                block_product(r, inner, c, a, other.block(kb), out);
+                            }
+                        }
+                        let mut order: Vec<u32> = columns.clone();
+                        order.sort_unstable();
+                        for &col in &order {
+                            let s = slot[col as usize];
+                            val.extend_from_slice(&acc[s * size..(s + 1) * size]);
+                        }
+                        for &col in &columns {
+                            slot[col as usize] = usize::MAX;
+                        }
+                        idx.extend_from_slice(&order);
+                        lengths.push(order.len());
+                    }
+                    (lengths, idx, val)
+                },
+            )
+            .collect();
+        Self::concatenate(r, c, self.rows, other.cols, tasks)
+    }
+
+    /// Flops of `self * other`: two per product of scalar entries.
+    pub fn product_flops(&self, other: &Blocks) -> u64 {
+        let per_pair = (2 * self.r * self.c * other.c) as u64;
+        self.idx
+            .iter()
+            .map(|&j| (other.ptr[j as usize + 1] - other.ptr[j as usize]) as u64)
+            .sum::<u64>()
+            * per_pair
+    }
+
+    /// The transpose, with each block transposed.
+    pub fn transpose(&self) -> Blocks {
+        let (r, c) = (self.r, self.c);
+        let size = r * c;
+        let mut counts = vec![0usize; self.cols + 1];
+        for &j in &self.idx {
+            counts[j as usize + 1] += 1;
+        }
+        for j in 0..self.cols {
+            counts[j + 1] += counts[j];
+        }
+        let mut next = counts.clone();
+        let mut idx = vec![0u32; self.idx.len()];
+        let mut val = vec![0.0; self.val.len()];
+        for i in 0..self.rows {
+            for k in self.ptr[i]..self.ptr[i + 1] {
+                let j = self.idx[k] as usize;
+                let at = next[j];
+                next[j] += 1;
+                idx[at] = i as u32;
+                let (src, dst) = (self.block(k), &mut val[at * size..(at + 1) * size]);
+                for x in 0..r {
+                    for y in 0..c {
+                        dst[y * r + x] = src[x * c + y];
+                    }
+                }
+            }
+        }
+        Blocks {
+            r: c,
+            c: r,
+            rows: self.cols,
+            cols: self.rows,
+            ptr: counts,
+            idx,
+            val,
+        }
+    }
+
+    /// Sets zero diagonal entries to `value` (the unknowns of dropped near-null-space
+    /// columns, which nothing couples to).
+    pub fn fill_zero_diagonal(&mut self, value: f64) {
+        let b = self.r;
+        for i in 0..self.rows {
+            let row = &self.idx[self.ptr[i]..self.ptr[i + 1]];
+            if let Ok(k) = row.binary_search(&(i as u32)) {
+                let at = (self.ptr[i] + k) * b * b;
+                for d in 0..b {
+                    if self.val[at + d * b + d] == 0.0 {
+                        self.val[at + d * b + d] = value;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The number of blocks of block row `i` of a CSR matrix when its `b` rows share their
+/// columns in whole aligned groups of `b`; `None` for any other pattern.
+fn aligned_blocks(indptr: &[usize], indices: &[usize], b: usize, i: usize) -> Option<usize> {
+    let first = &indices[indptr[b * i]..indptr[b * i + 1]];
+    let full = first.len().is_multiple_of(b)
+        && first
+            .chunks_exact(b)
+            .all(|g| g[0].is_multiple_of(b) && g.iter().enumerate().all(|(t, &j)| j == g[0] + t))
+        && (b * i + 1..b * (i + 1)).all(|row| &indices[indptr[row]..indptr[row + 1]] == first);
+    full.then_some(first.len() / b)
+}
+
+/// The sorted block columns of block row `i`: every block holding an entry.
+fn padded_columns(indptr: &[usize], indices: &[usize], b: usize, i: usize) -> Vec<usize> {
+    let mut columns: Vec<usize> = indices[indptr[b * i]..indptr[b * (i + 1)]]
+        .iter()
+        .map(|&j| j / b)
+        .collect();
+    columns.sort_unstable();
+    columns.dedup();
+    columns
+}
+
+/// `out += a b` for dense row-major blocks `a` (`r x m`) and `b` (`m x c`), with the sizes
+/// known at compile time for the hierarchy's common shapes (unrolled, vectorised loops).
+fn block_product(r: usize, m: usize, c: usize, a: &[f64], b: &[f64], out: &mut [f64]) {
+    fn fixed<const R: usize, const M: usize, const C: usize>(
+        a: &[f64],
+        b: &[f64],
+        out: &mut [f64],
+    ) {
+        // Known lengths: no bounds checks in the unrolled loops.
+        let (a, b, out) = (&a[..R * M], &b[..M * C], &mut out[..R * C]);
+        for x in 0..R {
+            for y in 0..M {
+                let s = a[x * M + y];
+                for z in 0..C {
+                    out[x * C + z] += s * b[y * C + z];
+                }
+            }
+        }
+    }
+    match (r, m, c) {
+        (3, 3, 6) => fixed::<3, 3, 6>(a, b, out),
+        (6, 3, 6) => fixed::<6, 3, 6>(a, b, out),
+        (6, 6, 6) => fixed::<6, 6, 6>(a, b, out),
+        (3, 3, 3) => fixed::<3, 3, 3>(a, b, out),
+        _ => {
+            for x in 0..r {
+                for y in 0..m {
+                    let s = a[x * m + y];
+                    for z in 0..c {
+                        out[x * c + z] += s * b[y * c + z];
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A square block matrix as an operator (a level of the multigrid hierarchy).
+impl<T: Scalar> LinearOperator for Blocks<T> {
+    fn nrows(&self) -> usize {
+        self.rows * self.r
+    }
+
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        self.multiply_vector(x, y);
+    }
+
+    fn diagonal(&self, out: &mut [f64]) {
+        self.scalar_diagonal(out);
+    }
+
+    fn apply_flops(&self) -> u64 {
+        2 * self.nnz() as u64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sprs::TriMat;
+
+    fn random(rows: usize, cols: usize, seed: u64) -> CsMat<f64> {
+        let mut t = TriMat::new((rows, cols));
+        let mut s = seed;
+        for i in 0..rows {
+            for _ in 0..4 {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let j = (s >> 33) as usize % cols;
+                t.add_triplet(i, j, (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5);
+            }
+        }
+        t.to_csr()
+    }
+
+    #[test]
+    fn block_products_transposes_and_vectors_match_dense_arithmetic() {
+        let a = Blocks::from_csr(&random(36, 36, 1), 3).unwrap();
+        let b = Blocks::from_csr(&random(36, 36, 2), 3).unwrap();
+        let (da, db) = (a.to_csr().to_dense(), b.to_csr().to_dense());
+        let c = a.multiply(&b).to_csr().to_dense();
+        let expected = da.dot(&db);
+        let t = a.transpose().to_csr().to_dense();
+        for i in 0..36 {
+            for j in 0..36 {
+                assert!((c[[i, j]] - expected[[i, j]]).abs() < 1e-14);
+                assert_eq!(t[[j, i]], da[[i, j]]);
+            }
+        }
+        let x: Vec<f64> = (0..36).map(|i| (i as f64 * 0.3).sin()).collect();
+        let mut y = vec![0.0; 36];
+        a.multiply_vector(&x, &mut y);
+        for i in 0..36 {
+            let e: f64 = (0..36).map(|j| da[[i, j]] * x[j]).sum();
+            assert!((y[i] - e).abs() < 1e-14);
+        }
+        // In single precision: within the values' rounding.
+        let mut y32 = vec![0.0; 36];
+        a.to_single().multiply_vector(&x, &mut y32);
+        for i in 0..36 {
+            let bound: f64 = (0..36).map(|j| (da[[i, j]] * x[j]).abs()).sum();
+            assert!(
+                (y32[i] - y[i]).abs() <= 1e-7 * bound,
+                "{} vs {}",
+                y32[i],
+                y[i]
+            );
+        }
+        // Every scalar entry survives the block copy; a pattern of partial blocks is padded
+        // by `from_csr` and refused by `from_aligned_csr`.
+        let original = random(36, 36, 1).to_dense();
+        assert_eq!(da, original);
+        assert!(Blocks::from_csr(&random(35, 35, 1), 3).is_none());
+        assert!(Blocks::from_aligned_csr(&random(36, 36, 1), 3).is_none());
+    }
+
+    #[test]
+    fn the_symmetric_product_equals_the_full_one_and_is_exactly_symmetric() {
+        // B^T (A B) with A symmetric: 3x3 blocks times 3x6 blocks, as on the finest level.
+        let a = random(36, 36, 3);
+        let a = &a + &a.transpose_view().to_csr();
+        let a = Blocks::from_csr(&a, 3).unwrap();
+        let b = random(36, 24, 4).to_dense();
+        let mut t = TriMat::new((36, 24));
+        for ((i, j), v) in b.indexed_iter() {
+            if *v != 0.0 {
+                t.add_triplet(i, j, *v);
+            }
+        }
+        // Blocks of 3x6: row blocks of 3, column blocks of 6, padded like `from_csr`.
+        let csr: CsMat<f64> = t.to_csr();
+        let mut p = Blocks {
+            r: 3,
+            c: 6,
+            rows: 12,
+            cols: 4,
+            ptr: vec![0],
+            idx: Vec::new(),
+            val: Vec::new(),
+        };
+        for i in 0..12 {
+            for g in 0..4u32 {
+                let block: Vec<f64> = (0..18)
+                    .map(|e| b[[3 * i + e / 6, 6 * g as usize + e % 6]])
+                    .collect();
+                if block.iter().any(|v| *v != 0.0) {
+                    p.idx.push(g);
+                    p.val.extend(block);
+                }
+            }
+            p.ptr.push(p.idx.len());
+        }
+        assert_eq!(p.to_csr().to_dense(), csr.to_dense());
+        let ap = a.multiply(&p);
+        let r = p.transpose();
+        let (full, half) = (
+            r.multiply(&ap).to_csr().to_dense(),
+            r.multiply_symmetric(&ap),
+        );
+        let half = half.to_csr().to_dense();
+        for i in 0..24 {
+            for j in 0..24 {
+                assert_eq!(half[[i, j]], half[[j, i]]);
+                assert!((half[[i, j]] - full[[i, j]]).abs() <= 1e-14 * full[[i, j]].abs().max(1.0));
+            }
+        }
+    }
+}
