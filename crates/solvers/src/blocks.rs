@@ -337,18 +337,13 @@ impl Blocks<f64> {
                 }
             }
         });
-        let mut strict = upper.clone();
-        strict.for_each_row_mut(|i, idx, val| {
-            // The diagonal block is not mirrored: zero it here and skip it below.
-            if idx.first() == Some(&(i as u32)) {
-                val[..upper.r * upper.c].fill(0.0);
-            }
-        });
-        let lower = strict.transpose();
+        let lower = upper.transpose();
         let size = upper.r * upper.c;
-        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        let mut ptr = vec![0];
+        let mut idx = Vec::with_capacity(2 * upper.idx.len());
+        let mut val = Vec::with_capacity(2 * upper.val.len());
         for i in 0..upper.rows {
-            // Rows of the transpose list their columns (< i, and i for the zeroed diagonal).
+            // Rows of the transpose list the columns below the diagonal, then the diagonal.
             for k in lower.ptr[i]..lower.ptr[i + 1] {
                 if lower.idx[k] as usize != i {
                     idx.push(lower.idx[k]);
