@@ -310,16 +310,36 @@ impl Blocks<f64> {
         CsMat::new((n, m), indptr, indices, data)
     }
 
+    /// Sets zero diagonal entries to `value` (the unknowns of dropped near-null-space
+    /// columns, which nothing couples to).
+    pub fn fill_zero_diagonal(&mut self, value: f64) {
+        let b = self.r;
+        for i in 0..self.rows {
+            let row = &self.idx[self.ptr[i]..self.ptr[i + 1]];
+            if let Ok(k) = row.binary_search(&(i as u32)) {
+                let at = (self.ptr[i] + k) * b * b;
+                for d in 0..b {
+                    if self.val[at + d * b + d] == 0.0 {
+                        self.val[at + d * b + d] = value;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Products and transposes, in double precision whatever the factors' storage.
+impl<T: Scalar> Blocks<T> {
     /// `self * other`: block rows in parallel; each output block accumulates its products in
     /// the order of `self`'s blocks, then `other`'s.
-    pub fn multiply(&self, other: &Blocks) -> Blocks {
+    pub fn multiply<U: Scalar>(&self, other: &Blocks<U>) -> Blocks {
         self.product(other, false)
     }
 
     /// `self * other` for a product known to be symmetric (a Galerkin operator `P^T (A P)`):
     /// the blocks on and above the diagonal are computed as by [`Self::multiply`] and mirrored
     /// below it, so the result is exactly symmetric at about half the arithmetic.
-    pub fn multiply_symmetric(&self, other: &Blocks) -> Blocks {
+    pub fn multiply_symmetric<U: Scalar>(&self, other: &Blocks<U>) -> Blocks {
         assert_eq!(
             (self.rows, self.r),
             (other.cols, other.c),
@@ -363,7 +383,7 @@ impl Blocks<f64> {
     }
 
     /// `self * other`, only the blocks on and above the diagonal when `upper`.
-    fn product(&self, other: &Blocks, upper: bool) -> Blocks {
+    fn product<U: Scalar>(&self, other: &Blocks<U>, upper: bool) -> Blocks {
         assert_eq!(self.c, other.r, "inner block sizes");
         assert_eq!(self.cols, other.rows, "inner dimensions");
         let (r, inner, c) = (self.r, self.c, other.c);
@@ -416,11 +436,11 @@ impl Blocks<f64> {
                 },
             )
             .collect();
-        Self::concatenate(r, c, self.rows, other.cols, tasks)
+        Blocks::concatenate(r, c, self.rows, other.cols, tasks)
     }
 
     /// Flops of `self * other`: two per product of scalar entries.
-    pub fn product_flops(&self, other: &Blocks) -> u64 {
+    pub fn product_flops<U: Scalar>(&self, other: &Blocks<U>) -> u64 {
         let per_pair = (2 * self.r * self.c * other.c) as u64;
         self.idx
             .iter()
@@ -430,7 +450,7 @@ impl Blocks<f64> {
     }
 
     /// The transpose, with each block transposed.
-    pub fn transpose(&self) -> Blocks {
+    pub fn transpose(&self) -> Blocks<T> {
         let (r, c) = (self.r, self.c);
         let size = r * c;
         let mut counts = vec![0usize; self.cols + 1];
@@ -442,7 +462,7 @@ impl Blocks<f64> {
         }
         let mut next = counts.clone();
         let mut idx = vec![0u32; self.idx.len()];
-        let mut val = vec![0.0; self.val.len()];
+        let mut val = vec![T::default(); self.val.len()];
         for i in 0..self.rows {
             for k in self.ptr[i]..self.ptr[i + 1] {
                 let j = self.idx[k] as usize;
@@ -465,23 +485,6 @@ impl Blocks<f64> {
             ptr: counts,
             idx,
             val,
-        }
-    }
-
-    /// Sets zero diagonal entries to `value` (the unknowns of dropped near-null-space
-    /// columns, which nothing couples to).
-    pub fn fill_zero_diagonal(&mut self, value: f64) {
-        let b = self.r;
-        for i in 0..self.rows {
-            let row = &self.idx[self.ptr[i]..self.ptr[i + 1]];
-            if let Ok(k) = row.binary_search(&(i as u32)) {
-                let at = (self.ptr[i] + k) * b * b;
-                for d in 0..b {
-                    if self.val[at + d * b + d] == 0.0 {
-                        self.val[at + d * b + d] = value;
-                    }
-                }
-            }
         }
     }
 }
@@ -511,34 +514,41 @@ fn padded_columns(indptr: &[usize], indices: &[usize], b: usize, i: usize) -> Ve
 
 /// `out += a b` for dense row-major blocks `a` (`r x m`) and `b` (`m x c`), with the sizes
 /// known at compile time for the hierarchy's common shapes (unrolled, vectorised loops).
-fn block_product(r: usize, m: usize, c: usize, a: &[f64], b: &[f64], out: &mut [f64]) {
-    fn fixed<const R: usize, const M: usize, const C: usize>(
-        a: &[f64],
-        b: &[f64],
+fn block_product<S: Scalar, U: Scalar>(
+    r: usize,
+    m: usize,
+    c: usize,
+    a: &[S],
+    b: &[U],
+    out: &mut [f64],
+) {
+    fn fixed<S: Scalar, U: Scalar, const R: usize, const M: usize, const C: usize>(
+        a: &[S],
+        b: &[U],
         out: &mut [f64],
     ) {
         // Known lengths: no bounds checks in the unrolled loops.
         let (a, b, out) = (&a[..R * M], &b[..M * C], &mut out[..R * C]);
         for x in 0..R {
             for y in 0..M {
-                let s = a[x * M + y];
+                let s: f64 = a[x * M + y].into();
                 for z in 0..C {
-                    out[x * C + z] += s * b[y * C + z];
+                    out[x * C + z] += s * b[y * C + z].into();
                 }
             }
         }
     }
     match (r, m, c) {
-        (3, 3, 6) => fixed::<3, 3, 6>(a, b, out),
-        (6, 3, 6) => fixed::<6, 3, 6>(a, b, out),
-        (6, 6, 6) => fixed::<6, 6, 6>(a, b, out),
-        (3, 3, 3) => fixed::<3, 3, 3>(a, b, out),
+        (3, 3, 6) => fixed::<S, U, 3, 3, 6>(a, b, out),
+        (6, 3, 6) => fixed::<S, U, 6, 3, 6>(a, b, out),
+        (6, 6, 6) => fixed::<S, U, 6, 6, 6>(a, b, out),
+        (3, 3, 3) => fixed::<S, U, 3, 3, 3>(a, b, out),
         _ => {
             for x in 0..r {
                 for y in 0..m {
-                    let s = a[x * m + y];
+                    let s: f64 = a[x * m + y].into();
                     for z in 0..c {
-                        out[x * c + z] += s * b[y * c + z];
+                        out[x * c + z] += s * b[y * c + z].into();
                     }
                 }
             }

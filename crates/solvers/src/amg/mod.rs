@@ -93,9 +93,11 @@ const LANCZOS_STEPS: usize = 12;
 
 /// One level above the coarsest: its smoother and the transfer to the next level.
 ///
-/// The cycle reads its matrices in single precision (half the memory traffic of products
-/// that are bound by it; sums stay in double): on the finest level too, a copy of the
-/// matrix the hierarchy was set up for, so the preconditioner is one fixed operator.
+/// Its matrices are stored in single precision (half the memory and the memory traffic of
+/// products that are bound by it; every sum is in double): the operator, on the finest level
+/// a copy of the matrix the hierarchy was set up for, so the preconditioner is one fixed
+/// operator; and the prolongator, rounded before the Galerkin product, so the coarse
+/// operator is exactly the Galerkin operator of the prolongator the cycle uses.
 #[derive(Debug)]
 struct Level {
     /// This level's operator.
@@ -103,11 +105,9 @@ struct Level {
     inv_diag: Vec<f64>,
     /// Estimated largest eigenvalue of `D^-1 A`.
     lambda: f64,
-    /// Prolongation to this level from the next one (in double: a refresh multiplies it).
-    p: Blocks,
-    /// `p` and its transpose in single precision.
-    p_cycle: Blocks<f32>,
-    r_cycle: Blocks<f32>,
+    /// Prolongation to this level from the next one, and its transpose.
+    p: Blocks<f32>,
+    r: Blocks<f32>,
 }
 
 /// Vectors of one level's part of a cycle, allocated once per hierarchy.
@@ -158,7 +158,7 @@ impl Amg {
             let (t, coarse_modes) = tentative(&modes, current.r, &aggregate_of, count);
             let at = current.multiply(&t);
             flops += current.product_flops(&t);
-            let p = smooth_prolongator(&t, at, &inv_diag, 4.0 / (3.0 * lambda));
+            let p = smooth_prolongator(&t, at, &inv_diag, 4.0 / (3.0 * lambda)).to_single();
             let r = p.transpose();
             let (next, f) = galerkin(&current, &p, &r);
             flops += f;
@@ -166,9 +166,8 @@ impl Amg {
                 a: single,
                 inv_diag,
                 lambda,
-                p_cycle: p.to_single(),
-                r_cycle: r.to_single(),
                 p,
+                r,
             });
             current = next;
             modes = coarse_modes;
@@ -207,7 +206,7 @@ impl Amg {
         for level in &mut self.levels {
             let single = current.to_single();
             let (inv_diag, lambda, f) = smoother_data(&single)?;
-            let (next, g) = galerkin(&current, &level.p, &level.p.transpose());
+            let (next, g) = galerkin(&current, &level.p, &level.r);
             (level.inv_diag, level.lambda, level.a) = (inv_diag, lambda, single);
             flops += f + g;
             current = next;
@@ -254,10 +253,10 @@ impl Amg {
         self.smooth(level, b, x, true, s);
         a.multiply_vector(x, &mut s.work);
         for_each_entry(&mut s.work, |i, w| *w = b[i] - *w);
-        level.r_cycle.multiply_vector(&s.work, &mut s.bc);
+        level.r.multiply_vector(&s.work, &mut s.bc);
         s.xc.fill(0.0);
         self.cycle(l + 1, &s.bc, &mut s.xc, deeper);
-        level.p_cycle.multiply_vector(&s.xc, &mut s.work);
+        level.p.multiply_vector(&s.xc, &mut s.work);
         let work = &s.work;
         for_each_entry(x, |i, xi| *xi += work[i]);
         self.smooth(level, b, x, false, s);
@@ -607,7 +606,7 @@ fn smooth_prolongator(t: &Blocks, mut at: Blocks, inv_diag: &[f64], omega: f64) 
 }
 
 /// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1) and its flops.
-fn galerkin(a: &Blocks, p: &Blocks, r: &Blocks) -> (Blocks, u64) {
+fn galerkin(a: &Blocks, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks, u64) {
     let ap = a.multiply(p);
     // The symmetric product computes about half of `R (A P)`'s blocks.
     let flops = a.product_flops(p) + r.product_flops(&ap) / 2;
