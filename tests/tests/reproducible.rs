@@ -8,7 +8,7 @@ use deform_learn::DatasetSpec;
 use deform_learn::dataset::generate;
 use deform_learn::policy::{LearnedPolicy, PolicyOptions};
 use deform_learn::{OutputErrorOptions, Split, Variations, fit_equation_error, fit_output_error};
-use deform_solvers::SolverSpec;
+use deform_solvers::{SolverSpec, WorkWeights};
 use deform_tests::asset;
 
 /// Everything the pipeline computes, as bits.
@@ -63,7 +63,7 @@ fn pipeline() -> Vec<u64> {
         PolicyOptions {
             neighbours: 3,
             min_success: 0.9,
-            factor_weight: 0.1,
+            weights: WorkWeights::factor(0.1),
             young: 1e5,
             forcing: Some((0.1, 0.9)),
         },

@@ -218,11 +218,14 @@ fn solvers(args: SolversArgs) -> Result<()> {
         report(
             t.name,
             format!(
-                r#""iterations": {}, "setup": {:.4}, "seconds": {:.4}, "seconds_per_iteration": {:.3e}"#,
+                r#""iterations": {}, "setup": {:.4}, "seconds": {:.4}, "seconds_per_iteration": {:.3e}, "setup_flops": {}, "solve_flops": {}, "sweep_flops": {}"#,
                 t.iterations,
                 t.setup,
                 t.seconds,
-                (t.seconds - t.setup) / t.iterations.max(1) as f64
+                (t.seconds - t.setup) / t.iterations.max(1) as f64,
+                t.setup_flops,
+                t.solve_flops,
+                t.sweep_flops
             ),
         );
     }

@@ -210,10 +210,10 @@ fn policy_case(
     case: &CaseReport,
     md: &mut String,
 ) -> Result<()> {
-    let (label, weight, repeats) = (&case.label, r.factor_weight, r.repeats);
+    let (label, weight, repeats) = (&case.label, r.weights, r.repeats);
     writeln!(
         md,
-        "\n### {label}\n\nWork = solve flops + {weight} x factorisation flops; solver s / step s: median linear-solver / whole Newton-loop time over {repeats} run(s); error: max position deviation from direct solves at Newton rel 1e-10, relative to the largest coordinate.\n\n| policy | flops | work | solver s | step s | Newton its | linear its | error | fallbacks |\n|---|---|---|---|---|---|---|---|---|"
+        "\n### {label}\n\nWork = {weight}; solver s / step s: median linear-solver / whole Newton-loop time over {repeats} run(s); error: max position deviation from direct solves at Newton rel 1e-10, relative to the largest coordinate.\n\n| policy | flops | work | solver s | step s | Newton its | linear its | error | fallbacks |\n|---|---|---|---|---|---|---|---|---|"
     )?;
     for row in &case.rows {
         let name = row.contender.name();
@@ -300,10 +300,10 @@ fn story(r: &StoryReport, md: &mut String) -> Result<()> {
         "The cheap model steps {k}x coarser (dt = {} s) than the base (dt = {} s). Tuned: Rayleigh alpha {a0:.4} -> {a1:.4}, gamma {g0:.4} -> {g1:.4} (stage 1), Lame pair fitted through the coarse steps (stage 1, then stage 2: loss {:.3e} -> {:.3e}, {} evaluations).{selection} A solver policy learned from {logged} logged Newton systems of the tuned model, its largest forcing term tuned by Nelder-Mead ({n} evaluations, work {:.3e}, error {:.1e} within {accuracy:e}).\n",
         coarse.dt, base.dt, fit.initial_loss, fit.loss, fit.evaluations, tuning.work, tuning.error
     )?;
-    let (tests, steps, weight) = (r.tests, r.steps, r.factor_weight);
+    let (tests, steps, weight) = (r.tests, r.steps, r.weights);
     writeln!(
         md,
-        "On the {tests} test trajectories ({steps} coarse steps each; work = solve flops + {weight} x factorisation flops; time = whole steps, median of {TIME_REPEATS} runs):\n"
+        "On the {tests} test trajectories ({steps} coarse steps each; work = {weight}; time = whole steps, median of {TIME_REPEATS} runs):\n"
     )?;
     md.push_str("| model | dt | E (Pa) | nu | solver | mean RMS error vs base (m) | final RMS error (m) | work | flops | step time (s) | Newton its | fallbacks |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     let kept = r.selection.as_ref().is_some_and(|s| s.ensemble_kept);
@@ -343,13 +343,13 @@ fn tune_solver(r: &TuneSolverReport, md: &mut String) -> Result<()> {
         r.solver.name(),
         r.tuned_values(),
         r.steps,
-        r.factor_weight,
+        r.weights,
         r.accuracy,
         r.result.samples.len(),
     );
     writeln!(
         md,
-        "Tuned `{solver}` ({}): {tuned}, work {:.4e} over {steps} steps (factorisation flops x {weight}), trajectory error {:.1e} (bound {accuracy:e}); {n} evaluations (`tuning.csv`).\n\nAs configured ({}): work {:.4e}, error {:.1e}; tuned / configured: {:.3}.",
+        "Tuned `{solver}` ({}): {tuned}, work {:.4e} over {steps} steps ({weight}), trajectory error {:.1e} (bound {accuracy:e}); {n} evaluations (`tuning.csv`).\n\nAs configured ({}): work {:.4e}, error {:.1e}; tuned / configured: {:.3}.",
         names.join(", "),
         best.work,
         best.error,

@@ -252,6 +252,13 @@ pub struct IterativeTiming {
     pub setup: f64,
     /// Median seconds of set-up and solve together.
     pub seconds: f64,
+    /// Set-up flops (deterministic; the rates of the three kinds of flops give
+    /// [`deform_solvers::WorkWeights`]).
+    pub setup_flops: u64,
+    /// Solve flops, sweeps included.
+    pub solve_flops: u64,
+    /// The solve's flops in sequential sweeps.
+    pub sweep_flops: u64,
 }
 
 /// The iterative solvers `cargo xtask bench solvers` compares, by name: CG and PCG
@@ -299,18 +306,23 @@ pub fn time_iterative(
     for &(name, spec) in solvers {
         let spec: deform_solvers::SolverSpec = ron::from_str(spec).expect("a valid spec");
         let mut setups = Vec::new();
-        let (iterations, seconds) = median_time(repeats, || {
+        let (stats, seconds) = median_time(repeats, || {
             let mut s = spec.build()?;
             s.set_coordinates(Some(coordinates));
             let mut x = vec![0.0; b.len()];
-            setups.push(s.factorize(a)?.seconds);
-            Ok::<_, deform_solvers::SolverError>(s.solve(a, b, &mut x)?.iterations)
+            let setup = s.factorize(a)?;
+            setups.push(setup.seconds);
+            Ok::<_, deform_solvers::SolverError>((setup, s.solve(a, b, &mut x)?))
         });
+        let (setup, solve) = stats?;
         out.push(IterativeTiming {
             name,
-            iterations: iterations?,
+            iterations: solve.iterations,
             setup: median(setups),
             seconds,
+            setup_flops: setup.flops,
+            solve_flops: solve.flops,
+            sweep_flops: solve.sweep_flops,
         });
     }
     Ok(out)

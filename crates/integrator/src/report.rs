@@ -1,7 +1,7 @@
 //! What each Newton iteration and each step did, and why a step failed.
 
 use deform_assembly::AssemblyError;
-use deform_solvers::{SetupStats, SolveStats, SolverError, SolverSpec};
+use deform_solvers::{SetupStats, SolveStats, SolverError, SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -62,9 +62,9 @@ pub struct StageSeconds {
 
 impl CandidateOutcome {
     /// Its deterministic work (see [`StepReport::work`]); failed parts count what they spent.
-    pub fn work(&self, factor_weight: f64) -> f64 {
-        self.setup.as_ref().map_or(0.0, |s| s.work(factor_weight))
-            + self.solve.as_ref().map_or(0.0, |s| s.flops as f64)
+    pub fn work(&self, weights: WorkWeights) -> f64 {
+        self.setup.as_ref().map_or(0.0, |s| s.work(weights))
+            + self.solve.as_ref().map_or(0.0, |s| s.work(weights))
     }
 
     /// Its wall time (set-up and solve).
@@ -76,14 +76,10 @@ impl CandidateOutcome {
 
 impl IterationReport {
     /// Deterministic work of the iteration's linear solves, discarded ones included.
-    pub fn work(&self, factor_weight: f64) -> f64 {
-        self.setup.work(factor_weight)
-            + self.solve.flops as f64
-            + self
-                .discarded
-                .iter()
-                .map(|d| d.work(factor_weight))
-                .sum::<f64>()
+    pub fn work(&self, weights: WorkWeights) -> f64 {
+        self.setup.work(weights)
+            + self.solve.work(weights)
+            + self.discarded.iter().map(|d| d.work(weights)).sum::<f64>()
     }
 
     /// Wall time of the iteration's linear solves, discarded ones included.
@@ -177,10 +173,10 @@ impl StepReport {
             .sum()
     }
 
-    /// Deterministic work with factorisation flops weighted by `factor_weight` (see
-    /// [`deform_solvers::SetupStats::work`]); `flops()` is `work(1.0)`.
-    pub fn work(&self, factor_weight: f64) -> f64 {
-        self.iterations.iter().map(|i| i.work(factor_weight)).sum()
+    /// Deterministic work with flops weighted by `weights` (see
+    /// [`deform_solvers::WorkWeights`]); `flops()` is `work(WorkWeights::default())`.
+    pub fn work(&self, weights: WorkWeights) -> f64 {
+        self.iterations.iter().map(|i| i.work(weights)).sum()
     }
 
     /// Linear-solve wall time (set-up and solve) summed over the step.

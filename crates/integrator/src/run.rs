@@ -9,6 +9,7 @@
 use std::ops::ControlFlow;
 use std::time::Instant;
 
+use deform_solvers::WorkWeights;
 use serde::{Deserialize, Serialize};
 
 use crate::integrator::Integrator;
@@ -29,9 +30,8 @@ pub enum Until {
 pub struct RunOptions {
     /// When to stop.
     pub until: Until,
-    /// Weight of a factorisation flop in [`RunSummary::work`] (see
-    /// [`deform_solvers::SetupStats::work`]).
-    pub factor_weight: f64,
+    /// How [`RunSummary::work`] weighs flops (see [`WorkWeights`]).
+    pub weights: WorkWeights,
     /// Keep every [`StepReport`] in [`RunSummary::reports`].
     pub keep_reports: bool,
 }
@@ -41,14 +41,14 @@ impl RunOptions {
     pub fn steps(steps: usize) -> Self {
         Self {
             until: Until::Steps(steps),
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             keep_reports: false,
         }
     }
 
-    /// The same with factorisation flops weighted by `factor_weight`.
-    pub fn with_factor_weight(mut self, factor_weight: f64) -> Self {
-        self.factor_weight = factor_weight;
+    /// The same with work weighted by `weights`.
+    pub fn with_weights(mut self, weights: WorkWeights) -> Self {
+        self.weights = weights;
         self
     }
 
@@ -85,7 +85,7 @@ pub enum Termination {
 pub struct RunSummary {
     /// Steps completed.
     pub steps: usize,
-    /// Deterministic work: solve flops plus `factor_weight` x factorisation flops.
+    /// Deterministic work: flops weighted by [`RunOptions::weights`].
     pub work: f64,
     /// Deterministic flops (set-up plus solves).
     pub flops: u64,
@@ -129,9 +129,9 @@ impl RunSummary {
         }
     }
 
-    fn add(&mut self, report: &StepReport, factor_weight: f64) {
+    fn add(&mut self, report: &StepReport, weights: WorkWeights) {
         self.steps += 1;
-        self.work += report.work(factor_weight);
+        self.work += report.work(weights);
         self.flops += report.flops();
         self.newton_iterations += report.newton_iterations();
         self.linear_iterations += report.linear_iterations();
@@ -210,7 +210,7 @@ impl Integrator {
                     break;
                 }
             };
-            summary.add(&report, options.factor_weight);
+            summary.add(&report, options.weights);
             let flow = observer.step(&report, state);
             if options.keep_reports {
                 summary.reports.push(report);

@@ -1,6 +1,7 @@
 //! Backward Euler against analytic cases (free fall, momentum), dissipation, equilibrium,
 //! agreement of every solver policy, kinematic constraints, typed failures and reports.
 
+use deform_solvers::WorkWeights;
 use std::ops::ControlFlow;
 
 use deform_assembly::MaterialField;
@@ -578,7 +579,7 @@ fn runs_end_at_a_time_when_the_observer_stops_or_when_a_step_fails() {
         &mut state,
         &RunOptions {
             until: Until::Time(0.025),
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             keep_reports: false,
         },
         &mut NoObserver,
@@ -589,7 +590,7 @@ fn runs_end_at_a_time_when_the_observer_stops_or_when_a_step_fails() {
         &mut state,
         &RunOptions {
             until: Until::Time(0.03),
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             keep_reports: false,
         },
         &mut NoObserver,
@@ -962,7 +963,7 @@ fn projection_when_needed_switches_once_the_exact_tangent_fails_and_charges_the_
         .map(|i| i.setup.flops + i.solve.flops)
         .sum();
     assert!(when.flops() > used, "{} vs {used}", when.flops());
-    assert!(when.work(1.0) > used as f64);
+    assert!(when.work(WorkWeights::default()) > used as f64);
     // After the switch it is Newton on the projected tangent: the same iterations and
     // solution as `Always`.
     assert_eq!(when.iterations.len(), always.iterations.len());
@@ -993,7 +994,10 @@ fn a_failed_choice_falls_back_to_the_direct_solver_and_is_charged() {
             .expect("the failed solve's statistics");
         assert_eq!(solve.iterations, 2);
         assert!(solve.flops > 0 && failed.error.is_some());
-        assert!(it.work(1.0) > it.setup.work(1.0) + it.solve.flops as f64);
+        assert!(
+            it.work(WorkWeights::default())
+                > it.setup.work(WorkWeights::default()) + it.solve.flops as f64
+        );
     }
     let used: u64 = report
         .iterations

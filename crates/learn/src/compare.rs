@@ -7,7 +7,7 @@ use std::path::Path;
 use deform_integrator::{
     IntegratorOptions, OnStep, RunOptions, Scene, SolverPolicy, State, StepReport,
 };
-use deform_solvers::SolverSpec;
+use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
 use crate::error::LearnError;
@@ -42,7 +42,7 @@ impl Case<'_> {
 pub struct Measured {
     /// Deterministic flops (set-up plus solves).
     pub flops: f64,
-    /// Deterministic work: solve flops plus `factor_weight` times factorisation flops.
+    /// Deterministic work: flops weighted by the `weights` passed in (see `WorkWeights`).
     pub work: f64,
     /// Median over the repeats of the total linear-solver wall time.
     pub seconds: f64,
@@ -96,7 +96,7 @@ pub fn measure(
     references: &[Reference],
     make: &dyn Fn() -> Box<dyn SolverPolicy>,
     options: &dyn Fn(&mut IntegratorOptions),
-    factor_weight: f64,
+    weights: WorkWeights,
     repeats: usize,
 ) -> Result<Measured, LearnError> {
     let mut row = Measured {
@@ -123,7 +123,7 @@ pub fn measure(
             built.integrator.set_policy(make());
             let mut n = 0;
             let mut error = 0.0f64;
-            let run = RunOptions::steps(reference.steps()).with_factor_weight(factor_weight);
+            let run = RunOptions::steps(reference.steps()).with_weights(weights);
             let summary = built.integrator.run(
                 &mut built.state,
                 &if repeat == 0 {
@@ -147,8 +147,7 @@ pub fn measure(
                 row.fallbacks += summary.fallbacks;
                 row.error = row.error.max(error);
                 for r in &summary.reports {
-                    row.per_step
-                        .push((r.work(factor_weight), r.newton_iterations()));
+                    row.per_step.push((r.work(weights), r.newton_iterations()));
                     row.choices.extend(r.iterations.iter().map(|i| Choice {
                         solver: i.solver.clone(),
                         fallback: i.fallback,

@@ -12,9 +12,10 @@
 //!   in the current simulation its exact flops per iteration and per set-up are known; before
 //!   that they are extrapolated from the training sizes by a power law in the number of free
 //!   DOFs (with the asymptotic exponents of 3D problems when the training data has one size).
-//!   Work is deterministic: solve flops plus `factor_weight` times factorisation flops (a
-//!   dense supernodal factorisation runs at many more flops per second than memory-bound
-//!   sparse solves; the weight is that ratio, measured by `cargo xtask bench step`).
+//!   Work is deterministic: flops weighted by kind (`WorkWeights`: a dense supernodal
+//!   factorisation runs at many more flops per second than memory-bound sparse solves, and
+//!   IC(0)'s sequential sweeps at fewer; the weights are those ratios, measured by `cargo
+//!   xtask bench step` and `cargo xtask bench solvers`).
 //! - **Holding a factor is a renewal problem.** A factor costs `F` once; the stale solves
 //!   after it cost `c_1 <= c_2 <= ...` as the matrix drifts. The average work per solve of a
 //!   cycle of `T` solves, `(F + c_0 + ... + c_{T-1}) / T`, is least when the next solve's
@@ -30,7 +31,7 @@
 //! Everything is deterministic, so the policy is reproducible.
 
 use deform_integrator::{Decision, EisenstatWalker, IterationReport, PolicyContext, SolverPolicy};
-use deform_solvers::{PreconditionerSpec, SolverSpec};
+use deform_solvers::{PreconditionerSpec, SolverSpec, WorkWeights};
 
 use crate::solver_data::{SolverDataset, feature_vector};
 
@@ -53,8 +54,8 @@ pub struct PolicyOptions {
     pub neighbours: usize,
     /// Minimum predicted success rate of a chosen candidate.
     pub min_success: f64,
-    /// Work of one factorisation flop relative to one solve flop.
-    pub factor_weight: f64,
+    /// Work of one factorisation flop and of one sweep flop relative to one solve flop.
+    pub weights: WorkWeights,
     /// Young's modulus of the material the policy runs on (a feature).
     pub young: f64,
     /// Inexact Newton: iterative solves stop at the Eisenstat-Walker forcing term (with
@@ -214,7 +215,7 @@ impl LearnedPolicy {
             .enumerate()
             .map(|(c, spec)| {
                 let weight = if factorises(spec) {
-                    options.factor_weight
+                    options.weights.factor
                 } else {
                     1.0
                 };
@@ -229,7 +230,8 @@ impl LearnedPolicy {
                     }
                     // A direct solve reports no iterations: it is one "iteration" here, as in
                     // the iteration model.
-                    let solve = o.flops - o.setup_flops;
+                    let solve =
+                        o.flops - o.setup_flops + (options.weights.sweep - 1.0) * o.sweep_flops;
                     if solve > 0.0 {
                         iteration.push((f[LOG_DOFS], (solve / o.iterations.max(1.0)).log10()));
                     }
@@ -526,7 +528,7 @@ impl SolverPolicy for LearnedPolicy {
             }
             return;
         }
-        let setup = outcome.setup.work(self.options.factor_weight);
+        let setup = outcome.setup.work(self.options.weights);
         let model = &mut self.costs[last];
         if !outcome.setup.reused && outcome.setup.flops > 0 {
             model.observed_setup = Some(setup);
@@ -537,11 +539,12 @@ impl SolverPolicy for LearnedPolicy {
             let old = self.calibration[last].map(f64::ln);
             self.calibration[last] = Some(old.map_or(ratio, |o| 0.5 * (o + ratio)).exp());
         }
+        let solve = outcome.solve.work(self.options.weights);
         if outcome.solve.flops > 0 {
-            model.observed_iteration = Some(outcome.solve.flops as f64 / iterations);
+            model.observed_iteration = Some(solve / iterations);
         }
         if let Some(cy) = self.cycle.as_mut().filter(|cy| cy.candidate == last) {
-            cy.work += setup + outcome.solve.flops as f64;
+            cy.work += setup + solve;
             cy.solves += 1;
             cy.last_iterations = Some(iterations);
         }

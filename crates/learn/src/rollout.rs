@@ -4,6 +4,7 @@
 //! where the error is 0 by construction, is not counted).
 
 use deform_integrator::{Integrator, OnStep, RunOptions, RunSummary, State, StepReport};
+use deform_solvers::WorkWeights;
 
 use crate::dataset::{Trajectory, state_at};
 use crate::error::LearnError;
@@ -40,7 +41,7 @@ pub fn rollout(
     sim: &mut Integrator,
     t: &Trajectory,
     refine: usize,
-    factor_weight: f64,
+    weights: WorkWeights,
     what: &str,
     on_sample: &mut dyn FnMut(usize, &State),
 ) -> Result<Rollout, LearnError> {
@@ -51,7 +52,7 @@ pub fn rollout(
     let mut taken: usize = 0;
     let summary = sim.run(
         &mut state,
-        &RunOptions::steps(t.steps() * refine).with_factor_weight(factor_weight),
+        &RunOptions::steps(t.steps() * refine).with_weights(weights),
         &mut OnStep(|_: &StepReport, s: &State| {
             taken += 1;
             if taken.is_multiple_of(refine) {
@@ -72,7 +73,7 @@ pub fn rollout(
 /// # Errors
 /// As [`rollout`].
 pub fn rollout_error(sim: &mut Integrator, t: &Trajectory) -> Result<Vec<f64>, LearnError> {
-    Ok(rollout(sim, t, 1, 1.0, "rollout", &mut |_, _| {})?.errors)
+    Ok(rollout(sim, t, 1, WorkWeights::default(), "rollout", &mut |_, _| {})?.errors)
 }
 
 /// The mean over trajectories of [`rollout_error`] at each recorded state.
@@ -85,7 +86,14 @@ pub fn mean_rollout_errors(
 ) -> Result<Vec<f64>, LearnError> {
     let mut mean = vec![0.0; trajectories.first().map_or(0, |t| t.x.len())];
     for (k, t) in trajectories.iter().enumerate() {
-        let r = rollout(sim, t, 1, 1.0, &format!("trajectory {k}"), &mut |_, _| {})?;
+        let r = rollout(
+            sim,
+            t,
+            1,
+            WorkWeights::default(),
+            &format!("trajectory {k}"),
+            &mut |_, _| {},
+        )?;
         for (m, v) in mean.iter_mut().zip(r.errors) {
             *m += v / trajectories.len() as f64;
         }

@@ -5,7 +5,9 @@
 //!
 //! On disk, like trajectory datasets: `meta.ron` (feature names, candidate configurations,
 //! the scene) and `.npy` arrays numpy loads directly: `features.npy` (samples x features),
-//! `flops.npy`, `setup_flops.npy`, `reused.npy` (1 when a stale factor was reused),
+//! `flops.npy`, `setup_flops.npy`, `sweep_flops.npy` (the solves' sequential sweeps; read
+//! as zeros when absent, from datasets written before it), `reused.npy` (1 when a stale
+//! factor was reused),
 //! `seconds.npy`, `ok.npy` (1 when the candidate met its tolerance),
 //! `relative_residual.npy`, `iterations.npy` and `age.npy` (solves since the candidate's
 //! preconditioner was set up afresh), each samples x candidates.
@@ -42,6 +44,9 @@ pub struct Outcome {
     pub flops: f64,
     /// The set-up's share of `flops` (factorisation or preconditioner).
     pub setup_flops: f64,
+    /// The solve's flops in sequential sweeps (see `deform_solvers::SolveStats::sweep_flops`).
+    #[serde(default)]
+    pub sweep_flops: f64,
     /// The set-up reused an earlier factor (stale Cholesky) instead of computing one.
     pub reused: bool,
     /// Wall time, set-up plus solve.
@@ -176,6 +181,7 @@ pub fn collect(
                             + c.solve.as_ref().map_or(0, |s| s.flops))
                             as f64,
                         setup_flops: c.setup.map_or(0, |s| s.flops) as f64,
+                        sweep_flops: c.solve.as_ref().map_or(0, |s| s.sweep_flops) as f64,
                         reused,
                         seconds: c.setup.map_or(0.0, |s| s.seconds)
                             + c.solve.as_ref().map_or(0.0, |s| s.seconds),
@@ -271,6 +277,11 @@ impl SolverDataset {
             &column(&|o| o.setup_flops),
         )?;
         npy::write(
+            &dir.join("sweep_flops.npy"),
+            &[n, c],
+            &column(&|o| o.sweep_flops),
+        )?;
+        npy::write(
             &dir.join("reused.npy"),
             &[n, c],
             &column(&|o| f64::from(u8::from(o.reused))),
@@ -339,6 +350,11 @@ impl SolverDataset {
             read("relative_residual.npy", c)?,
         );
         let (setup, reused) = (read("setup_flops.npy", c)?, read("reused.npy", c)?);
+        let sweep = if dir.join("sweep_flops.npy").exists() {
+            read("sweep_flops.npy", c)?
+        } else {
+            vec![vec![0.0; c]; features.len()]
+        };
         let (iterations, age) = (read("iterations.npy", c)?, read("age.npy", c)?);
         if [
             flops.len(),
@@ -346,6 +362,7 @@ impl SolverDataset {
             ok.len(),
             res.len(),
             setup.len(),
+            sweep.len(),
             reused.len(),
             iterations.len(),
             age.len(),
@@ -364,6 +381,7 @@ impl SolverDataset {
                     .map(|j| Outcome {
                         flops: flops[i][j],
                         setup_flops: setup[i][j],
+                        sweep_flops: sweep[i][j],
                         reused: reused[i][j] != 0.0,
                         seconds: seconds[i][j],
                         ok: ok[i][j] != 0.0,

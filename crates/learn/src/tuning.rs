@@ -9,7 +9,7 @@
 //! learned policy's largest forcing term; Newton's
 //! tolerance; ...) are tuned by argmin's Nelder-Mead on one or more training simulations.
 //! The cost of a parameter vector is the simulations' total work (flops, factorisations
-//! weighted by `factor_weight`, see `SetupStats::work`), multiplied by a penalty
+//! and sweeps weighted by `WorkWeights`), multiplied by a penalty
 //! `1 + 10 error / accuracy` when the largest trajectory error exceeds `accuracy`, and
 //! infinite when a step fails (no retries while tuning).
 
@@ -24,7 +24,7 @@ use deform_integrator::{
 };
 
 use crate::solver_data::Run;
-use deform_solvers::SolverSpec;
+use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
 use crate::fit::FitError;
@@ -64,7 +64,7 @@ struct Problem<'a> {
     runs: &'a [Run<'a>],
     make: &'a PolicyOf<'a>,
     range: &'a [(f64, f64)],
-    factor_weight: f64,
+    weights: WorkWeights,
     fallback: bool,
     accuracy: f64,
     references: Vec<Reference>,
@@ -105,7 +105,7 @@ impl Problem<'_> {
             let mut n = 0;
             let summary = built.integrator.run(
                 &mut built.state,
-                &RunOptions::steps(*steps).with_factor_weight(self.factor_weight),
+                &RunOptions::steps(*steps).with_weights(self.weights),
                 &mut OnStep(|_: &StepReport, state: &State| {
                     error = error.max(reference.error(n, &state.x));
                     n += 1;
@@ -216,14 +216,14 @@ pub struct SolverTuning<'a> {
     pub steps: usize,
     /// Relative max-norm position accuracy to keep against the direct reference.
     pub accuracy: f64,
-    /// Weight of a factorisation flop in the work.
-    pub factor_weight: f64,
+    /// How the work weighs factorisation and sweep flops.
+    pub weights: WorkWeights,
     /// Nelder-Mead iterations.
     pub max_iterations: u64,
 }
 
 /// Tunes `parameters` of the iterative `solver` jointly (Nelder-Mead in log10 from the
-/// configured values) for the least work (factorisations weighted by `factor_weight`) on
+/// configured values) for the least work (flops weighted by `weights`) on
 /// `steps` steps of `scene`, within `accuracy` of the direct solver's trajectory. With
 /// `RefactorAbove` the solver runs as the `StaleFactor` hand schedule. The first sample is
 /// the configuration as given.
@@ -240,7 +240,7 @@ pub fn tune_solver(
         parameters,
         steps,
         accuracy,
-        factor_weight,
+        weights,
         max_iterations,
     } = *tuning;
     let starts = parameters
@@ -277,7 +277,7 @@ pub fn tune_solver(
         &Tuning {
             start,
             range: parameters.iter().map(|p| p.range()).collect(),
-            factor_weight,
+            weights,
             fallback: false,
             accuracy,
             max_iterations,
@@ -354,8 +354,8 @@ pub struct Tuning {
     pub start: Vec<Vec<f64>>,
     /// Each parameter is clamped to its range (log10).
     pub range: Vec<(f64, f64)>,
-    /// Factorisation flops count this much (1: plain flops).
-    pub factor_weight: f64,
+    /// How the work weighs factorisation and sweep flops (default: plain flops).
+    pub weights: WorkWeights,
     /// Let the integrator fall back to the direct solver when a solve fails (for policies
     /// that rely on it, such as the learned one); the failed attempt is charged too.
     pub fallback: bool,
@@ -394,7 +394,7 @@ pub fn tune_policy(
         runs,
         make,
         range: &tuning.range,
-        factor_weight: tuning.factor_weight,
+        weights: tuning.weights,
         fallback: tuning.fallback,
         accuracy: tuning.accuracy,
         references,

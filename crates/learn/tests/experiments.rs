@@ -260,6 +260,11 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
         ),
         (
             "trajectories: 3, steps: 3, seed: 1",
+            solver.replace("])", "], sweep_weight: 0.0)"),
+            "task.sweep_weight",
+        ),
+        (
+            "trajectories: 3, steps: 3, seed: 1",
             solver.replace("])", "], neighbours: 0)"),
             "task.neighbours",
         ),

@@ -2,6 +2,7 @@
 //! model that made the data (exactly without noise, within 2 % with 1 % noise), Rayleigh
 //! damping, per-region moduli, and works on imported trajectories.
 
+use deform_solvers::WorkWeights;
 use std::path::Path;
 
 use deform_integrator::Scene;
@@ -720,7 +721,7 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         deform_learn::policy::PolicyOptions {
             neighbours: 5,
             min_success: 0.9,
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             young,
             forcing: None,
         },
@@ -762,7 +763,7 @@ fn tuning_the_pcg_tolerance_saves_work_within_the_accuracy_bound() {
             parameters: &[deform_learn::tuning::SolverParameter::RelativeTolerance],
             steps: 5,
             accuracy,
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             max_iterations: 20,
         },
     )
@@ -803,7 +804,7 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
             parameters: &[SolverParameter::Omega],
             steps: 5,
             accuracy: 1e-6,
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             max_iterations: 15,
         },
     )
@@ -832,7 +833,7 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
             parameters: &[SolverParameter::RefactorAbove],
             steps: 5,
             accuracy: 1e-6,
-            factor_weight: 0.1,
+            weights: WorkWeights::factor(0.1),
             max_iterations: 15,
         },
     )
@@ -855,7 +856,7 @@ fn tuning_jacobi_omega_and_the_refactorisation_threshold_saves_work() {
             parameters: &[SolverParameter::RefactorAbove],
             steps: 5,
             accuracy: 1e-6,
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             max_iterations: 5,
         },
     )
@@ -888,7 +889,7 @@ fn tune_policy_tunes_several_parameters_over_several_simulations() {
     let tuning = Tuning {
         start: vec![vec![-8.0, -8.0], vec![-5.0, -8.0], vec![-8.0, -4.0]],
         range: vec![(-12.0, -3.0), (-12.0, -1.0)],
-        factor_weight: 1.0,
+        weights: WorkWeights::default(),
         fallback: false,
         accuracy: 1e-6,
         max_iterations: 15,
@@ -984,7 +985,7 @@ fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
         let (mut work, mut reused, mut solves) = (0.0, 0, 0);
         for _ in 0..6 {
             let r = built.integrator.step(&mut built.state).unwrap();
-            work += r.work(weight);
+            work += r.work(WorkWeights::factor(weight));
             reused += r.iterations.iter().filter(|i| i.setup.reused).count();
             solves += r.iterations.len();
         }
@@ -999,7 +1000,7 @@ fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
         deform_learn::policy::PolicyOptions {
             neighbours: 5,
             min_success: 0.9,
-            factor_weight: weight,
+            weights: WorkWeights::factor(weight),
             young: 3e5,
             forcing: None,
         },

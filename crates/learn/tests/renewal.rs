@@ -10,7 +10,7 @@ use std::path::Path;
 use deform_integrator::{IterationReport, PolicyContext, Scene, SolverPolicy};
 use deform_learn::policy::{LearnedPolicy, PolicyOptions};
 use deform_learn::solver_data::{FEATURES, Outcome, SolverDataset, SolverMeta};
-use deform_solvers::{SetupStats, SolveStats, SolverSpec, Termination};
+use deform_solvers::{SetupStats, SolveStats, SolverSpec, Termination, WorkWeights};
 
 const FACTOR: f64 = 1000.0;
 const PER_ITERATION: f64 = 10.0;
@@ -38,6 +38,7 @@ fn dataset() -> SolverDataset {
             Outcome {
                 flops: FACTOR + PER_ITERATION,
                 setup_flops: FACTOR,
+                sweep_flops: 0.0,
                 reused: false,
                 seconds: 0.0,
                 ok: true,
@@ -48,6 +49,7 @@ fn dataset() -> SolverDataset {
             Outcome {
                 flops: setup + its * PER_ITERATION,
                 setup_flops: setup,
+                sweep_flops: 0.0,
                 reused: age > 0,
                 seconds: 0.0,
                 ok: true,
@@ -92,6 +94,7 @@ fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> Iteration
             seconds: 0.0,
             matvecs: iterations,
             flops: (iterations as f64 * PER_ITERATION) as u64,
+            sweep_flops: 0,
         },
         fallback: false,
         step_length: 1.0,
@@ -110,7 +113,7 @@ fn the_policy_keeps_a_factor_exactly_while_the_next_stale_solve_is_below_the_cyc
         PolicyOptions {
             neighbours: 1,
             min_success: 0.5,
-            factor_weight: 1.0,
+            weights: WorkWeights::default(),
             young: 1e5,
             forcing: None,
         },

@@ -73,15 +73,17 @@ pub struct LearnedPolicy {
 impl LearnedPolicy {
     /// Trains on `data`; `young` is the Young's modulus of the material it will run on (a
     /// feature), `factor_weight` the work of a factorisation flop relative to a solve
-    /// flop, `forcing` Eisenstat-Walker's `(eta_max, gamma)` for inexact Newton.
+    /// flop, `sweep_weight` that of a flop of a sequential sweep (IC(0)'s triangular solves,
+    /// SSOR), `forcing` Eisenstat-Walker's `(eta_max, gamma)` for inexact Newton.
     #[staticmethod]
-    #[pyo3(signature = (data, *, young, neighbours = 5, min_success = 0.9, factor_weight = 1.0, forcing = None))]
+    #[pyo3(signature = (data, *, young, neighbours = 5, min_success = 0.9, factor_weight = 1.0, sweep_weight = 1.0, forcing = None))]
     fn train(
         data: &SolverData,
         young: f64,
         neighbours: usize,
         min_success: f64,
         factor_weight: f64,
+        sweep_weight: f64,
         forcing: Option<(f64, f64)>,
     ) -> PyResult<Self> {
         if !(young.is_finite() && young > 0.0) {
@@ -92,7 +94,10 @@ impl LearnedPolicy {
         let options = PolicyOptions {
             neighbours,
             min_success,
-            factor_weight,
+            weights: deform_solvers::WorkWeights {
+                factor: factor_weight,
+                sweep: sweep_weight,
+            },
             young,
             forcing,
         };

@@ -255,10 +255,12 @@ impl Iterative {
         let mut p = z.clone();
         let mut rz = dot(&r, &z);
         let per_iteration = a.apply_flops() + m.flops(a, n) + 12 * n as u64;
+        let sweeps_per_iteration = m.sweep_flops(a, n);
         while stats.iterations < self.tolerance.max_iterations {
             a.apply(&p, &mut ap);
             stats.matvecs += 1;
             stats.flops += per_iteration;
+            stats.sweep_flops += sweeps_per_iteration;
             let curvature = dot(&p, &ap);
             if !(curvature > 0.0) {
                 stats.termination = if curvature.is_nan() {

@@ -59,7 +59,7 @@ pub use operator::LinearOperator;
 pub use ordering::Ordering;
 pub use precond::PreconditionerSpec;
 pub use spec::SolverSpec;
-pub use stats::{SetupStats, SolveStats, Termination};
+pub use stats::{SetupStats, SolveStats, Termination, WorkWeights};
 
 /// A linear solver for symmetric systems `A x = b`.
 pub trait LinearSolver: Send {

@@ -283,6 +283,14 @@ impl Preconditioner {
         }
     }
 
+    /// The part of [`Self::flops`] spent in sequential sweeps over a sparse triangle.
+    pub fn sweep_flops(&self, a: &dyn LinearOperator, n: usize) -> u64 {
+        match self {
+            Preconditioner::Ssor { .. } | Preconditioner::Ic0 { .. } => self.flops(a, n),
+            _ => 0,
+        }
+    }
+
     /// Whether `apply` reads the operator's CSR arrays.
     pub fn needs_csr(&self) -> bool {
         matches!(self, Preconditioner::Ssor { .. })

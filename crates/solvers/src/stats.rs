@@ -37,6 +37,10 @@ pub struct SolveStats {
     /// Deterministic work estimate in floating-point operations (operator, preconditioner
     /// and vector updates), identical on every machine and thread count.
     pub flops: u64,
+    /// The part of `flops` spent in sequential sweeps over a sparse triangle (IC(0)'s
+    /// triangular solves, SSOR's sweeps), which run one row after another on one core.
+    #[serde(default)]
+    pub sweep_flops: u64,
 }
 
 impl SolveStats {
@@ -50,7 +54,13 @@ impl SolveStats {
             seconds: 0.0,
             matvecs: 0,
             flops: 0,
+            sweep_flops: 0,
         }
+    }
+
+    /// Its work: flops, with sweep flops weighted by `weights.sweep`.
+    pub fn work(&self, weights: WorkWeights) -> f64 {
+        self.flops as f64 + (weights.sweep - 1.0) * self.sweep_flops as f64
     }
 
     /// The last residual norm (`NaN` if none was computed).
@@ -65,6 +75,51 @@ impl SolveStats {
             r / self.rhs_norm
         } else {
             r
+        }
+    }
+}
+
+/// How deterministic work weighs flops of different kinds against one flop of a parallel,
+/// memory-bound sparse product (matrix-vector products, multigrid cycles): the ratios of
+/// their measured rates, see docs/benchmarks.md. Plain flops are `WorkWeights::default()`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorkWeights {
+    /// A factorisation flop: a dense supernodal Cholesky runs at many more flops per second,
+    /// so this is below 1.
+    pub factor: f64,
+    /// A flop of a sequential sweep over a sparse triangle (see [`SolveStats::sweep_flops`]):
+    /// one core and a dependent chain per row, so this is above 1.
+    pub sweep: f64,
+}
+
+impl Default for WorkWeights {
+    fn default() -> Self {
+        Self {
+            factor: 1.0,
+            sweep: 1.0,
+        }
+    }
+}
+
+/// The work's formula, e.g. `solve flops + 0.1 x factorisation flops + 4 x sweep flops`
+/// (the sweeps are part of the solve flops, counted `sweep` times in all).
+impl std::fmt::Display for WorkWeights {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "solve flops + {} x factorisation flops", self.factor)?;
+        if self.sweep != 1.0 {
+            write!(f, ", sweep flops x {}", self.sweep)?;
+        }
+        Ok(())
+    }
+}
+
+impl WorkWeights {
+    /// Factorisation flops weighted by `factor`, every other flop by 1.
+    pub fn factor(factor: f64) -> Self {
+        Self {
+            factor,
+            ..Self::default()
         }
     }
 }
@@ -87,13 +142,12 @@ pub struct SetupStats {
 }
 
 impl SetupStats {
-    /// Work of the set-up with factorisation flops weighted by `factor_weight`: a dense
+    /// Work of the set-up with factorisation flops weighted by `weights.factor`: a dense
     /// supernodal Cholesky runs at many more flops per second than memory-bound sparse
-    /// kernels, so plain flops overstate its cost in time (the weight is the ratio of the
-    /// two rates, see docs/benchmarks.md).
-    pub fn work(&self, factor_weight: f64) -> f64 {
+    /// kernels, so plain flops overstate its cost in time.
+    pub fn work(&self, weights: WorkWeights) -> f64 {
         let w = if self.factor_nnz > 0 {
-            factor_weight
+            weights.factor
         } else {
             1.0
         };

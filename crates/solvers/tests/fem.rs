@@ -8,7 +8,7 @@ use deform_mesh::generate::BoxGrid;
 use deform_mesh::topology::BlockPattern;
 use deform_solvers::{
     AmgSmoother, Cholesky, Indefinite, Iterative, LinearSolver, Method, Ordering, Precision,
-    PreconditionerSpec, SolverError, SolverSpec, Termination, Tolerance,
+    PreconditionerSpec, SolverError, SolverSpec, Termination, Tolerance, WorkWeights,
 };
 use sprs::CsMat;
 
@@ -476,18 +476,39 @@ fn the_factor_split_at_the_first_cut_solves_as_the_whole_one() {
 }
 
 #[test]
-fn only_factorisations_are_weighted_in_work() {
+fn factorisations_and_sweeps_are_weighted_in_work() {
     let mesh = beam(2);
     let a = newton_matrix(&mesh, &bent(&mesh, 0.0), 100.0);
+    let (factor, sweep) = (
+        WorkWeights::factor(0.1),
+        WorkWeights {
+            factor: 1.0,
+            sweep: 3.0,
+        },
+    );
     let mut direct = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
     let setup = direct.factorize(&a).unwrap();
     assert!(setup.factor_nnz > 0 && setup.flops > 0);
-    assert_eq!(setup.work(0.1), 0.1 * setup.flops as f64);
-    assert_eq!(setup.work(1.0), setup.flops as f64);
+    assert_eq!(setup.work(factor), 0.1 * setup.flops as f64);
+    assert_eq!(setup.work(WorkWeights::default()), setup.flops as f64);
+    let b: Vec<f64> = (0..a.rows()).map(|i| (i as f64).sin()).collect();
+    // IC(0): its triangular solves are sweeps, the rest of its solve is not.
     let mut ic0 = pcg(PreconditionerSpec::Ic0);
     let setup = ic0.factorize(&a).unwrap();
     assert!(setup.factor_nnz == 0 && setup.flops > 0);
-    assert_eq!(setup.work(0.1), setup.flops as f64);
+    assert_eq!(setup.work(factor), setup.flops as f64);
+    let solve = ic0.solve(&a, &b, &mut vec![0.0; b.len()]).unwrap();
+    assert!(solve.sweep_flops > 0 && solve.sweep_flops < solve.flops);
+    let expected = (solve.flops + 2 * solve.sweep_flops) as f64;
+    assert_eq!(solve.work(sweep), expected);
+    // Jacobi-preconditioned CG has no sweeps.
+    let mut jacobi = pcg(PreconditionerSpec::Jacobi);
+    jacobi.factorize(&a).unwrap();
+    let solve = jacobi.solve(&a, &b, &mut vec![0.0; b.len()]).unwrap();
+    assert_eq!(
+        (solve.sweep_flops, solve.work(sweep)),
+        (0, solve.flops as f64)
+    );
 }
 
 #[test]

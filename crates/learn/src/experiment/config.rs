@@ -53,6 +53,10 @@ pub enum Task {
         /// plain flops.
         #[serde(default = "unit")]
         factor_weight: f64,
+        /// Work of a flop of a sequential sweep (IC(0)'s triangular solves, SSOR) relative to
+        /// a solve flop (see `deform_solvers::WorkWeights`); 1 counts plain flops.
+        #[serde(default = "unit")]
+        sweep_weight: f64,
         /// Scenes the policy never saw (other mesh, stiffness, dt, motion), each measured
         /// like the test trajectories.
         #[serde(default)]
@@ -99,6 +103,10 @@ pub enum Task {
         /// Work of a factorisation flop relative to a solve flop.
         #[serde(default = "unit")]
         factor_weight: f64,
+        /// Work of a flop of a sequential sweep (IC(0)'s triangular solves, SSOR) relative to
+        /// a solve flop (see `deform_solvers::WorkWeights`); 1 counts plain flops.
+        #[serde(default = "unit")]
+        sweep_weight: f64,
         /// Relative position accuracy the tuned forcing term must keep.
         #[serde(default = "accuracy")]
         accuracy: f64,
@@ -155,6 +163,10 @@ pub enum Task {
         /// Work of a factorisation flop relative to a solve flop.
         #[serde(default = "unit")]
         factor_weight: f64,
+        /// Work of a flop of a sequential sweep (IC(0)'s triangular solves, SSOR) relative to
+        /// a solve flop (see `deform_solvers::WorkWeights`); 1 counts plain flops.
+        #[serde(default = "unit")]
+        sweep_weight: f64,
         /// Relative max-norm position accuracy to keep.
         #[serde(default = "accuracy")]
         accuracy: f64,
@@ -486,6 +498,7 @@ impl Experiment {
                 neighbours,
                 min_success,
                 factor_weight,
+                sweep_weight,
                 repeats,
                 forcing,
                 tune,
@@ -502,6 +515,7 @@ impl Experiment {
                     ));
                 }
                 positive("task.factor_weight", *factor_weight)?;
+                positive("task.sweep_weight", *sweep_weight)?;
                 if *repeats == 0 {
                     return Err(("task.repeats", "must be at least 1".into()));
                 }
@@ -521,12 +535,14 @@ impl Experiment {
                 output_error,
                 candidates: c,
                 factor_weight,
+                sweep_weight,
                 accuracy,
                 ..
             } => {
                 output("task.output_error", output_error)?;
                 candidates(c)?;
                 positive("task.factor_weight", *factor_weight)?;
+                positive("task.sweep_weight", *sweep_weight)?;
                 positive("task.accuracy", *accuracy)?;
             }
             Task::Coarsen { output_error, .. } => {
@@ -537,6 +553,7 @@ impl Experiment {
                 solver,
                 parameters,
                 factor_weight,
+                sweep_weight,
                 accuracy,
                 ..
             } => {
@@ -548,6 +565,7 @@ impl Experiment {
                     return Err(("task.parameters", format!("{parameters:?} repeats one")));
                 }
                 positive("task.factor_weight", *factor_weight)?;
+                positive("task.sweep_weight", *sweep_weight)?;
                 positive("task.accuracy", *accuracy)?;
             }
         }

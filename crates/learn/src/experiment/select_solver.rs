@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use deform_integrator::{
     EisenstatWalker, Fixed, IntegratorOptions, Projection, Scene, SolverPolicy, StaleFactor,
 };
-use deform_solvers::SolverSpec;
+use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
 use super::{Context, ExperimentObserver, Stage, Task};
@@ -251,8 +251,8 @@ pub struct PolicyTuning {
 pub struct SelectSolverReport {
     /// The candidates.
     pub candidates: Vec<SolverSpec>,
-    /// Factorisation flops' weight in work.
-    pub factor_weight: f64,
+    /// Factorisation and sweep flops' weights in work.
+    pub weights: WorkWeights,
     /// Runs per policy and case.
     pub repeats: usize,
     /// Logged Newton iterations.
@@ -281,6 +281,7 @@ pub fn run(
         neighbours,
         min_success,
         factor_weight,
+        sweep_weight,
         held_out,
         also_train,
         repeats,
@@ -290,6 +291,10 @@ pub fn run(
     } = &cx.experiment.task
     else {
         unreachable!("dispatched on the task")
+    };
+    let weights = &WorkWeights {
+        factor: *factor_weight,
+        sweep: *sweep_weight,
     };
     let origin = cx.experiment.scene.as_path();
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
@@ -323,7 +328,7 @@ pub fn run(
         PolicyOptions {
             neighbours: *neighbours,
             min_success: *min_success,
-            factor_weight: *factor_weight,
+            weights: *weights,
             young,
             forcing: *forcing,
         },
@@ -338,7 +343,7 @@ pub fn run(
         for r in &t.scenes {
             runs.push((Scene::load(&r.scene)?, r.scene.as_path(), r.steps));
         }
-        let tuned = tune_learned(&learned, &runs, t, *forcing, *factor_weight, observer)?;
+        let tuned = tune_learned(&learned, &runs, t, *forcing, *weights, observer)?;
         contenders.push(Contender::LearnedTuned(tuned.settings));
         if let Some(direct) = candidates
             .iter()
@@ -384,7 +389,7 @@ pub fn run(
                         s.apply(o);
                     }
                 },
-                *factor_weight,
+                *weights,
                 repeats,
             )?;
             observer.advance(repeats as u64);
@@ -401,7 +406,7 @@ pub fn run(
     observer.finish();
     Ok(SelectSolverReport {
         candidates: candidates.clone(),
-        factor_weight: *factor_weight,
+        weights: *weights,
         repeats,
         logged: logged.len(),
         training_trajectories: train,
@@ -434,7 +439,7 @@ fn tune_learned(
     runs: &[Run<'_>],
     t: &super::PolicyTune,
     forcing: Option<(f64, f64)>,
-    factor_weight: f64,
+    weights: WorkWeights,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<PolicyTuning, LearnError> {
     let (mut start, mut range) = (vec![vec![-6.0], vec![-9.0]], vec![(-12.0, -3.0)]);
@@ -446,7 +451,7 @@ fn tune_learned(
     let tuning = Tuning {
         start,
         range,
-        factor_weight,
+        weights,
         fallback: true,
         accuracy: t.accuracy,
         max_iterations: t.max_iterations,

@@ -8,6 +8,7 @@
 //! that policy's largest Eisenstat-Walker forcing term tuned for the least work within the
 //! accuracy bound.
 
+use deform_solvers::WorkWeights;
 use std::path::{Path, PathBuf};
 
 use deform_integrator::{Integrator, IntegratorOptions, Scene, SolverPolicy};
@@ -119,8 +120,8 @@ pub struct StoryReport {
     pub eta_max: f64,
     /// The accuracy bound.
     pub accuracy: f64,
-    /// Factorisation flops' weight in work.
-    pub factor_weight: f64,
+    /// Factorisation and sweep flops' weights in work.
+    pub weights: WorkWeights,
     /// Test trajectories.
     pub tests: usize,
     /// Coarse steps per test trajectory.
@@ -170,11 +171,16 @@ pub fn run(
         members,
         candidates,
         factor_weight,
+        sweep_weight,
         accuracy,
         max_iterations,
     } = &cx.experiment.task
     else {
         unreachable!("dispatched on the task")
+    };
+    let weights = &WorkWeights {
+        factor: *factor_weight,
+        sweep: *sweep_weight,
     };
     let origin = cx.experiment.scene.as_path();
     let (solver_data, frames) = (cx.path("solver_data"), cx.path("frames"));
@@ -233,7 +239,7 @@ pub fn run(
         .clone()
         .map(|k| (cx.data.scene_of(k, &tuned_scene), origin, steps))
         .collect();
-    let (policy, logged) = learn_policy(&runs, candidates, *factor_weight, fitted, observer)?;
+    let (policy, logged) = learn_policy(&runs, candidates, *weights, fitted, observer)?;
     if let Some(path) = solver_data {
         logged.save(&path)?;
         files.push("solver_data".into());
@@ -247,7 +253,7 @@ pub fn run(
     let tuning = tune_forcing(
         &policy,
         &(tune_scene, origin, steps),
-        *factor_weight,
+        *weights,
         *accuracy,
         *max_iterations,
         observer,
@@ -268,7 +274,7 @@ pub fn run(
     };
     let on = Comparison {
         tests: &tests,
-        factor_weight: *factor_weight,
+        weights: *weights,
         frames,
     };
     let rows = side_by_side(&cx, &tuned, truth, &on, files, observer)?;
@@ -283,7 +289,7 @@ pub fn run(
         tuning,
         eta_max,
         accuracy: *accuracy,
-        factor_weight: *factor_weight,
+        weights: *weights,
         tests: tests.len(),
         steps,
         rows,
@@ -301,7 +307,7 @@ struct Tuned<'a> {
 /// Where and how the models are compared.
 struct Comparison<'a> {
     tests: &'a [&'a Trajectory],
-    factor_weight: f64,
+    weights: WorkWeights,
     /// Folder of the frames, when files are written.
     frames: Option<PathBuf>,
 }
@@ -315,7 +321,7 @@ fn side_by_side(
     files: &mut Vec<PathBuf>,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<Vec<StoryRow>, LearnError> {
-    let (tests, factor_weight, frames) = (on.tests, on.factor_weight, &on.frames);
+    let (tests, weights, frames) = (on.tests, on.weights, &on.frames);
     let origin = cx.experiment.scene.as_path();
     observer.start(Stage::Compare, 3);
     let base_policy = cx.base.policy.build()?.name();
@@ -339,7 +345,7 @@ fn side_by_side(
             Ok((sim, built.mesh))
         };
         let dir = frames.as_ref().map(|f| f.join(model.name()));
-        let mut row = run_model_timed(&make, tests, refine, factor_weight, dir.as_deref())?;
+        let mut row = run_model_timed(&make, tests, refine, weights, dir.as_deref())?;
         if dir.is_some() {
             files.push(PathBuf::from("frames").join(model.name()));
         }
@@ -367,7 +373,7 @@ fn side_by_side(
 fn learn_policy(
     runs: &[Run<'_>],
     candidates: &[deform_solvers::SolverSpec],
-    factor_weight: f64,
+    weights: WorkWeights,
     fitted: Lame,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<(LearnedPolicy, crate::solver_data::SolverDataset), LearnError> {
@@ -380,7 +386,7 @@ fn learn_policy(
         PolicyOptions {
             neighbours: DEFAULT_NEIGHBOURS,
             min_success: DEFAULT_MIN_SUCCESS,
-            factor_weight,
+            weights,
             young: fitted.to_young().0,
             forcing: Some(DEFAULT_FORCING),
         },
@@ -392,7 +398,7 @@ fn learn_policy(
 fn tune_forcing(
     policy: &LearnedPolicy,
     run: &Run<'_>,
-    factor_weight: f64,
+    weights: WorkWeights,
     accuracy: f64,
     max_iterations: u64,
     observer: &mut dyn ExperimentObserver,
@@ -412,7 +418,7 @@ fn tune_forcing(
         &Tuning {
             start: vec![vec![-1.0], vec![-3.0]],
             range: vec![(-8.0, -0.3)],
-            factor_weight,
+            weights,
             fallback: true,
             accuracy,
             max_iterations,
@@ -496,13 +502,13 @@ fn run_model_timed(
     make: &dyn Fn() -> Result<(Integrator, TetMesh), LearnError>,
     tests: &[&Trajectory],
     refine: usize,
-    factor_weight: f64,
+    weights: WorkWeights,
     frames: Option<&Path>,
 ) -> Result<StoryRow, LearnError> {
-    let mut row = run_model(make, tests, refine, factor_weight, frames)?;
+    let mut row = run_model(make, tests, refine, weights, frames)?;
     let mut seconds = vec![row.seconds];
     for _ in 1..TIME_REPEATS {
-        seconds.push(run_model(make, tests, refine, factor_weight, None)?.seconds);
+        seconds.push(run_model(make, tests, refine, weights, None)?.seconds);
     }
     seconds.sort_by(f64::total_cmp);
     row.seconds = seconds[seconds.len() / 2];
@@ -515,7 +521,7 @@ fn run_model(
     make: &dyn Fn() -> Result<(Integrator, TetMesh), LearnError>,
     tests: &[&Trajectory],
     refine: usize,
-    factor_weight: f64,
+    weights: WorkWeights,
     frames: Option<&Path>,
 ) -> Result<StoryRow, LearnError> {
     let len = tests.first().map_or(0, |t| t.x.len());
@@ -543,7 +549,7 @@ fn run_model(
             &mut sim,
             t,
             refine,
-            factor_weight,
+            weights,
             &format!("test trajectory {k}"),
             &mut |n, state| {
                 if let Some(w) = writer.as_mut()

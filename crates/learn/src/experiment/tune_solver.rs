@@ -1,7 +1,7 @@
 //! Solver optimisation: a solver's parameters tuned jointly for the least work with the
 //! trajectory within `accuracy` of the direct solver's ([`crate::tuning::tune_solver`]).
 
-use deform_solvers::SolverSpec;
+use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
 use super::{Context, Task};
@@ -17,8 +17,8 @@ pub struct TuneSolverReport {
     pub parameters: Vec<SolverParameter>,
     /// Steps of the tuning simulation.
     pub steps: usize,
-    /// Factorisation flops' weight in work.
-    pub factor_weight: f64,
+    /// Factorisation and sweep flops' weights in work.
+    pub weights: WorkWeights,
     /// The accuracy bound.
     pub accuracy: f64,
     /// The tuning (its first sample is the configured values).
@@ -56,11 +56,16 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
         solver,
         parameters,
         factor_weight,
+        sweep_weight,
         accuracy,
         max_iterations,
     } = &cx.experiment.task
     else {
         unreachable!("dispatched on the task")
+    };
+    let weights = &WorkWeights {
+        factor: *factor_weight,
+        sweep: *sweep_weight,
     };
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
     // The scene's own motion; imported data have none written, so their first trajectory's.
@@ -76,7 +81,7 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
             parameters,
             steps,
             accuracy: *accuracy,
-            factor_weight: *factor_weight,
+            weights: *weights,
             max_iterations: *max_iterations,
         },
     )?;
@@ -84,7 +89,7 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
         solver: solver.clone(),
         parameters: parameters.clone(),
         steps,
-        factor_weight: *factor_weight,
+        weights: *weights,
         accuracy: *accuracy,
         result,
     })

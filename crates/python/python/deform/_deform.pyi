@@ -187,6 +187,7 @@ class LearnedPolicy:
         neighbours: int = 5,
         min_success: float = 0.9,
         factor_weight: float = 1.0,
+        sweep_weight: float = 1.0,
         forcing: Optional[tuple[float, float]] = None,
     ) -> LearnedPolicy: ...
     @property
