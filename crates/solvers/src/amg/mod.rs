@@ -7,14 +7,15 @@
 //! Set-up per level: strength of connection on the node graph (3x3 blocks on the finest
 //! level, `k x k` blocks below), greedy aggregation, a tentative prolongator from a QR of the
 //! near-null space on each aggregate, one damped-Jacobi smoothing of it, and the Galerkin
-//! operator `P^T A P`; the coarsest level is factorised by the sparse Cholesky. Every matrix
-//! of the hierarchy is block CSR ([`blocks`]): each coarse node keeps all `k` unknowns, a
-//! near-null-space column that is dependent on a small aggregate becomes a zero column of
-//! `P` and its coarse unknown an identity row nothing couples to, so the blocks stay uniform. One V-cycle
-//! with symmetric smoothing (Chebyshev or damped Jacobi, the same before and after) is the
-//! preconditioner, so PCG sees an SPD operator. Every product runs rows in parallel with
-//! each row summed in a fixed order: the hierarchy and the cycle are identical for any
-//! thread count.
+//! operator `P^T A P` (its upper triangle, mirrored); the coarsest level is factorised by
+//! the sparse Cholesky. Every matrix of the hierarchy is block CSR ([`crate::blocks`]): each
+//! coarse node keeps all `k` unknowns, a near-null-space column that is dependent on a small
+//! aggregate becomes a zero column of `P` and its coarse unknown an identity row nothing
+//! couples to, so the blocks stay uniform. The cycle's matrices are kept in single precision
+//! (see [`Level`]). One V-cycle with symmetric smoothing (Chebyshev or damped Jacobi, the
+//! same before and after) is the preconditioner, so PCG sees an SPD operator. Every product
+//! runs rows in parallel with each row summed in a fixed order: the hierarchy and the cycle
+//! are identical for any thread count.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
