@@ -230,8 +230,9 @@ impl LearnedPolicy {
                     }
                     // A direct solve reports no iterations: it is one "iteration" here, as in
                     // the iteration model.
-                    let solve =
-                        o.flops - o.setup_flops + (options.weights.sweep - 1.0) * o.sweep_flops;
+                    let solve = options
+                        .weights
+                        .solve(o.flops - o.setup_flops, o.sweep_flops);
                     if solve > 0.0 {
                         iteration.push((f[LOG_DOFS], (solve / o.iterations.max(1.0)).log10()));
                     }

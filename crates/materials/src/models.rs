@@ -681,18 +681,25 @@ impl Material for StableNeoHookean {
 mod tests {
     use super::*;
 
+    const LAME: Lame = Lame {
+        mu: 1.3,
+        lambda: 4.1,
+    };
+
+    /// `R diag(s) Q` with two fixed, generic rotations.
+    fn rotated(s: &Vector3<f64>) -> Matrix3<f64> {
+        let r = nalgebra::Rotation3::from_euler_angles(0.3, -1.1, 0.7).into_inner();
+        let q = nalgebra::Rotation3::from_euler_angles(-0.4, 0.2, 2.0).into_inner();
+        r * Matrix3::from_diagonal(s) * q
+    }
+
     /// The analytic projection (clamped eigensystem) is the nearest PSD tangent: equal to
     /// the numerical projection of the exact tangent, at states where the tangent is
     /// indefinite, including states whose scaling Hessian is itself indefinite (the branch
     /// that decomposes it) and an inverted one.
     #[test]
     fn analytic_projection_equals_the_numerical_one() {
-        let l = Lame {
-            mu: 1.3,
-            lambda: 4.1,
-        };
-        let r = nalgebra::Rotation3::from_euler_angles(0.3, -1.1, 0.7).into_inner();
-        let q = nalgebra::Rotation3::from_euler_angles(-0.4, 0.2, 2.0).into_inner();
+        let l = LAME;
         let stretches = [
             Vector3::new(0.5, 0.6, 0.7),
             Vector3::new(3.0, 2.0, 2.0),
@@ -704,7 +711,7 @@ mod tests {
                          m: &dyn Material,
                          iso: &dyn Fn(&Vector3<f64>) -> Matrix3<f64>,
                          s: Vector3<f64>| {
-            let f = r * Matrix3::from_diagonal(&s) * q;
+            let f = rotated(&s);
             if !m.admissible(&f) {
                 return;
             }
@@ -741,19 +748,14 @@ mod tests {
     /// repeated singular values, where `a` and `b` rely on their closed forms.
     #[test]
     fn eigensystem_matches_closed_form_tangents() {
-        let l = Lame {
-            mu: 1.3,
-            lambda: 4.1,
-        };
-        let r = nalgebra::Rotation3::from_euler_angles(0.3, -1.1, 0.7).into_inner();
-        let q = nalgebra::Rotation3::from_euler_angles(-0.4, 0.2, 2.0).into_inner();
+        let l = LAME;
         let cases = [
             Vector3::new(1.3, 0.8, 0.6),
             Vector3::new(1.0, 1.0, 1.0),
             Vector3::new(1.2, 1.2, 0.7),
         ];
         for s in cases {
-            let f = r * Matrix3::from_diagonal(&s) * q;
+            let f = rotated(&s);
             let svd = SignedSvd::new(&f);
             let check = |name: &str,
                          closed: Matrix9,

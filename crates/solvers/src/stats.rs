@@ -60,7 +60,7 @@ impl SolveStats {
 
     /// Its work: flops, with sweep flops weighted by `weights.sweep`.
     pub fn work(&self, weights: WorkWeights) -> f64 {
-        self.flops as f64 + (weights.sweep - 1.0) * self.sweep_flops as f64
+        weights.solve(self.flops as f64, self.sweep_flops as f64)
     }
 
     /// The last residual norm (`NaN` if none was computed).
@@ -115,6 +115,11 @@ impl std::fmt::Display for WorkWeights {
 }
 
 impl WorkWeights {
+    /// The work of a solve of `flops`, `sweep_flops` of them in sequential sweeps.
+    pub fn solve(&self, flops: f64, sweep_flops: f64) -> f64 {
+        flops + (self.sweep - 1.0) * sweep_flops
+    }
+
     /// Factorisation flops weighted by `factor`, every other flop by 1.
     pub fn factor(factor: f64) -> Self {
         Self {

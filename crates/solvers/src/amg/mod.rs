@@ -149,13 +149,13 @@ impl Amg {
         let mut levels: Vec<Level> = Vec::new();
         let mut flops = 0;
         while current.shape().0 > MAX_COARSE && levels.len() + 1 < MAX_LEVELS {
-            let single = current.to_single();
-            let (inv_diag, lambda, f) = smoother_data(&single)?;
-            flops += f;
             let (aggregate_of, count) = aggregate(&strength(&current, theta));
             if count == current.rows {
                 break;
             }
+            let single = current.to_single();
+            let (inv_diag, lambda, f) = smoother_data(&single)?;
+            flops += f;
             let (t, coarse_modes) = tentative(&modes, current.r, &aggregate_of, count);
             let at = current.multiply(&t);
             flops += current.product_flops(&t);
