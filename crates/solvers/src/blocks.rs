@@ -3,9 +3,9 @@
 //! vertices' 3x3 blocks, prolongators in `3 x 6` (finest) or `6 x 6` blocks, coarse
 //! operators in `6 x 6` blocks). Products work a block at a time (one lookup per block
 //! instead of per entry), with block rows in parallel and each output row summed in a fixed
-//! order, so every result is identical for any thread count. Values are `f64` where
-//! matrices are multiplied together, and may be `f32` where a matrix only multiplies
-//! vectors: that product is bound by memory traffic, and the sums stay in `f64`.
+//! order, so every result is identical for any thread count. Values are stored in `f64` or
+//! `f32` (the multigrid cycle's operators and prolongators: products with them are bound by
+//! memory traffic); every sum, and every product of two matrices, is in `f64`.
 
 use rayon::prelude::*;
 use sprs::CsMat;
@@ -18,9 +18,20 @@ const BLOCK_ROWS_PER_TASK: usize = 256;
 const PARALLEL_NNZ: usize = 200_000;
 
 /// The value type of a block matrix.
-pub(crate) trait Scalar: Copy + Default + Send + Sync + Into<f64> + 'static {}
-impl Scalar for f64 {}
-impl Scalar for f32 {}
+pub(crate) trait Scalar: Copy + Default + Send + Sync + Into<f64> + 'static {
+    /// `v` in this precision (rounded to nearest).
+    fn from_f64(v: f64) -> Self;
+}
+impl Scalar for f64 {
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+}
+impl Scalar for f32 {
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+}
 
 /// A block CSR matrix: block row `i` holds blocks `ptr[i]..ptr[i + 1]`, at block columns
 /// `idx` (sorted), each `r x c` row-major in `val`.
@@ -128,7 +139,7 @@ impl<T: Scalar> Blocks<T> {
     }
 }
 
-impl Blocks<f64> {
+impl<T: Scalar> Blocks<T> {
     /// `a` in `b x b` blocks (a block is stored where `a` has any entry; missing entries of
     /// a stored block are zero). `None` unless `a` is square with a multiple of `b` rows.
     pub fn from_csr(a: &CsMat<f64>, b: usize) -> Option<Self> {
@@ -177,7 +188,7 @@ impl Blocks<f64> {
             cols: rows,
             ptr,
             idx: vec![0; blocks],
-            val: vec![0.0; blocks * size],
+            val: vec![T::default(); blocks * size],
         };
         copy.for_each_row_mut(|i, idx, val| {
             if aligned[i] {
@@ -188,7 +199,10 @@ impl Blocks<f64> {
                 for (local, row) in (b * i..b * (i + 1)).enumerate() {
                     for block in 0..idx.len() {
                         let from = &data[indptr[row] + block * b..][..b];
-                        val[block * size + local * b..][..b].copy_from_slice(from);
+                        let to = &mut val[block * size + local * b..][..b];
+                        for (t, &f) in to.iter_mut().zip(from) {
+                            *t = T::from_f64(f);
+                        }
                     }
                 }
             } else {
@@ -200,7 +214,7 @@ impl Blocks<f64> {
                     for k in indptr[row]..indptr[row + 1] {
                         let j = indices[k];
                         let slot = columns.binary_search(&(j / b)).expect("listed");
-                        val[slot * size + local * b + j % b] = data[k];
+                        val[slot * size + local * b + j % b] = T::from_f64(data[k]);
                     }
                 }
             }
@@ -210,7 +224,7 @@ impl Blocks<f64> {
 
     /// Calls `f(i, columns, values)` with each block row's columns and values, in parallel
     /// tasks of whole block rows.
-    pub fn for_each_row_mut(&mut self, f: impl Fn(usize, &mut [u32], &mut [f64]) + Sync + Send) {
+    pub fn for_each_row_mut(&mut self, f: impl Fn(usize, &mut [u32], &mut [T]) + Sync + Send) {
         let (rows, size, ptr) = (self.rows, self.r * self.c, &self.ptr);
         let mut tasks = Vec::with_capacity(rows.div_ceil(BLOCK_ROWS_PER_TASK));
         let (mut idx_rest, mut val_rest) = (self.idx.as_mut_slice(), self.val.as_mut_slice());
@@ -234,7 +248,9 @@ impl Blocks<f64> {
             }
         });
     }
+}
 
+impl Blocks<f64> {
     /// These values in single precision, for products with vectors.
     pub fn to_single(&self) -> Blocks<f32> {
         Blocks {
@@ -597,8 +613,8 @@ mod tests {
 
     #[test]
     fn block_products_transposes_and_vectors_match_dense_arithmetic() {
-        let a = Blocks::from_csr(&random(36, 36, 1), 3).unwrap();
-        let b = Blocks::from_csr(&random(36, 36, 2), 3).unwrap();
+        let a = Blocks::<f64>::from_csr(&random(36, 36, 1), 3).unwrap();
+        let b = Blocks::<f64>::from_csr(&random(36, 36, 2), 3).unwrap();
         let (da, db) = (a.to_csr().to_dense(), b.to_csr().to_dense());
         let c = a.multiply(&b).to_csr().to_dense();
         let expected = da.dot(&db);
@@ -632,8 +648,8 @@ mod tests {
         // by `from_csr` and refused by `from_aligned_csr`.
         let original = random(36, 36, 1).to_dense();
         assert_eq!(da, original);
-        assert!(Blocks::from_csr(&random(35, 35, 1), 3).is_none());
-        assert!(Blocks::from_aligned_csr(&random(36, 36, 1), 3).is_none());
+        assert!(Blocks::<f64>::from_csr(&random(35, 35, 1), 3).is_none());
+        assert!(Blocks::<f64>::from_aligned_csr(&random(36, 36, 1), 3).is_none());
     }
 
     #[test]
@@ -641,7 +657,7 @@ mod tests {
         // B^T (A B) with A symmetric: 3x3 blocks times 3x6 blocks, as on the finest level.
         let a = random(36, 36, 3);
         let a = &a + &a.transpose_view().to_csr();
-        let a = Blocks::from_csr(&a, 3).unwrap();
+        let a = Blocks::<f64>::from_csr(&a, 3).unwrap();
         let b = random(36, 24, 4).to_dense();
         let mut t = TriMat::new((36, 24));
         for ((i, j), v) in b.indexed_iter() {

@@ -146,6 +146,8 @@ impl Amg {
     ) -> Result<(Self, u64), SolverError> {
         let mut modes = near_null_space(a.rows(), coordinates);
         let mut current = finest_blocks(a)?;
+        // The Galerkin operator of the last level, unrounded, for the coarsest factor.
+        let mut exact: Option<Blocks> = None;
         let mut levels: Vec<Level> = Vec::new();
         let mut flops = 0;
         while current.shape().0 > MAX_COARSE && levels.len() + 1 < MAX_LEVELS {
@@ -153,8 +155,7 @@ impl Amg {
             if count == current.rows {
                 break;
             }
-            let single = current.to_single();
-            let (inv_diag, lambda, f) = smoother_data(&single)?;
+            let (inv_diag, lambda, f) = smoother_data(&current)?;
             flops += f;
             let (t, coarse_modes) = tentative(&modes, current.r, &aggregate_of, count);
             let at = current.multiply(&t);
@@ -164,18 +165,18 @@ impl Amg {
             let (next, f) = galerkin(&current, &p, &r);
             flops += f;
             levels.push(Level {
-                a: single,
+                a: std::mem::replace(&mut current, next.to_single()),
                 inv_diag,
                 lambda,
                 p,
                 r,
             });
-            current = next;
+            exact = Some(next);
             modes = coarse_modes;
         }
         let mut coarse = Box::new(Cholesky::new(Ordering::Amd, Indefinite::Error));
         coarse.set_parallel(false);
-        flops += coarse.factorize(&current.to_csr())?.flops;
+        flops += coarse.factorize(&coarsest(a, exact))?.flops;
         let scratch = levels
             .iter()
             .map(|l| {
@@ -204,15 +205,16 @@ impl Amg {
     pub fn refresh(&mut self, a: &CsMat<f64>) -> Result<u64, SolverError> {
         let mut flops = 0;
         let mut current = finest_blocks(a)?;
+        let mut exact = None;
         for level in &mut self.levels {
-            let single = current.to_single();
-            let (inv_diag, lambda, f) = smoother_data(&single)?;
+            let (inv_diag, lambda, f) = smoother_data(&current)?;
             let (next, g) = galerkin(&current, &level.p, &level.r);
-            (level.inv_diag, level.lambda, level.a) = (inv_diag, lambda, single);
+            level.a = std::mem::replace(&mut current, next.to_single());
+            (level.inv_diag, level.lambda) = (inv_diag, lambda);
             flops += f + g;
-            current = next;
+            exact = Some(next);
         }
-        flops += self.coarse.factorize(&current.to_csr())?.flops;
+        flops += self.coarse.factorize(&coarsest(a, exact))?.flops;
         Ok(flops)
     }
 
@@ -320,10 +322,18 @@ impl Amg {
     }
 }
 
-/// The finest operator in 3x3 blocks (1x1 when the rows are not a multiple of 3).
-fn finest_blocks(a: &CsMat<f64>) -> Result<Blocks, SolverError> {
+/// The finest operator in 3x3 blocks (1x1 when the rows are not a multiple of 3), rounded
+/// to single precision: the cycle multiplies it, and the hierarchy is built from it, so the
+/// coarse operators are the Galerkin operators of what the cycle applies.
+fn finest_blocks(a: &CsMat<f64>) -> Result<Blocks<f32>, SolverError> {
     let b = if a.rows().is_multiple_of(3) { 3 } else { 1 };
     Blocks::from_csr(a, b).ok_or(SolverError::Unsupported("AMG needs a square CSR matrix"))
+}
+
+/// The matrix the coarsest level factorises: the last Galerkin operator before rounding, or
+/// `a` itself when the hierarchy has no level above the coarsest.
+fn coarsest(a: &CsMat<f64>, exact: Option<Blocks>) -> CsMat<f64> {
+    exact.map_or_else(|| a.clone(), |b| b.to_csr())
 }
 
 /// Near-null-space vectors, row-major: `values[i * k + j]` is mode `j` at unknown `i`.
@@ -434,8 +444,13 @@ fn largest_eigenvalue(a: &Blocks<f32>, inv_diag: &[f64]) -> f64 {
 
 /// The strong neighbours of each node (block row), sorted: `||A_IJ||_F >= theta
 /// sqrt(||A_II||_F ||A_JJ||_F)` with a nonzero block.
-fn strength(a: &Blocks, theta: f64) -> Vec<Vec<usize>> {
-    let squared = |k: usize| a.block(k).iter().map(|v| v * v).sum::<f64>();
+fn strength(a: &Blocks<f32>, theta: f64) -> Vec<Vec<usize>> {
+    let squared = |k: usize| {
+        a.block(k)
+            .iter()
+            .map(|&v| f64::from(v).powi(2))
+            .sum::<f64>()
+    };
     let diag: Vec<f64> = (0..a.rows)
         .map(|i| {
             let row = &a.idx[a.ptr[i]..a.ptr[i + 1]];
@@ -607,7 +622,7 @@ fn smooth_prolongator(t: &Blocks, mut at: Blocks, inv_diag: &[f64], omega: f64) 
 }
 
 /// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1) and its flops.
-fn galerkin(a: &Blocks, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks, u64) {
+fn galerkin(a: &Blocks<f32>, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks, u64) {
     let ap = a.multiply(p);
     // The symmetric product computes about half of `R (A P)`'s blocks.
     let flops = a.product_flops(p) + r.product_flops(&ap) / 2;
@@ -692,7 +707,7 @@ mod tests {
     #[test]
     fn the_eigenvalue_estimate_is_within_two_per_cent_below_the_largest() {
         let (a, _) = grid_operator(6, 0.5);
-        let blocks = Blocks::from_csr(&a, 3).unwrap().to_single();
+        let blocks = Blocks::<f32>::from_csr(&a, 3).unwrap();
         let (inv, estimate, _) = smoother_data(&blocks).unwrap();
         let n = a.rows();
         let dense = a.to_dense();
