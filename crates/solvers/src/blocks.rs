@@ -14,6 +14,8 @@ use crate::operator::LinearOperator;
 
 /// Block rows per parallel task.
 const BLOCK_ROWS_PER_TASK: usize = 256;
+/// Blocks per parallel task of an element-wise pass.
+const BLOCKS_PER_TASK: usize = 4096;
 /// Below this many stored entries, products with vectors run on one thread.
 const PARALLEL_NNZ: usize = 200_000;
 
@@ -187,8 +189,8 @@ impl<T: Scalar> Blocks<T> {
             rows,
             cols: rows,
             ptr,
-            idx: vec![0; blocks],
-            val: vec![T::default(); blocks * size],
+            idx: zeroed(blocks),
+            val: zeroed(blocks * size),
         };
         copy.for_each_row_mut(|i, idx, val| {
             if aligned[i] {
@@ -225,6 +227,15 @@ impl<T: Scalar> Blocks<T> {
     /// Calls `f(i, columns, values)` with each block row's columns and values, in parallel
     /// tasks of whole block rows.
     pub fn for_each_row_mut(&mut self, f: impl Fn(usize, &mut [u32], &mut [T]) + Sync + Send) {
+        self.for_each_row_mut_init(|| (), |(), i, idx, val| f(i, idx, val));
+    }
+
+    /// [`Self::for_each_row_mut`] with a scratch value per task made by `init`.
+    pub fn for_each_row_mut_init<S>(
+        &mut self,
+        init: impl Fn() -> S + Sync + Send,
+        f: impl Fn(&mut S, usize, &mut [u32], &mut [T]) + Sync + Send,
+    ) {
         let (rows, size, ptr) = (self.rows, self.r * self.c, &self.ptr);
         let mut tasks = Vec::with_capacity(rows.div_ceil(BLOCK_ROWS_PER_TASK));
         let (mut idx_rest, mut val_rest) = (self.idx.as_mut_slice(), self.val.as_mut_slice());
@@ -236,17 +247,39 @@ impl<T: Scalar> Blocks<T> {
             (idx_rest, val_rest) = (rest, val_tail);
             tasks.push((first..last, idx, val));
         }
-        tasks.into_par_iter().for_each(|(range, idx, val)| {
-            let offset = ptr[range.start];
-            for i in range {
-                let (at, count) = (ptr[i] - offset, ptr[i + 1] - ptr[i]);
-                f(
-                    i,
-                    &mut idx[at..at + count],
-                    &mut val[at * size..][..count * size],
-                );
-            }
-        });
+        tasks
+            .into_par_iter()
+            .for_each_init(init, |scratch, (range, idx, val)| {
+                let offset = ptr[range.start];
+                for i in range {
+                    let (at, count) = (ptr[i] - offset, ptr[i + 1] - ptr[i]);
+                    f(
+                        scratch,
+                        i,
+                        &mut idx[at..at + count],
+                        &mut val[at * size..][..count * size],
+                    );
+                }
+            });
+    }
+
+    /// An `r x c`-block matrix with `lengths[i]` blocks in block row `i`, all zero.
+    fn zeros(r: usize, c: usize, rows: usize, cols: usize, lengths: &[usize]) -> Self {
+        let mut ptr = Vec::with_capacity(rows + 1);
+        ptr.push(0);
+        for len in lengths {
+            ptr.push(ptr[ptr.len() - 1] + len);
+        }
+        let blocks = ptr[rows];
+        Self {
+            r,
+            c,
+            rows,
+            cols,
+            ptr,
+            idx: zeroed(blocks),
+            val: zeroed(blocks * r * c),
+        }
     }
 }
 
@@ -262,45 +295,6 @@ impl Blocks<f64> {
             idx: self.idx.clone(),
             val: self.val.par_iter().map(|&v| v as f32).collect(),
         }
-    }
-
-    fn concatenate(
-        r: usize,
-        c: usize,
-        rows: usize,
-        cols: usize,
-        tasks: Vec<(Vec<usize>, Vec<u32>, Vec<f64>)>,
-    ) -> Self {
-        let mut ptr = Vec::with_capacity(rows + 1);
-        ptr.push(0);
-        for len in tasks.iter().flat_map(|t| &t.0) {
-            ptr.push(ptr[ptr.len() - 1] + len);
-        }
-        let blocks = ptr[rows];
-        let mut joined = Self {
-            r,
-            c,
-            rows,
-            cols,
-            ptr,
-            idx: vec![0; blocks],
-            val: vec![0.0; blocks * r * c],
-        };
-        // Each task's rows are one contiguous range of the result: copied in parallel.
-        let size = r * c;
-        let mut parts = Vec::with_capacity(tasks.len());
-        let (mut idx_rest, mut val_rest) = (joined.idx.as_mut_slice(), joined.val.as_mut_slice());
-        for (_, i, v) in &tasks {
-            let (idx, rest) = std::mem::take(&mut idx_rest).split_at_mut(i.len());
-            let (val, val_tail) = std::mem::take(&mut val_rest).split_at_mut(i.len() * size);
-            (idx_rest, val_rest) = (rest, val_tail);
-            parts.push((idx, val, i, v));
-        }
-        parts.into_par_iter().for_each(|(idx, val, i, v)| {
-            idx.copy_from_slice(i);
-            val.copy_from_slice(v);
-        });
-        joined
     }
 
     /// The same matrix as scalar CSR (every stored block entry, zeros included).
@@ -374,85 +368,101 @@ impl<T: Scalar> Blocks<T> {
             }
         });
         let lower = upper.transpose();
-        let size = upper.r * upper.c;
-        let mut ptr = vec![0];
-        let mut idx = Vec::with_capacity(2 * upper.idx.len());
-        let mut val = Vec::with_capacity(2 * upper.val.len());
-        for i in 0..upper.rows {
-            // Rows of the transpose list the columns below the diagonal, then the diagonal.
-            for k in lower.ptr[i]..lower.ptr[i + 1] {
-                if lower.idx[k] as usize != i {
-                    idx.push(lower.idx[k]);
-                    val.extend_from_slice(lower.block(k));
-                }
-            }
-            idx.extend_from_slice(&upper.idx[upper.ptr[i]..upper.ptr[i + 1]]);
-            val.extend_from_slice(&upper.val[upper.ptr[i] * size..upper.ptr[i + 1] * size]);
-            ptr.push(idx.len());
-        }
-        Blocks {
-            ptr,
-            idx,
-            val,
-            ..upper
-        }
+        // Rows of the transpose list the columns below the diagonal, then the diagonal.
+        let below = |i: usize| {
+            let row = &lower.idx[lower.ptr[i]..lower.ptr[i + 1]];
+            row.len() - usize::from(row.last() == Some(&(i as u32)))
+        };
+        let lengths: Vec<usize> = (0..upper.rows)
+            .map(|i| below(i) + upper.ptr[i + 1] - upper.ptr[i])
+            .collect();
+        let mut full = Blocks::zeros(b, b, upper.rows, upper.cols, &lengths);
+        let size = b * b;
+        full.for_each_row_mut(|i, idx, val| {
+            let (low, up) = (
+                lower.ptr[i]..lower.ptr[i] + below(i),
+                upper.ptr[i]..upper.ptr[i + 1],
+            );
+            let split = low.len();
+            idx[..split].copy_from_slice(&lower.idx[low.clone()]);
+            idx[split..].copy_from_slice(&upper.idx[up.clone()]);
+            val[..split * size].copy_from_slice(&lower.val[low.start * size..low.end * size]);
+            val[split * size..].copy_from_slice(&upper.val[up.start * size..up.end * size]);
+        });
+        full
     }
 
-    /// `self * other`, only the blocks on and above the diagonal when `upper`.
+    /// `self * other`, only the blocks on and above the diagonal when `upper`: the pattern
+    /// first (each row's sorted columns), then the values summed in place, so the result is
+    /// written once.
     fn product<U: Scalar>(&self, other: &Blocks<U>, upper: bool) -> Blocks {
         assert_eq!(self.c, other.r, "inner block sizes");
         assert_eq!(self.cols, other.rows, "inner dimensions");
         let (r, inner, c) = (self.r, self.c, other.c);
         let size = r * c;
-        let tasks = (0..self.rows.div_ceil(BLOCK_ROWS_PER_TASK))
+        // The blocks of `other`'s row `j` that output row `i` takes.
+        let taken = |i: usize, j: usize| {
+            let (start, end) = (other.ptr[j], other.ptr[j + 1]);
+            let skip = if upper {
+                other.idx[start..end].partition_point(|&col| (col as usize) < i)
+            } else {
+                0
+            };
+            start + skip..end
+        };
+        let patterns: Vec<(Vec<usize>, Vec<u32>)> = (0..self.rows.div_ceil(BLOCK_ROWS_PER_TASK))
             .into_par_iter()
             .map_init(
-                || vec![usize::MAX; other.cols],
-                |slot, task| {
-                    let (mut lengths, mut idx, mut val) = (Vec::new(), Vec::new(), Vec::new());
-                    let mut columns: Vec<u32> = Vec::new();
-                    let mut acc: Vec<f64> = Vec::new();
+                || vec![false; other.cols],
+                |seen, task| {
+                    let (mut lengths, mut idx) = (Vec::new(), Vec::new());
                     let end = ((task + 1) * BLOCK_ROWS_PER_TASK).min(self.rows);
                     for i in task * BLOCK_ROWS_PER_TASK..end {
-                        columns.clear();
-                        acc.clear();
+                        let start = idx.len();
                         for ka in self.ptr[i]..self.ptr[i + 1] {
-                            let j = self.idx[ka] as usize;
-                            let a = self.block(ka);
-                            let row = &other.idx[other.ptr[j]..other.ptr[j + 1]];
-                            let first = if upper {
-                                row.partition_point(|&col| (col as usize) < i)
-                            } else {
-                                0
-                            };
-                            for kb in other.ptr[j] + first..other.ptr[j + 1] {
-                                let col = other.idx[kb] as usize;
-                                if slot[col] == usize::MAX {
-                                    slot[col] = columns.len();
-                                    columns.push(col as u32);
-                                    acc.resize(acc.len() + size, 0.0);
+                            for kb in taken(i, self.idx[ka] as usize) {
+                                let col = other.idx[kb];
+                                if !std::mem::replace(&mut seen[col as usize], true) {
+                                    idx.push(col);
                                 }
-                                let out = &mut acc[slot[col] * size..(slot[col] + 1) * size];
-                                block_product(r, inner, c, a, other.block(kb), out);
                             }
                         }
-                        let mut order: Vec<u32> = columns.clone();
-                        order.sort_unstable();
-                        for &col in &order {
-                            let s = slot[col as usize];
-                            val.extend_from_slice(&acc[s * size..(s + 1) * size]);
-                        }
-                        for &col in &columns {
-                            slot[col as usize] = usize::MAX;
-                        }
-                        idx.extend_from_slice(&order);
-                        lengths.push(order.len());
+                        let row = &mut idx[start..];
+                        row.sort_unstable();
+                        row.iter().for_each(|&col| seen[col as usize] = false);
+                        lengths.push(row.len());
                     }
-                    (lengths, idx, val)
+                    (lengths, idx)
                 },
             )
             .collect();
-        Blocks::concatenate(r, c, self.rows, other.cols, tasks)
+        let lengths: Vec<usize> = patterns.iter().flat_map(|t| t.0.iter().copied()).collect();
+        let mut out = Blocks::zeros(r, c, self.rows, other.cols, &lengths);
+        out.idx = patterns.into_iter().flat_map(|t| t.1).collect();
+        out.for_each_row_mut_init(
+            || vec![0u32; other.cols],
+            |slot, i, idx, val| {
+                for (s, &col) in idx.iter().enumerate() {
+                    slot[col as usize] = s as u32;
+                }
+                // Each block sums in the order of `self`'s blocks, then `other`'s.
+                for ka in self.ptr[i]..self.ptr[i + 1] {
+                    let a = self.block(ka);
+                    for kb in taken(i, self.idx[ka] as usize) {
+                        let s = slot[other.idx[kb] as usize] as usize;
+                        block_product(
+                            r,
+                            inner,
+                            c,
+                            a,
+                            other.block(kb),
+                            &mut val[s * size..][..size],
+                        );
+                    }
+                }
+            },
+        );
+        out
     }
 
     /// Flops of `self * other`: two per product of scalar entries.
@@ -465,7 +475,8 @@ impl<T: Scalar> Blocks<T> {
             * per_pair
     }
 
-    /// The transpose, with each block transposed.
+    /// The transpose, with each block transposed: the pattern in one pass over the block
+    /// columns, the values gathered in parallel.
     pub fn transpose(&self) -> Blocks<T> {
         let (r, c) = (self.r, self.c);
         let size = r * c;
@@ -478,21 +489,28 @@ impl<T: Scalar> Blocks<T> {
         }
         let mut next = counts.clone();
         let mut idx = vec![0u32; self.idx.len()];
-        let mut val = vec![T::default(); self.val.len()];
+        // The block of `self` each block of the transpose comes from.
+        let mut source = vec![0usize; self.idx.len()];
         for i in 0..self.rows {
             for k in self.ptr[i]..self.ptr[i + 1] {
                 let j = self.idx[k] as usize;
-                let at = next[j];
+                (idx[next[j]], source[next[j]]) = (i as u32, k);
                 next[j] += 1;
-                idx[at] = i as u32;
-                let (src, dst) = (self.block(k), &mut val[at * size..(at + 1) * size]);
-                for x in 0..r {
-                    for y in 0..c {
-                        dst[y * r + x] = src[x * c + y];
-                    }
-                }
             }
         }
+        let mut val = zeroed(self.val.len());
+        val.par_chunks_mut(size * BLOCKS_PER_TASK)
+            .zip(source.par_chunks(BLOCKS_PER_TASK))
+            .for_each(|(out, from)| {
+                for (dst, &k) in out.chunks_exact_mut(size).zip(from) {
+                    let src = self.block(k);
+                    for x in 0..r {
+                        for y in 0..c {
+                            dst[y * r + x] = src[x * c + y];
+                        }
+                    }
+                }
+            });
         Blocks {
             r: c,
             c: r,
@@ -503,6 +521,18 @@ impl<T: Scalar> Blocks<T> {
             val,
         }
     }
+}
+
+/// `len` zeros, written in parallel before use: on this kind of machine, faulting the pages
+/// of a large new buffer in a plain fill costs a fraction of faulting them one at a time
+/// inside the passes that compute its values (measured: the product `A P` of the n = 32
+/// beam's multigrid set-up took 0.41 s with its output faulted during the product, 0.10 s
+/// with it zeroed first).
+fn zeroed<T: Copy + Default + Send + Sync>(len: usize) -> Vec<T> {
+    let mut v = vec![T::default(); len];
+    v.par_chunks_mut(1 << 16)
+        .for_each(|chunk| chunk.fill(T::default()));
+    v
 }
 
 /// The number of blocks of block row `i` of a CSR matrix when its `b` rows share their
