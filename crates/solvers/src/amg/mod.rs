@@ -144,34 +144,25 @@ impl Amg {
         theta: f64,
         smoother: AmgSmoother,
     ) -> Result<(Self, u64), SolverError> {
-        let t0 = std::time::Instant::now();
-        let tick = |what: &str| eprintln!("AMGT {what} {:.3}", t0.elapsed().as_secs_f64());
         let mut modes = near_null_space(a.rows(), coordinates);
         let mut current = finest_blocks(a)?;
-        tick("finest");
         // The Galerkin operator of the last level, unrounded, for the coarsest factor.
         let mut exact: Option<Blocks> = None;
         let mut levels: Vec<Level> = Vec::new();
         let mut flops = 0;
         while current.shape().0 > MAX_COARSE && levels.len() + 1 < MAX_LEVELS {
             let (aggregate_of, count) = aggregate(&strength(&current, theta));
-            tick("aggregate");
             if count == current.rows {
                 break;
             }
             let (inv_diag, lambda, f) = smoother_data(&current)?;
             flops += f;
             let (t, coarse_modes) = tentative(&modes, current.r, &aggregate_of, count);
-            tick("lanczos+tent");
             let at = current.multiply(&t);
-            tick("AT");
             flops += current.product_flops(&t);
             let p = smooth_prolongator(&t, at, &inv_diag, 4.0 / (3.0 * lambda)).to_single();
-            tick("P");
             let r = p.transpose();
-            tick("R");
             let (next, f) = galerkin(&current, &p, &r);
-            tick("galerkin");
             flops += f;
             levels.push(Level {
                 a: std::mem::replace(&mut current, next.to_single()),
@@ -632,9 +623,7 @@ fn smooth_prolongator(t: &Blocks, mut at: Blocks, inv_diag: &[f64], omega: f64) 
 
 /// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1) and its flops.
 fn galerkin(a: &Blocks<f32>, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks, u64) {
-    let t0 = std::time::Instant::now();
     let ap = a.multiply(p);
-    eprintln!("AMGT  ap {:.3}", t0.elapsed().as_secs_f64());
     // The symmetric product computes about half of `R (A P)`'s blocks.
     let flops = a.product_flops(p) + r.product_flops(&ap) / 2;
     let mut coarse = r.multiply_symmetric(&ap);
