@@ -218,10 +218,15 @@ fn solvers(args: SolversArgs) -> Result<()> {
         report(
             t.name,
             format!(
-                r#""iterations": {}, "setup": {:.4}, "seconds": {:.4}, "seconds_per_iteration": {:.3e}, "setup_flops": {}, "solve_flops": {}, "sweep_flops": {}"#,
+                r#""iterations": {}, "setup": {:.4}, "seconds": {:.4}, "rounds": [{}], "seconds_per_iteration": {:.3e}, "setup_flops": {}, "solve_flops": {}, "sweep_flops": {}"#,
                 t.iterations,
                 t.setup,
                 t.seconds,
+                t.rounds
+                    .iter()
+                    .map(|s| format!("{s:.4}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
                 (t.seconds - t.setup) / t.iterations.max(1) as f64,
                 t.setup_flops,
                 t.solve_flops,

@@ -252,6 +252,9 @@ pub struct IterativeTiming {
     pub setup: f64,
     /// Median seconds of set-up and solve together.
     pub seconds: f64,
+    /// Seconds of set-up and solve together in each round (every solver ran once per
+    /// round, in order, so ratios between solvers are best taken round by round).
+    pub rounds: Vec<f64>,
     /// Set-up flops (deterministic; the rates of the three kinds of flops give
     /// [`deform_solvers::WorkWeights`]).
     pub setup_flops: u64,
@@ -291,7 +294,8 @@ pub const ITERATIVE_SOLVERS: [(&str, &str); 6] = [
 ];
 
 /// `solvers` (names and specs, e.g. from [`ITERATIVE_SOLVERS`]) on `a x = b` from a cold
-/// start, with the rigid-body modes of `coordinates` for AMG, medians over `repeats`.
+/// start, with the rigid-body modes of `coordinates` for AMG, medians over `repeats` rounds
+/// (each runs every solver once).
 ///
 /// # Errors
 /// The solver's.
@@ -302,30 +306,44 @@ pub fn time_iterative(
     solvers: &[(&'static str, &str)],
     repeats: usize,
 ) -> Result<Vec<IterativeTiming>, deform_solvers::SolverError> {
-    let mut out = Vec::new();
-    for &(name, spec) in solvers {
-        let spec: deform_solvers::SolverSpec = ron::from_str(spec).expect("a valid spec");
-        let mut setups = Vec::new();
-        let (stats, seconds) = median_time(repeats, || {
-            let mut s = spec.build()?;
-            s.set_coordinates(Some(coordinates));
-            let mut x = vec![0.0; b.len()];
-            let setup = s.factorize(a)?;
-            setups.push(setup.seconds);
-            Ok::<_, deform_solvers::SolverError>((setup, s.solve(a, b, &mut x)?))
-        });
-        let (setup, solve) = stats?;
-        out.push(IterativeTiming {
+    let specs: Vec<deform_solvers::SolverSpec> = solvers
+        .iter()
+        .map(|(_, spec)| ron::from_str(spec).expect("a valid spec"))
+        .collect();
+    // Rounds of one run per solver, so every solver sees the same drift of the machine's
+    // speed and the ratios between them hold within a round.
+    let mut runs: Vec<Vec<(f64, f64)>> = vec![Vec::new(); specs.len()];
+    let mut last = Vec::new();
+    for _ in 0..repeats.max(1) {
+        last.clear();
+        for (spec, times) in specs.iter().zip(&mut runs) {
+            let (stats, seconds) = timed(|| {
+                let mut s = spec.build()?;
+                s.set_coordinates(Some(coordinates));
+                let mut x = vec![0.0; b.len()];
+                let setup = s.factorize(a)?;
+                Ok::<_, deform_solvers::SolverError>((setup, s.solve(a, b, &mut x)?))
+            });
+            let (setup, solve) = stats?;
+            times.push((setup.seconds, seconds));
+            last.push((setup, solve));
+        }
+    }
+    Ok(solvers
+        .iter()
+        .zip(runs)
+        .zip(last)
+        .map(|((&(name, _), times), (setup, solve))| IterativeTiming {
             name,
             iterations: solve.iterations,
-            setup: median(setups),
-            seconds,
+            setup: median(times.iter().map(|t| t.0).collect()),
+            seconds: median(times.iter().map(|t| t.1).collect()),
+            rounds: times.iter().map(|t| t.1).collect(),
             setup_flops: setup.flops,
             solve_flops: solve.flops,
             sweep_flops: solve.sweep_flops,
-        });
-    }
-    Ok(out)
+        })
+        .collect())
 }
 
 /// The solver policies `cargo xtask bench step` compares, by name.
