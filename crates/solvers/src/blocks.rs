@@ -263,22 +263,23 @@ impl<T: Scalar> Blocks<T> {
             });
     }
 
-    /// An `r x c`-block matrix with `lengths[i]` blocks in block row `i`, all zero.
-    fn zeros(r: usize, c: usize, rows: usize, cols: usize, lengths: &[usize]) -> Self {
-        let mut ptr = Vec::with_capacity(rows + 1);
+    /// An `r x c`-block matrix of this pattern (`lengths[i]` blocks in block row `i`, at the
+    /// block columns `idx`, row after row) with every value zero.
+    fn with_pattern(r: usize, c: usize, cols: usize, lengths: &[usize], idx: Vec<u32>) -> Self {
+        let mut ptr = Vec::with_capacity(lengths.len() + 1);
         ptr.push(0);
         for len in lengths {
             ptr.push(ptr[ptr.len() - 1] + len);
         }
-        let blocks = ptr[rows];
+        assert_eq!(ptr[lengths.len()], idx.len(), "one column per block");
         Self {
             r,
             c,
-            rows,
+            rows: lengths.len(),
             cols,
             ptr,
-            idx: zeroed(blocks),
-            val: zeroed(blocks * r * c),
+            val: zeroed(idx.len() * r * c),
+            idx,
         }
     }
 }
@@ -373,21 +374,22 @@ impl<T: Scalar> Blocks<T> {
             let row = &lower.idx[lower.ptr[i]..lower.ptr[i + 1]];
             row.len() - usize::from(row.last() == Some(&(i as u32)))
         };
-        let lengths: Vec<usize> = (0..upper.rows)
-            .map(|i| below(i) + upper.ptr[i + 1] - upper.ptr[i])
-            .collect();
-        let mut full = Blocks::zeros(b, b, upper.rows, upper.cols, &lengths);
+        let (mut lengths, mut idx) = (Vec::with_capacity(upper.rows), Vec::new());
+        for i in 0..upper.rows {
+            idx.extend_from_slice(&lower.idx[lower.ptr[i]..lower.ptr[i] + below(i)]);
+            idx.extend_from_slice(&upper.idx[upper.ptr[i]..upper.ptr[i + 1]]);
+            lengths.push(below(i) + upper.ptr[i + 1] - upper.ptr[i]);
+        }
+        let mut full = Blocks::with_pattern(b, b, upper.cols, &lengths, idx);
         let size = b * b;
-        full.for_each_row_mut(|i, idx, val| {
+        full.for_each_row_mut(|i, _, val| {
             let (low, up) = (
                 lower.ptr[i]..lower.ptr[i] + below(i),
                 upper.ptr[i]..upper.ptr[i + 1],
             );
-            let split = low.len();
-            idx[..split].copy_from_slice(&lower.idx[low.clone()]);
-            idx[split..].copy_from_slice(&upper.idx[up.clone()]);
-            val[..split * size].copy_from_slice(&lower.val[low.start * size..low.end * size]);
-            val[split * size..].copy_from_slice(&upper.val[up.start * size..up.end * size]);
+            let split = low.len() * size;
+            val[..split].copy_from_slice(&lower.val[low.start * size..low.end * size]);
+            val[split..].copy_from_slice(&upper.val[up.start * size..up.end * size]);
         });
         full
     }
@@ -436,9 +438,12 @@ impl<T: Scalar> Blocks<T> {
                 },
             )
             .collect();
-        let lengths: Vec<usize> = patterns.iter().flat_map(|t| t.0.iter().copied()).collect();
-        let mut out = Blocks::zeros(r, c, self.rows, other.cols, &lengths);
-        out.idx = patterns.into_iter().flat_map(|t| t.1).collect();
+        let (mut lengths, mut idx) = (Vec::with_capacity(self.rows), Vec::new());
+        for (task_lengths, task_idx) in patterns {
+            lengths.extend(task_lengths);
+            idx.extend(task_idx);
+        }
+        let mut out = Blocks::with_pattern(r, c, other.cols, &lengths, idx);
         out.for_each_row_mut_init(
             || vec![0u32; other.cols],
             |slot, i, idx, val| {

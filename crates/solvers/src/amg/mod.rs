@@ -17,6 +17,8 @@
 //! runs rows in parallel with each row summed in a fixed order: the hierarchy and the cycle
 //! are identical for any thread count.
 
+use std::borrow::Cow;
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sprs::CsMat;
@@ -179,7 +181,7 @@ impl Amg {
         }
         let mut coarse = Box::new(Cholesky::new(Ordering::Amd, Indefinite::Error));
         coarse.set_parallel(false);
-        flops += coarse.factorize(&coarsest(a, exact))?.flops;
+        flops += coarse.factorize(coarsest(a, exact).as_ref())?.flops;
         let scratch = levels
             .iter()
             .map(|l| {
@@ -217,7 +219,7 @@ impl Amg {
             flops += f + g;
             exact = Some(next);
         }
-        flops += self.coarse.factorize(&coarsest(a, exact))?.flops;
+        flops += self.coarse.factorize(coarsest(a, exact).as_ref())?.flops;
         Ok(flops)
     }
 
@@ -335,8 +337,8 @@ fn finest_blocks(a: &CsMat<f64>) -> Result<Blocks<f32>, SolverError> {
 
 /// The matrix the coarsest level factorises: the last Galerkin operator before rounding, or
 /// `a` itself when the hierarchy has no level above the coarsest.
-fn coarsest(a: &CsMat<f64>, exact: Option<Blocks>) -> CsMat<f64> {
-    exact.map_or_else(|| a.clone(), |b| b.to_csr())
+fn coarsest(a: &CsMat<f64>, exact: Option<Blocks>) -> Cow<'_, CsMat<f64>> {
+    exact.map_or(Cow::Borrowed(a), |b| Cow::Owned(b.to_csr()))
 }
 
 /// Near-null-space vectors, row-major: `values[i * k + j]` is mode `j` at unknown `i`.
