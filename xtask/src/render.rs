@@ -368,6 +368,13 @@ fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
         "The fine model's trajectories are carried onto a coarse mesh of {} vertices and {} tets ({:.1}x fewer; {} coarse vertices outside the fine mesh, at most {:.2e} m away). Held-out motions: {:.2} s simulated in all, by the fine model (the truth). Cost = wall time per simulated second of those motions.\n",
         m.vertices, m.tets, m.ratio, m.outside, m.max_distance, r.test_seconds
     )?;
+    if let Some(material) = &r.material {
+        let spec = ron::ser::to_string(material)?;
+        writeln!(
+            md,
+            "The fitted models' material (the untuned one keeps the base's): `{spec}`; every field fits its term coefficients.\n"
+        )?;
+    }
     for c in &r.cases {
         let tried: Vec<String> = c
             .regularisation

@@ -492,6 +492,73 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
 }
 
 #[test]
+fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untuned() {
+    use deform_learn::experiment::coarsen::CoarseModel;
+    let dir = tempfile::tempdir().unwrap();
+    let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
+    let deform_learn::experiment::Task::Coarsen {
+        dt_factors,
+        smooth,
+        regularisation,
+        ..
+    } = &mut e.task
+    else {
+        panic!("task")
+    };
+    (*dt_factors, *smooth, *regularisation) = (vec![2], None, vec![1e-2]);
+    let plain = run(&e, None, &mut NoProgress).unwrap();
+    let deform_learn::experiment::Task::Coarsen { material, .. } = &mut e.task else {
+        panic!("task")
+    };
+    use deform_materials::{EnsembleMember, MaterialSpec, Moduli};
+    let moduli = Moduli::Young { e: 1e5, nu: 0.4 };
+    let ensemble = MaterialSpec::Ensemble(vec![
+        EnsembleMember {
+            weight: 0.5,
+            model: MaterialSpec::CorotatedLinear {
+                moduli,
+                lagged_rotation: false,
+            },
+        },
+        EnsembleMember {
+            weight: 0.5,
+            model: MaterialSpec::NeoHookean(moduli),
+        },
+    ]);
+    *material = Some(ensemble.clone());
+    let report = run(&e, Some(dir.path()), &mut NoProgress).unwrap();
+    let (TaskReport::Coarsen(plain), TaskReport::Coarsen(r)) = (&plain.task, &report.task) else {
+        panic!("task")
+    };
+    assert_eq!(r.material.as_ref(), Some(&ensemble));
+    let (before, c) = (&plain.cases[0], &r.cases[0]);
+    // The untuned row is the base's material on the coarse mesh, whatever is fitted.
+    let untuned = |c: &deform_learn::experiment::coarsen::CoarsenCase| {
+        c.row(CoarseModel::Untuned).unwrap().errors.clone()
+    };
+    assert_eq!(untuned(c), untuned(before));
+    // 24 coarse tets x 2 members x (mu, lambda), and alpha, gamma; the homogeneous fit
+    // starts from the ensemble, not from the base's single model.
+    let fit = |c: &deform_learn::experiment::coarsen::CoarsenCase, m| {
+        c.row(m).unwrap().fit.clone().unwrap()
+    };
+    assert_eq!(fit(c, CoarseModel::PerElement).coefficients, 98);
+    assert_eq!(fit(c, CoarseModel::Homogeneous).coefficients, 6);
+    assert_ne!(
+        fit(c, CoarseModel::Homogeneous).losses.0,
+        fit(before, CoarseModel::Homogeneous).losses.0
+    );
+    assert_eq!(c.field.len(), 4);
+    // The saved model is the ensemble with four coefficients per element.
+    let path = dir.path().join(&c.files[0]);
+    let saved = deform_integrator::Scene::load(&path).unwrap();
+    assert_eq!(saved.material, ensemble);
+    let field = deform_fs::npy::read(&dir.path().join(&c.files[1])).unwrap();
+    assert_eq!(field.shape, [24, 4]);
+    saved.build(&path).unwrap();
+}
+
+#[test]
 fn an_unusable_stage_one_falls_back_to_the_scenes_moduli_and_says_so() {
     // Positions so noisy that the equation error explains nothing of the data.
     let dir = tempfile::tempdir().unwrap();

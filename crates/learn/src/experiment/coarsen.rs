@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use deform_assembly::MaterialField;
 use deform_integrator::{Integrator, IntegratorOptions, Scene};
+use deform_materials::MaterialSpec;
 use deform_mesh::TetMesh;
 use deform_mesh::io::Vtu;
 use serde::{Deserialize, Serialize};
@@ -141,6 +142,8 @@ pub struct CoarsenReport {
     pub mapping: Mapping,
     /// Simulated time of the held-out motions (s, all of them).
     pub test_seconds: f64,
+    /// The fitted models' material, when it is not the base's.
+    pub material: Option<MaterialSpec>,
     /// One per coarse step.
     pub cases: Vec<CoarsenCase>,
 }
@@ -212,6 +215,8 @@ struct Settings<'a> {
     damping: bool,
     mass_scale: bool,
     smooth: Option<[usize; 3]>,
+    /// The fitted models' material (`None`: the base's).
+    material: Option<&'a MaterialSpec>,
     options: OutputErrorOptions,
 }
 
@@ -234,6 +239,7 @@ pub fn run(
         damping,
         mass_scale,
         smooth,
+        material,
         output_error,
     } = &cx.experiment.task
     else {
@@ -257,6 +263,7 @@ pub fn run(
         damping: *damping,
         mass_scale: *mass_scale,
         smooth: *smooth,
+        material: material.as_ref(),
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -276,7 +283,11 @@ pub fn run(
         let (mut case, fitted) = run_case((&data, &tests, k), &settings, origin, observer)?;
         case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
         if let Some(out) = cx.out {
-            case.files = save_case(&data.meta.scene, &case, &fitted, out)?;
+            let scene = Scene {
+                material: material.clone().unwrap_or(data.meta.scene.material.clone()),
+                ..data.meta.scene.clone()
+            };
+            case.files = save_case(&scene, &case, &fitted, out)?;
             files.extend(case.files.iter().cloned());
         }
         cases.push(case);
@@ -284,6 +295,7 @@ pub fn run(
     Ok(CoarsenReport {
         mapping: mapping.expect("validated: at least one dt factor"),
         test_seconds,
+        material: material.clone(),
         cases,
     })
 }
@@ -348,6 +360,10 @@ fn run_case(
     let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
     let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
     let mut rows = vec![measure(&mut sim, &test, CoarseModel::Untuned, None)?];
+    if let Some(m) = settings.material {
+        let model = m.build()?;
+        set_materials(&mut sim, MaterialField::Uniform(model))?;
+    }
     if settings.damping && sim.options().alpha == 0.0 {
         // The optimiser moves logarithms: a zero alpha would stay zero.
         let mut o = sim.options().clone();

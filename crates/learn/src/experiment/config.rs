@@ -149,6 +149,12 @@ pub enum Task {
         /// x, y and z over the rest shape (see [`crate::basis`]), a row of its own.
         #[serde(default)]
         smooth: Option<[usize; 3]>,
+        /// The fitted coarse models' material, whose term coefficients every field fits
+        /// (e.g. an `Ensemble` of linear, corotated, StVK and Neo-Hookean members: a Lame
+        /// pair per member and element); `None`: the base's. The untuned row keeps the
+        /// base's material.
+        #[serde(default)]
+        material: Option<deform_materials::MaterialSpec>,
         /// Options of every output-error fit.
         output_error: OutputErrorOptions,
     },
@@ -579,11 +585,15 @@ impl Experiment {
             dt_factors,
             regions,
             regularisation,
+            material,
             ..
         } = &self.task
         else {
             return Ok(());
         };
+        if let Some(m) = material {
+            m.build().map_err(|e| ("task.material", e.to_string()))?;
+        }
         if test.trajectories == 0 || test.steps == 0 {
             return Err((
                 "task.test",
