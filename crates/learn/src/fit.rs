@@ -172,6 +172,13 @@ pub enum FitError {
         /// The budget.
         evaluations: usize,
     },
+    /// The optimiser asked for this many trial points without spending its budget of
+    /// simulations (points it could not use: beyond the step bound, or seen before).
+    #[error("the optimiser asked for {calls} trial points, most of them not simulated")]
+    Trials {
+        /// Trial points asked for.
+        calls: usize,
+    },
     /// A step of a rollout from trajectory `trajectory` failed.
     #[error("trajectory {trajectory}, step {step}: {source}")]
     Step {

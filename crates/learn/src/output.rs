@@ -872,7 +872,16 @@ struct LogProblem<'p, 'a> {
     /// The last loss and gradient (in `p`) of a point that simulated, which a trial point
     /// that does not simulate falls back on.
     last_good: RefCell<Option<(f64, Vec<f64>)>>,
+    /// Calls of [`LogProblem::evaluate`] so far, simulated or not.
+    calls: std::cell::Cell<usize>,
 }
+
+/// Calls of [`LogProblem::evaluate`] allowed per evaluation of the budget. A trial point
+/// asks for its cost and then its gradient (two calls, one simulation); a point beyond the
+/// log-step bound or already cached simulates nothing, so the budget alone would let a line
+/// search that keeps proposing such points (a coefficient pressed against its bound) run
+/// for ever.
+const CALLS_PER_EVALUATION: usize = 4;
 
 /// The loss a trial point that cannot be simulated gets, over the last good loss: far
 /// above, so the line search brackets and backs off (an infinite loss would stop it).
@@ -904,6 +913,7 @@ impl LogProblem<'_, '_> {
             p0: Vec::new(),
             units,
             last_good: RefCell::new(None),
+            calls: std::cell::Cell::new(0),
         };
         let off = |i: usize| (problem.start[i] - problem.lower[i]).abs().ln();
         let mut p0: Vec<f64> = problem.active().map(off).collect();
@@ -924,6 +934,13 @@ impl LogProblem<'_, '_> {
     /// Loss and gradient in `p`; at a point that cannot be simulated, a loss far above the
     /// last good one with its gradient (pointing back towards it).
     fn evaluate(&self, p: &[f64]) -> Result<(f64, Vec<f64>), FitError> {
+        let budget = self.objective.options.max_evaluations;
+        self.calls.set(self.calls.get() + 1);
+        if self.calls.get() > CALLS_PER_EVALUATION * budget {
+            return Err(FitError::Trials {
+                calls: self.calls.get() - 1,
+            });
+        }
         let c = self.coefficients(p);
         let offsets = self.start_offsets(p);
         let coefficients = self.p0.len() - self.units.len();
@@ -1280,6 +1297,18 @@ mod tests {
         }
         assert_eq!(*objective.evaluations.borrow(), evaluations);
         assert_eq!(*objective.failed_trials.borrow(), 4);
+        // A line search that keeps proposing such points is stopped, not left spinning.
+        let calls = CALLS_PER_EVALUATION * options.max_evaluations;
+        let mut p = p0.clone();
+        p[0] = f64::NAN;
+        let mut answered = 6;
+        while problem.evaluate(&p).is_ok() {
+            answered += 1;
+            assert!(answered <= calls, "never stopped");
+        }
+        assert_eq!(answered, calls);
+        let error = problem.evaluate(&p0).unwrap_err();
+        assert!(matches!(error, FitError::Trials { .. }), "{error}");
     }
 
     /// The gradient in the start offsets (the last adjoints of each rollout plus the prior's)
