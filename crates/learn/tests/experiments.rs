@@ -492,6 +492,36 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
 }
 
 #[test]
+fn each_regularisation_weight_fits_the_same_alone_or_beside_others() {
+    // The first weight is fitted in the experiment's integrator, the others concurrently in
+    // integrators of their own: a weight's result must not depend on which.
+    let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
+    let mut tried = |weights: Vec<f64>| {
+        let deform_learn::experiment::Task::Coarsen {
+            dt_factors,
+            smooth,
+            regularisation,
+            ..
+        } = &mut e.task
+        else {
+            panic!("task")
+        };
+        (*dt_factors, *smooth, *regularisation) = (vec![2], None, weights);
+        let report = run(&e, None, &mut NoProgress).unwrap();
+        let TaskReport::Coarsen(r) = report.task else {
+            panic!("task")
+        };
+        r.cases[0].regularisation.clone()
+    };
+    let together = tried(vec![0.0, 1e-2, 1e-1]);
+    assert_eq!(together.len(), 3);
+    for (w, error) in &together {
+        assert_eq!(tried(vec![*w]), [(*w, *error)]);
+    }
+    assert!(together[0].1 != together[2].1, "the weights change the fit");
+}
+
+#[test]
 fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untuned() {
     use deform_learn::experiment::coarsen::CoarseModel;
     let dir = tempfile::tempdir().unwrap();

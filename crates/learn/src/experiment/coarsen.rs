@@ -66,7 +66,8 @@ pub struct FitSummary {
     pub losses: (f64, f64),
     /// Loss evaluations (each one forward and one adjoint pass over the training data).
     pub evaluations: usize,
-    /// Wall time, seconds (all regularisation weights tried, for the per-element fit).
+    /// Wall time, seconds (for the per-element fit: of all regularisation weights, fitted
+    /// concurrently).
     pub seconds: f64,
 }
 
@@ -405,32 +406,30 @@ fn run_case(
         let row = measure(&mut sim, &test, CoarseModel::Smooth, Some(summary))?;
         rows.push(row);
     }
-    // Per element: each weight from the homogeneous fit; the best on validation is kept,
-    // with the model it left in `sim`.
+    // Per element: each weight from the homogeneous fit; the best on validation is kept.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
-    let neighbours = face_neighbours(&mesh, &labels);
-    let mut tried = Vec::new();
-    let mut best: Option<(f64, f64, Vec<f64>, FitSummary, FittedModel)> = None;
-    let (mut evaluations, mut seconds) = (0, 0.0);
-    for &w in settings.regularisation {
-        restore(&mut sim, &homogeneous)?;
-        let r = Regularisation {
-            towards: w,
-            smooth: w,
-            neighbours: neighbours.clone(),
-        };
-        let per_element = Field {
-            mass: settings.mass_scale,
-            ..field(labels.clone(), r)
-        };
-        let (c, summary) = fit(&mut sim, &train, &per_element, settings, observer)?;
-        let e = mean_error(&mean_rollout_errors(&mut sim, &validation)?);
-        tried.push((w, e));
-        (evaluations, seconds) = (evaluations + summary.evaluations, seconds + summary.seconds);
-        if best.as_ref().is_none_or(|b| e < b.0) {
-            best = Some((e, w, c, summary, fitted_model(&sim)));
+    let per_element = PerElement {
+        train: &train,
+        validation: &validation,
+        homogeneous: &homogeneous,
+        neighbours: face_neighbours(&mesh, &labels),
+        labels: &labels,
+        settings,
+    };
+    let started = Instant::now();
+    let fits = per_element.fit_every_weight(&mut sim, data, origin, observer)?;
+    let tried = fits.iter().map(|f| (f.weight, f.validation)).collect();
+    let evaluations = fits.iter().map(|f| f.summary.evaluations).sum();
+    // The first least validation error: the serial order's choice.
+    let best = fits.into_iter().reduce(|best, f| {
+        if f.validation < best.validation {
+            f
+        } else {
+            best
         }
-    }
+    });
+    let best = best.map(|f| (f.validation, f.weight, f.coefficients, f.summary, f.model));
+    let seconds = started.elapsed().as_secs_f64();
     let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
     restore(&mut sim, &model)?;
@@ -458,6 +457,96 @@ fn run_case(
         mesh,
     };
     Ok((case, fitted))
+}
+
+/// The per-element fit at one regularisation weight.
+struct WeightFit {
+    weight: f64,
+    /// Mean validation rollout error (m).
+    validation: f64,
+    coefficients: Vec<f64>,
+    summary: FitSummary,
+    model: FittedModel,
+}
+
+/// What every per-element fit shares.
+struct PerElement<'d, 's> {
+    train: &'d [&'d Trajectory],
+    validation: &'d [&'d Trajectory],
+    homogeneous: &'d FittedModel,
+    neighbours: Vec<[usize; 2]>,
+    labels: &'d [u32],
+    settings: &'d Settings<'s>,
+}
+
+impl PerElement<'_, '_> {
+    /// The fit at weight `w` from the homogeneous model, left in `sim`.
+    fn fit(
+        &self,
+        sim: &mut Integrator,
+        w: f64,
+        observer: &mut dyn ExperimentObserver,
+    ) -> Result<WeightFit, LearnError> {
+        restore(sim, self.homogeneous)?;
+        let field = Field {
+            labels: self.labels.to_vec(),
+            basis: None,
+            initial: None,
+            regularisation: Regularisation {
+                towards: w,
+                smooth: w,
+                neighbours: self.neighbours.clone(),
+            },
+            mass: self.settings.mass_scale,
+            damping: self.settings.damping,
+        };
+        let (coefficients, summary) = fit(sim, self.train, &field, self.settings, observer)?;
+        let validation = mean_error(&mean_rollout_errors(sim, self.validation)?);
+        Ok(WeightFit {
+            weight: w,
+            validation,
+            coefficients,
+            summary,
+            model: fitted_model(sim),
+        })
+    }
+
+    /// Every weight's fit, in the order of the weights. They are independent: the first
+    /// runs in `sim` with the observer, each other one in a thread of its own with an
+    /// integrator built from the data's scene, so the results do not depend on how many
+    /// run at once.
+    fn fit_every_weight(
+        &self,
+        sim: &mut Integrator,
+        data: &Dataset,
+        origin: &Path,
+        observer: &mut dyn ExperimentObserver,
+    ) -> Result<Vec<WeightFit>, LearnError> {
+        let (&first, rest) = self
+            .settings
+            .regularisation
+            .split_first()
+            .expect("validated: at least one weight");
+        std::thread::scope(|scope| {
+            let others: Vec<_> = rest
+                .iter()
+                .map(|&w| {
+                    scope.spawn(move || {
+                        let mut sim = data.meta.scene.build(origin)?.integrator;
+                        self.fit(&mut sim, w, &mut super::NoProgress)
+                    })
+                })
+                .collect();
+            let mut fits = vec![self.fit(sim, first, observer)?];
+            for handle in others {
+                let fit = handle
+                    .join()
+                    .unwrap_or_else(|p| std::panic::resume_unwind(p));
+                fits.push(fit?);
+            }
+            Ok(fits)
+        })
+    }
 }
 
 fn set_materials(sim: &mut Integrator, materials: MaterialField) -> Result<(), LearnError> {
