@@ -389,7 +389,7 @@ fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
             tried.join(", "),
             c.chosen
         )?;
-        md.push_str("| model | mean RMS error (m) | final RMS error (m) | error / untuned | cost (s/s) | cost / fine | alpha | gamma | coefficients | loss | fit time (s) |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+        md.push_str("| model | mean RMS error (m) | final RMS error (m) | error / untuned | cost (s/s) | cost / fine | alpha | gamma | coefficients | loss | fit time (s) | optimiser |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
         for row in &c.rows {
             let vs_untuned = c
                 .error_ratio(row.model, CoarseModel::Untuned)
@@ -398,10 +398,14 @@ fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
                 .cost_ratio(row.model, CoarseModel::Fine)
                 .unwrap_or(f64::NAN);
             let (alpha, gamma) = row.damping;
-            let fit = row.fit.as_ref().map_or("| - | - | -".to_owned(), |f| {
+            let fit = row.fit.as_ref().map_or("| - | - | - | -".to_owned(), |f| {
                 format!(
-                    "| {} | {:.3e} -> {:.3e} | {:.1}",
-                    f.coefficients, f.losses.0, f.losses.1, f.seconds
+                    "| {} | {:.3e} -> {:.3e} | {:.1} | {}",
+                    f.coefficients,
+                    f.losses.0,
+                    f.losses.1,
+                    f.seconds,
+                    f.termination.describe()
                 )
             });
             writeln!(

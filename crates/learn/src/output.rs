@@ -122,6 +122,17 @@ pub enum Termination {
     Stopped(String),
 }
 
+impl Termination {
+    /// A short phrase for reports: `converged`, `iteration cap` or `stopped: why`.
+    pub fn describe(&self) -> String {
+        match self {
+            Termination::Converged => "converged".to_owned(),
+            Termination::MaxIterations => "iteration cap".to_owned(),
+            Termination::Stopped(why) => format!("stopped: {why}"),
+        }
+    }
+}
+
 /// One optimiser iteration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FitIteration {

@@ -488,7 +488,22 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
         plotted.sort_by(f64::total_cmp);
         assert_eq!(mu, plotted);
     }
-    assert!(dir.path().join("models.csv").is_file());
+    // Each fit says how its optimiser stopped: 3 iterations are too few to converge here.
+    for c in &r.cases {
+        let fit = c
+            .row(CoarseModel::Homogeneous)
+            .unwrap()
+            .fit
+            .as_ref()
+            .unwrap();
+        assert_eq!(
+            fit.termination,
+            deform_learn::output::Termination::MaxIterations
+        );
+    }
+    let csv = std::fs::read_to_string(dir.path().join("models.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().ends_with(",termination"));
+    assert!(csv.contains(",\"iteration cap\""), "{csv}");
 }
 
 #[test]

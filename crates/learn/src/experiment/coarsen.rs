@@ -22,7 +22,7 @@ use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
 use crate::dataset::{Dataset, Split, Trajectory, generate};
 use crate::error::LearnError;
 use crate::output::{
-    Field, OutputErrorOptions, Regularisation, face_neighbours, fit_output_error_field,
+    Field, OutputErrorOptions, Regularisation, Termination, face_neighbours, fit_output_error_field,
 };
 use crate::rollout::{mean_error, mean_rollout_errors};
 
@@ -69,6 +69,8 @@ pub struct FitSummary {
     /// Wall time, seconds (for the per-element fit: of all regularisation weights, fitted
     /// concurrently).
     pub seconds: f64,
+    /// How the optimiser stopped (for the per-element fit: the chosen weight's).
+    pub termination: Termination,
 }
 
 /// One model measured on the held-out motions.
@@ -174,15 +176,18 @@ impl CoarsenReport {
     pub fn csv_files(&self) -> Vec<(String, String)> {
         let mut files = Vec::new();
         let mut csv = String::from(
-            "dt_factor,model,mean_error,final_error,cost,alpha,gamma,coefficients,loss_before,loss_after,evaluations,fit_seconds\n",
+            "dt_factor,model,mean_error,final_error,cost,alpha,gamma,coefficients,loss_before,loss_after,evaluations,fit_seconds,termination\n",
         );
         for c in &self.cases {
             for row in &c.rows {
-                let fit = row.fit.as_ref().map_or(",,,,".to_owned(), |f| {
+                let fit = row.fit.as_ref().map_or(",,,,,".to_owned(), |f| {
                     let (l0, l1) = f.losses;
                     format!(
-                        "{},{l0:e},{l1:e},{},{}",
-                        f.coefficients, f.evaluations, f.seconds
+                        "{},{l0:e},{l1:e},{},{},\"{}\"",
+                        f.coefficients,
+                        f.evaluations,
+                        f.seconds,
+                        f.termination.describe()
                     )
                 });
                 let (alpha, gamma) = row.damping;
@@ -575,6 +580,7 @@ fn fit(
         losses: (fit.initial_loss, fit.loss),
         evaluations: fit.evaluations,
         seconds: started.elapsed().as_secs_f64(),
+        termination: fit.termination,
     };
     Ok((fit.coefficients, summary))
 }
