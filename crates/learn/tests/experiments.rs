@@ -506,23 +506,29 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     assert!(csv.contains(",\"iteration cap\""), "{csv}");
 }
 
+/// The small coarsening experiment at 2x the step only, without the smooth field, with
+/// these per-element regularisation weights.
+fn small_coarsen(weights: Vec<f64>) -> Experiment {
+    let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
+    let deform_learn::experiment::Task::Coarsen {
+        dt_factors,
+        smooth,
+        regularisation,
+        ..
+    } = &mut e.task
+    else {
+        panic!("task")
+    };
+    (*dt_factors, *smooth, *regularisation) = (vec![2], None, weights);
+    e
+}
+
 #[test]
 fn each_regularisation_weight_fits_the_same_alone_or_beside_others() {
     // The first weight is fitted in the experiment's integrator, the others concurrently in
     // integrators of their own: a weight's result must not depend on which.
-    let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
-    let mut tried = |weights: Vec<f64>| {
-        let deform_learn::experiment::Task::Coarsen {
-            dt_factors,
-            smooth,
-            regularisation,
-            ..
-        } = &mut e.task
-        else {
-            panic!("task")
-        };
-        (*dt_factors, *smooth, *regularisation) = (vec![2], None, weights);
-        let report = run(&e, None, &mut NoProgress).unwrap();
+    let tried = |weights: Vec<f64>| {
+        let report = run(&small_coarsen(weights), None, &mut NoProgress).unwrap();
         let TaskReport::Coarsen(r) = report.task else {
             panic!("task")
         };
@@ -540,17 +546,7 @@ fn each_regularisation_weight_fits_the_same_alone_or_beside_others() {
 fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untuned() {
     use deform_learn::experiment::coarsen::CoarseModel;
     let dir = tempfile::tempdir().unwrap();
-    let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
-    let deform_learn::experiment::Task::Coarsen {
-        dt_factors,
-        smooth,
-        regularisation,
-        ..
-    } = &mut e.task
-    else {
-        panic!("task")
-    };
-    (*dt_factors, *smooth, *regularisation) = (vec![2], None, vec![1e-2]);
+    let mut e = small_coarsen(vec![1e-2]);
     let plain = run(&e, None, &mut NoProgress).unwrap();
     let deform_learn::experiment::Task::Coarsen { material, .. } = &mut e.task else {
         panic!("task")
