@@ -1313,6 +1313,7 @@ mod tests {
         let calls = CALLS_PER_EVALUATION * options.max_evaluations;
         let mut p = p0.clone();
         p[0] = f64::NAN;
+        // Six calls so far: one far point before any simulated, then p0, then four more.
         let mut answered = 6;
         while problem.evaluate(&p).is_ok() {
             answered += 1;

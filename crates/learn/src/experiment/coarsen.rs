@@ -226,6 +226,21 @@ struct Settings<'a> {
     options: OutputErrorOptions,
 }
 
+impl Settings<'_> {
+    /// A field over `labels` (none: one set for the whole mesh), with damping as asked and
+    /// without mass scales.
+    fn field(&self, labels: Vec<u32>, regularisation: Regularisation) -> Field {
+        Field {
+            labels,
+            basis: None,
+            initial: None,
+            regularisation,
+            mass: false,
+            damping: self.damping,
+        }
+    }
+}
+
 /// Runs [`Task::Coarsen`]: the held-out motions first (their wall time is the fine model's
 /// cost), then one case per coarse step.
 ///
@@ -376,14 +391,7 @@ fn run_case(
         o.alpha = 1e-3;
         sim.set_options(o)?;
     }
-    let field = |labels: Vec<u32>, regularisation| Field {
-        labels,
-        basis: None,
-        initial: None,
-        regularisation,
-        mass: false,
-        damping: settings.damping,
-    };
+    let field = |labels, regularisation| settings.field(labels, regularisation);
     let whole = field(Vec::new(), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
     rows.push(measure(
@@ -493,17 +501,14 @@ impl PerElement<'_, '_> {
         observer: &mut dyn ExperimentObserver,
     ) -> Result<WeightFit, LearnError> {
         restore(sim, self.homogeneous)?;
+        let regularisation = Regularisation {
+            towards: w,
+            smooth: w,
+            neighbours: self.neighbours.clone(),
+        };
         let field = Field {
-            labels: self.labels.to_vec(),
-            basis: None,
-            initial: None,
-            regularisation: Regularisation {
-                towards: w,
-                smooth: w,
-                neighbours: self.neighbours.clone(),
-            },
             mass: self.settings.mass_scale,
-            damping: self.settings.damping,
+            ..self.settings.field(self.labels.to_vec(), regularisation)
         };
         let (coefficients, summary) = fit(sim, self.train, &field, self.settings, observer)?;
         let validation = mean_error(&mean_rollout_errors(sim, self.validation)?);
