@@ -889,20 +889,23 @@ struct LogProblem<'p, 'a> {
 }
 
 /// Calls of [`LogProblem::evaluate`] allowed per evaluation of the budget. A trial point
-/// asks for its cost and then its gradient (two calls, one simulation); a point beyond the
-/// log-step bound or already cached simulates nothing, so the budget alone would let a line
-/// search that keeps proposing such points (a coefficient pressed against its bound) run
-/// for ever.
+/// asks for its cost and then its gradient (two calls, one simulation); a point that is not
+/// finite, or whose projection is cached, simulates nothing, so the budget alone would let a
+/// line search that keeps proposing such points (moving only a coefficient pressed against
+/// its bound) run for ever.
 const CALLS_PER_EVALUATION: usize = 4;
 
 /// The loss a trial point that cannot be simulated gets, over the last good loss: far
 /// above, so the line search brackets and backs off (an infinite loss would stop it).
 const FAILED_TRIAL_FACTOR: f64 = 1e6;
 
-/// How far (in natural log) a trial coefficient may move from where the fit started: a
-/// factor of 1e6. A line search that overshoots further (a trial mu of 1e13 Pa, a
-/// non-finite step) gets a failed trial's loss and backs off, without simulating a model
-/// no data can be about.
+/// How far (in natural log) a coefficient may move from where the fit started: a factor of
+/// 1e6 (its offset from the bound, for gamma). A trial point further out is evaluated on
+/// this bound (projected), where the loss is continued flat outwards: the gradient's
+/// outward component is zero, so a coefficient pressed against it (gamma at `-dt / 2`
+/// within a millionth of its start's offset) stays there while the others keep improving,
+/// and a line search that overshoots (a trial mu of 1e13 Pa) never simulates a model no
+/// data can be about.
 const MAX_LOG_DISTANCE: f64 = 13.815510557964274;
 
 impl LogProblem<'_, '_> {
@@ -955,19 +958,16 @@ impl LogProblem<'_, '_> {
         }
         let c = self.coefficients(p);
         let offsets = self.start_offsets(p);
-        let coefficients = self.p0.len() - self.units.len();
-        let far = p.iter().any(|v| !v.is_finite())
-            || (p.iter().zip(&self.p0).take(coefficients))
-                .any(|(p, q)| (p - q).abs() > MAX_LOG_DISTANCE);
-        let evaluated = if far {
+        let not_finite = p.iter().any(|v| !v.is_finite());
+        let evaluated = if not_finite {
             Err(FitError::Coefficients {
                 coefficients: c.clone(),
-                reason: "a trial step more than 1e6x from the start".into(),
+                reason: "a trial step that is not finite".into(),
             })
         } else {
             self.objective.evaluate_with_starts(&c, offsets.as_deref())
         };
-        match evaluated {
+        let (loss, mut g) = match evaluated {
             Ok((loss, g, gs)) => {
                 let mut g: Vec<f64> = self
                     .active()
@@ -976,17 +976,24 @@ impl LogProblem<'_, '_> {
                 // d offset / d q is the offset's unit.
                 g.extend(gs.iter().zip(&self.units).map(|(g, u)| g * u));
                 *self.last_good.borrow_mut() = Some((loss, g.clone()));
-                Ok((loss, g))
+                (loss, g)
             }
-            Err(e) if e.is_failed_simulation() || far => {
+            Err(e) if e.is_failed_simulation() || not_finite => {
                 let Some((loss, g)) = self.last_good.borrow().clone() else {
                     return Err(e);
                 };
                 *self.objective.failed_trials.borrow_mut() += 1;
-                Ok((FAILED_TRIAL_FACTOR * loss.abs().max(f64::MIN_POSITIVE), g))
+                (FAILED_TRIAL_FACTOR * loss.abs().max(f64::MIN_POSITIVE), g)
             }
-            Err(e) => Err(e),
+            Err(e) => return Err(e),
+        };
+        // Flat beyond the bounded log-step (see MAX_LOG_DISTANCE).
+        for (g, (p, q)) in g.iter_mut().zip(p.iter().zip(&self.p0)) {
+            if !not_finite && (p - q).abs() > MAX_LOG_DISTANCE {
+                *g = 0.0;
+            }
         }
+        Ok((loss, g))
     }
 
     fn active(&self) -> impl Iterator<Item = usize> + '_ {
@@ -1018,12 +1025,15 @@ impl LogProblem<'_, '_> {
 }
 
 /// The coefficients at log-parameters `p` (see [`LogProblem`]; start offsets after them are
-/// ignored).
+/// ignored), each projected onto its bounded log-step ([`MAX_LOG_DISTANCE`]).
 fn from_log(start: &[f64], lower: &[f64], p: &[f64]) -> Vec<f64> {
     let mut c = start.to_vec();
     let active = (0..c.len()).filter(|&i| start[i] != lower[i]);
     for (i, v) in active.zip(p) {
-        c[i] = lower[i] + (start[i] - lower[i]).signum() * v.exp();
+        let offset = start[i] - lower[i];
+        let p0 = offset.abs().ln();
+        let v = v.clamp(p0 - MAX_LOG_DISTANCE, p0 + MAX_LOG_DISTANCE);
+        c[i] = lower[i] + offset.signum() * v.exp();
     }
     c
 }
@@ -1300,21 +1310,32 @@ mod tests {
         assert_eq!(penalty, FAILED_TRIAL_FACTOR * loss.max(f64::MIN_POSITIVE));
         assert_eq!(fallback, grad);
         assert_eq!(*objective.failed_trials.borrow(), 1);
-        // Trials beyond the bounded log-step, or not finite, are not even simulated.
+        // Trials that are not finite are not even simulated.
         let evaluations = *objective.evaluations.borrow();
-        for beyond in [p0[0] + 14.0, f64::NAN, f64::INFINITY] {
+        for beyond in [f64::NAN, f64::INFINITY] {
             let mut p = p0.clone();
             p[0] = beyond;
             assert_eq!(problem.evaluate(&p).unwrap(), (penalty, grad.clone()));
         }
         assert_eq!(*objective.evaluations.borrow(), evaluations);
-        assert_eq!(*objective.failed_trials.borrow(), 4);
+        assert_eq!(*objective.failed_trials.borrow(), 3);
+        // Beyond the bounded log-step the loss is that on the bound, flat outwards.
+        let (mut bound, mut beyond) = (p0.clone(), p0.clone());
+        bound[0] -= MAX_LOG_DISTANCE;
+        beyond[0] -= MAX_LOG_DISTANCE + 3.0;
+        let (on, g_on) = problem.evaluate(&bound).unwrap();
+        let (out, g_out) = problem.evaluate(&beyond).unwrap();
+        assert_eq!(problem.coefficients(&beyond), problem.coefficients(&bound));
+        assert_eq!(out, on);
+        assert_eq!(g_out[0], 0.0);
+        assert_eq!(g_out[1..], g_on[1..]);
+        assert!(g_on.iter().all(|g| g.is_finite()));
         // A line search that keeps proposing such points is stopped, not left spinning.
         let calls = CALLS_PER_EVALUATION * options.max_evaluations;
         let mut p = p0.clone();
         p[0] = f64::NAN;
-        // Six calls so far: one far point before any simulated, then p0, then four more.
-        let mut answered = 6;
+        // Seven calls so far: one failed point before any simulated, then p0, then five more.
+        let mut answered = 7;
         while problem.evaluate(&p).is_ok() {
             answered += 1;
             assert!(answered <= calls, "never stopped");
