@@ -17,7 +17,8 @@
 //! selection runs through the same stage 2. The optimiser sees their logarithms (signs kept,
 //! zero coefficients stay zero: a member stage 1 dropped stays dropped); it is argmin's
 //! L-BFGS with a More-Thuente line search, an evaluation budget and a cap on trial points
-//! that simulate nothing (beyond the log-step bound, or cached), behind
+//! that simulate nothing (not finite, or cached); a coefficient beyond the bounded log-step is
+//! projected onto it, behind
 //! [`fit_output_error`], which reports every iteration and ends with a typed [`Termination`].
 //!
 //! The gradient is exact for `gamma = 0`; with stiffness damping it neglects the term
