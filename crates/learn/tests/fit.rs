@@ -1236,9 +1236,9 @@ fn a_regularised_field_gradient_equals_finite_differences() {
 
 #[test]
 fn the_damping_gradient_equals_finite_differences() {
-    // Rayleigh alpha and gamma fitted through the same adjoint, with a two-group field. With
-    // gamma > 0 the gradient neglects the O(dt^2 gamma) term of the Newton matrix (see the
-    // module docs): 2e-3 relative here.
+    // Rayleigh alpha and gamma fitted through the same adjoint, with a two-group field. The
+    // damping force's derivative in x (gamma D_v K, by a forward difference) is in the
+    // adjoint: without it the gradient was 0.7 % off at gamma = 1e-4 (see the module docs).
     let s = scene("alpha: 0.3, gamma: 2e-4", "Beam(1)");
     let data = make(&s, 1, 4);
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
@@ -1267,7 +1267,10 @@ fn the_damping_gradient_equals_finite_differences() {
         .collect();
     let mut negative = away.clone();
     negative[5] = -2e-4;
-    for c in [away, negative] {
+    // Near the stability bound, where the fits of a 4x coarser step end.
+    let mut bound = away.clone();
+    bound[5] = -0.45 * 0.01;
+    for c in [away, negative, bound] {
         let (_, grad) = objective.evaluate(&c).unwrap();
         for j in 0..c.len() {
             let h = 1e-5 * c[j].abs();
@@ -1278,7 +1281,7 @@ fn the_damping_gradient_equals_finite_differences() {
                 / (2.0 * h);
             eprintln!("coefficient {j}: {:.6e} vs {fd:.6e}", grad[j]);
             assert!(
-                (grad[j] - fd).abs() <= 2e-3 * fd.abs(),
+                (grad[j] - fd).abs() <= 1e-5 * fd.abs(),
                 "gamma {}, coefficient {j}: {} vs {fd}",
                 c[5],
                 grad[j]
