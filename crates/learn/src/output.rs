@@ -5,10 +5,11 @@
 //! `L = sum |x_pred - x_data|^2 / sum |x^n+1 - x^n|^2` (plus a weighted velocity term).
 //! Rollout gradients run the adjoint backwards through the steps: with `A_k lambda_k = g_k`,
 //! `g_k = adj_v(k+1) + dt adj_x(k+1)`, then `adj_x(k) = dl/dx_k + adj_x(k+1) - dt K lambda_k`
-//! and `adj_v(k) = dl/dv_k + M lambda_k` (`dr/dx_k = dt K`, `dr/dv_k = -M`).
+//! and `adj_v(k) = dl/dv_k + M lambda_k` (`dr/dx_k = dt K`, `dr/dv_k = -M`; K with the
+//! damping term below).
 //! Its exact gradient comes from implicit differentiation of the converged step: with the
 //! residual `r(v, c) = 0` and its Jacobian `A = dr/dv` (the Newton matrix at the converged
-//! state), `dv/dc = -A^-1 dr/dc`, and in adjoint form `dL/dc = -lambda^T dr/dc` with
+//! state, with the damping term Newton omits), `dv/dc = -A^-1 dr/dc`, and in adjoint form `dL/dc = -lambda^T dr/dc` with
 //! `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
 //! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
 //!
