@@ -173,7 +173,8 @@ pub enum FitError {
         evaluations: usize,
     },
     /// The optimiser asked for this many trial points without spending its budget of
-    /// simulations (points it could not use: not finite, or whose projection onto the step bound was seen before).
+    /// simulations (points it could not use: not finite, or whose projection onto the step
+    /// bound was seen before).
     #[error("the optimiser asked for {calls} trial points, most of them not simulated")]
     Trials {
         /// Trial points asked for.

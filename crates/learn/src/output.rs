@@ -9,8 +9,8 @@
 //! damping term below).
 //! Its exact gradient comes from implicit differentiation of the converged step: with the
 //! residual `r(v, c) = 0` and its Jacobian `A = dr/dv` (the Newton matrix at the converged
-//! state, with the damping term Newton omits), `dv/dc = -A^-1 dr/dc`, and in adjoint form `dL/dc = -lambda^T dr/dc` with
-//! `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
+//! state, with the damping term Newton omits), `dv/dc = -A^-1 dr/dc`, and in adjoint form
+//! `dL/dc = -lambda^T dr/dc` with `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
 //! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
 //!
 //! The coefficients are the material's term coefficients: the Lame pair of a single model,
@@ -24,8 +24,8 @@
 //!
 //! With stiffness damping `A` and `dr/dx_k` also carry the damping force's derivative in `x`,
 //! `dt^2 gamma D_v K` and `dt gamma D_v K` (`D_v K`, the derivative of K along the step's end
-//! velocity, by a forward difference: one assembly more per step), so the gradient is that of the
-//! converged steps for any gamma, although Newton's tangent omits the term.
+//! velocity, by a forward difference: one assembly more per step), so the gradient is that of
+//! the converged steps for any gamma, although Newton's tangent omits the term.
 
 use std::cell::RefCell;
 use std::sync::{Arc, Mutex};
@@ -711,6 +711,9 @@ struct Adjoint {
     /// With stiffness damping: `D_v K`, the derivative of K along the step's end velocity,
     /// and scratch for the Newton matrix's stiffness part (see [`Adjoint::damping_terms`]).
     damped: Option<(StiffnessMatrix, StiffnessMatrix)>,
+    /// The largest displacement of `D_v K`'s forward difference: 1e-7 of the rest shape's
+    /// bounding-box diagonal (an error of about 1e-6 relative, rounding about 1e-9).
+    difference_step: f64,
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
@@ -729,9 +732,19 @@ impl Adjoint {
     ) -> Result<Self, FitError> {
         let kmat = sim.assembly().stiffness_matrix();
         let damped = (sim.options().gamma != 0.0).then(|| (kmat.clone(), kmat.clone()));
+        let rest = sim.rest_state().x;
+        let diagonal = (0..3)
+            .map(|d| {
+                let axis = rest.iter().skip(d).step_by(3);
+                let (lo, hi) = axis.fold((f64::MAX, f64::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+                (hi - lo).powi(2)
+            })
+            .sum::<f64>()
+            .sqrt();
         Ok(Self {
             reduced: sim.dofs().reduced_matrix(&kmat)?,
             damped,
+            difference_step: 1e-7 * diagonal,
             kmat,
             mass: sim.mass().clone(),
             grouping,
@@ -754,21 +767,12 @@ impl Adjoint {
         let Some((dvk, a)) = &mut self.damped else {
             return Ok(());
         };
-        // One-sided, from the K already assembled (one assembly more per step, not two), with
-        // a step of 1e-7 of the body's size: an error of about 1e-6 relative, rounding 1e-9.
+        // One-sided, from the K already assembled: one assembly more per step, not two.
         let speed = next.v.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let size = (0..3)
-            .map(|d| {
-                let c = next.x.iter().skip(d).step_by(3);
-                let (lo, hi) = c.fold((f64::MAX, f64::MIN), |(l, h), &x| (l.min(x), h.max(x)));
-                (hi - lo).powi(2)
-            })
-            .sum::<f64>()
-            .sqrt();
         if speed == 0.0 {
             dvk.values_mut().fill(0.0);
         } else {
-            let e = 1e-7 * size / speed;
+            let e = self.difference_step / speed;
             let shifted: Vec<f64> = next.x.iter().zip(&next.v).map(|(x, v)| x + e * v).collect();
             sim.assembly_mut()
                 .stiffness(&shifted, Tangent::Exact, dvk)?;
@@ -1049,10 +1053,14 @@ impl LogProblem<'_, '_> {
             }
             Err(e) => return Err(e),
         };
-        // Flat beyond the bounded log-step (see MAX_LOG_DISTANCE).
-        for (g, (p, q)) in g.iter_mut().zip(p.iter().zip(&self.p0)) {
-            if !not_finite && (p - q).abs() > MAX_LOG_DISTANCE {
-                *g = 0.0;
+        // Flat beyond the bounded log-step (see MAX_LOG_DISTANCE); the start offsets after
+        // the coefficients are not bounded.
+        if !not_finite {
+            let coefficients = self.p0.len() - self.units.len();
+            for (g, (p, q)) in g.iter_mut().zip(p.iter().zip(&self.p0)).take(coefficients) {
+                if (p - q).abs() > MAX_LOG_DISTANCE {
+                    *g = 0.0;
+                }
             }
         }
         Ok((loss, g))
@@ -1461,6 +1469,15 @@ mod tests {
         for v in clamped {
             assert!((0..4).all(|r| (0..3).all(|i| g[r * n + 3 * v + i] == 0.0)));
         }
+        // The start offsets are not bounded like the coefficients: one far past
+        // MAX_LOG_DISTANCE units (the last free DOF's velocity) keeps its gradient.
+        let problem = LogProblem::new(&objective, &c);
+        let mut p = problem.parameters();
+        let last = p.len() - 1;
+        p[last] = 2.0 * MAX_LOG_DISTANCE;
+        let (_, g) = problem.evaluate(&p).unwrap();
+        assert_ne!(g[last], 0.0);
+        drop(problem);
         drop(objective);
         // An exactly known first state stays: its rollout's starts get no gradient (and
         // no offset), the trajectory's later rollouts do.

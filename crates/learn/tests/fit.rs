@@ -1238,7 +1238,7 @@ fn a_regularised_field_gradient_equals_finite_differences() {
 fn the_damping_gradient_equals_finite_differences() {
     // Rayleigh alpha and gamma fitted through the same adjoint, with a two-group field. The
     // damping force's derivative in x (gamma D_v K, by a forward difference) is in the
-    // adjoint: without it the gradient was 0.7 % off at gamma = 1e-4 (see the module docs).
+    // adjoint: without it the gradient is 8e-5 relative off at gamma = 1e-4 (see the module docs).
     let s = scene("alpha: 0.3, gamma: 2e-4", "Beam(1)");
     let data = make(&s, 1, 4);
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
