@@ -84,6 +84,7 @@ fn benches(c: &mut Criterion) {
                         forces: Some(&mut f),
                         stiffness: Some(&mut k),
                         tangent: Tangent::Exact,
+                        ..Outputs::default()
                     },
                 )
                 .unwrap();

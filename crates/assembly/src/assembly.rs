@@ -9,7 +9,7 @@
 //! element order. No output depends on how the work was split, nor on the block size: the
 //! buffer holds one block, so its memory does not grow with the mesh.
 
-use deform_materials::{Material, Matrix9, Model};
+use deform_materials::{Material, Matrix9, Model, mat3, vec9};
 use deform_mesh::TetMesh;
 use deform_mesh::topology::{BlockPattern, VertexElements};
 use nalgebra::{Matrix3, Vector3};
@@ -24,6 +24,17 @@ use crate::{AssemblyError, MaterialField};
 pub(crate) const CHUNK: usize = 512;
 /// Vertices per parallel task in the gathers.
 const VERTEX_CHUNK: usize = 256;
+/// Passes over fewer chunks than this run on the calling thread (see [`inline`]).
+const PARALLEL_MIN_CHUNKS: usize = 4;
+
+/// Whether a pass over `chunks` chunks runs on the calling thread. Handing work to rayon's
+/// pool wakes a worker, tens of microseconds on this 2-core VM: more than a pass over a few
+/// hundred tets takes (a coarse model's 192 tets took 0.4 us per tet in the pool). The
+/// chunks and their order are the same either way, so the results are too.
+pub(crate) fn inline(chunks: usize) -> bool {
+    chunks < PARALLEL_MIN_CHUNKS
+}
+
 /// Elements per block of an evaluation: the element buffer holds one block (824 B an
 /// element, 13.5 MB, within this machine's 32 MB L3 cache, so the gather reads what the
 /// element phase has just written from the cache) instead of the whole mesh (5.2 GB for the
@@ -51,8 +62,28 @@ pub struct Outputs<'a> {
     pub forces: Option<&'a mut [f64]>,
     /// Refilled with `K = d2E/dx2`.
     pub stiffness: Option<&'a mut StiffnessMatrix>,
-    /// The tangent used for `stiffness`.
+    /// The tangent used for `stiffness` and `stiffness_product`.
     pub tangent: Tangent,
+    /// `(w, out)`: receives `K(x) w` (length `3N`), element by element without K: the
+    /// Rayleigh stiffness-damping force's product, for a residual that needs no assembled K.
+    pub stiffness_product: Option<(&'a [f64], &'a mut [f64])>,
+    /// When set, `stiffness` receives `K + scale D_w K` instead of K ([`StiffnessShift`]).
+    pub stiffness_shift: Option<StiffnessShift<'a>>,
+}
+
+/// K's derivative along a direction `w` added to the assembled K: `K + scale D_w K`, with
+/// `D_w K = d/de K(x + e w)` at `e = 0` (symmetric: a third derivative of the energy) by a
+/// forward difference of `step` in `e`, element by element in the same pass (each element's
+/// tangent at `F` and at `F + step dF_w`). Newton's matrix of Rayleigh stiffness damping
+/// `-gamma K(x) v` needs it: the damping force's derivative in `x` is `-gamma D_v K`.
+#[derive(Debug, Clone, Copy)]
+pub struct StiffnessShift<'a> {
+    /// The direction `w` (length `3N`).
+    pub direction: &'a [f64],
+    /// The forward difference's step in `e`: `step max|w|` is the largest displacement.
+    pub step: f64,
+    /// The derivative's factor.
+    pub scale: f64,
 }
 
 /// Per-mesh geometry and scatter maps, immutable after construction.
@@ -80,6 +111,8 @@ pub(crate) struct Geometry {
 pub(crate) struct ElementOut {
     pub energy: f64,
     pub forces: [Vector3<f64>; 4],
+    /// The element's `K_e w_e` ([`Outputs::stiffness_product`]).
+    pub product: [Vector3<f64>; 4],
     pub blocks: [Matrix3<f64>; 10],
 }
 
@@ -88,6 +121,7 @@ impl Default for ElementOut {
         Self {
             energy: 0.0,
             forces: [Vector3::zeros(); 4],
+            product: [Vector3::zeros(); 4],
             blocks: [Matrix3::zeros(); 10],
         }
     }
@@ -259,27 +293,31 @@ impl Assembly {
         let p = &self.geometry.pattern;
         let (offsets, columns, indptr) = (p.offsets(), p.columns(), &self.geometry.indptr);
         let indices = k.indices();
+        let row_matches = |v: usize| {
+            let row = &columns[offsets[v]..offsets[v + 1]];
+            (0..3).all(|r| {
+                let found = &indices[indptr[3 * v + r]..indptr[3 * v + r + 1]];
+                // Branch-free: the differences OR-ed over the row (a slice comparison per
+                // block is a call, a short circuit a branch).
+                found.len() == 3 * row.len()
+                    && found.chunks_exact(3).zip(row).fold(0, |diff, (f, &j)| {
+                        diff | (f[0] ^ (3 * j)) | (f[1] ^ (3 * j + 1)) | (f[2] ^ (3 * j + 2))
+                    }) == 0
+            })
+        };
+        let rows = p.num_rows();
         k.is_csr()
             && k.rows() == self.num_dofs()
             && k.cols() == self.num_dofs()
             && k.indptr().raw_storage() == indptr.as_slice()
-            && (0..p.num_rows())
-                .into_par_iter()
-                .with_min_len(VERTEX_CHUNK)
-                .all(|v| {
-                    let row = &columns[offsets[v]..offsets[v + 1]];
-                    (0..3).all(|r| {
-                        let found = &indices[indptr[3 * v + r]..indptr[3 * v + r + 1]];
-                        // Branch-free: the differences OR-ed over the row (a slice
-                        // comparison per block is a call, a short circuit a branch).
-                        found.len() == 3 * row.len()
-                            && found.chunks_exact(3).zip(row).fold(0, |diff, (f, &j)| {
-                                diff | (f[0] ^ (3 * j))
-                                    | (f[1] ^ (3 * j + 1))
-                                    | (f[2] ^ (3 * j + 2))
-                            }) == 0
-                    })
-                })
+            && if inline(rows.div_ceil(VERTEX_CHUNK)) {
+                (0..rows).all(row_matches)
+            } else {
+                (0..rows)
+                    .into_par_iter()
+                    .with_min_len(VERTEX_CHUNK)
+                    .all(row_matches)
+            }
     }
 
     /// Total elastic energy `E(x) = sum_e W_e Psi(F_e)`.
@@ -346,9 +384,15 @@ impl Assembly {
         {
             return Err(AssemblyError::PatternMismatch);
         }
-        let tangent = out.tangent;
-        let values = out.stiffness.map(|k| (k.values_mut(), tangent));
-        self.evaluate_parts(x, out.energy, out.forces, values)
+        let parts = Parts {
+            energy: out.energy,
+            forces: out.forces,
+            values: out.stiffness.map(|k| k.values_mut()),
+            tangent: out.tangent,
+            product: out.stiffness_product,
+            shift: out.stiffness_shift,
+        };
+        self.evaluate_parts(x, parts)
     }
 
     /// [`Assembly::evaluate`] with K's values written to `values` (one per non-zero of
@@ -371,7 +415,15 @@ impl Assembly {
             values.len(),
             9 * self.geometry.pattern.num_blocks(),
         )?;
-        self.evaluate_parts(x, energy, forces, Some((values, tangent)))
+        let parts = Parts {
+            energy,
+            forces,
+            values: Some(values),
+            tangent,
+            product: None,
+            shift: None,
+        };
+        self.evaluate_parts(x, parts)
     }
 
     /// K's CSR pattern `(indptr, indices)` (full symmetric storage, sorted columns), made
@@ -380,21 +432,35 @@ impl Assembly {
         self.geometry.pattern.scalar_csr()
     }
 
-    fn evaluate_parts(
-        &mut self,
-        x: &[f64],
-        energy: Option<&mut f64>,
-        forces: Option<&mut [f64]>,
-        stiffness: Option<(&mut [f64], Tangent)>,
-    ) -> Result<(), AssemblyError> {
-        check_positions("x", x, self.num_dofs())?;
+    fn evaluate_parts(&mut self, x: &[f64], parts: Parts<'_>) -> Result<(), AssemblyError> {
+        let Parts {
+            energy,
+            forces,
+            values,
+            tangent,
+            product,
+            shift,
+        } = parts;
+        let n = self.num_dofs();
+        check_positions("x", x, n)?;
         if let Some(f) = &forces {
-            check_len("forces", f.len(), self.num_dofs())?;
+            check_len("forces", f.len(), n)?;
+        }
+        let (w, product) = product.unzip();
+        if let (Some(w), Some(out)) = (w, &product) {
+            check_positions("stiffness product's w", w, n)?;
+            check_len("stiffness product", out.len(), n)?;
+        }
+        if let Some(s) = &shift {
+            check_positions("stiffness shift's direction", s.direction, n)?;
         }
         let need = Need {
             energy: energy.is_some(),
             forces: forces.is_some(),
-            stiffness: stiffness.as_ref().map(|(_, t)| *t),
+            stiffness: values.is_some(),
+            tangent,
+            product: w,
+            shift: shift.filter(|_| values.is_some()),
         };
         let (geo, ne) = (&self.geometry, self.num_elements());
         let block = self.block;
@@ -404,26 +470,28 @@ impl Assembly {
         self.cursor
             .extend_from_slice(&geo.vertex_ptr[..geo.num_vertices]);
         let mut partials = Vec::new();
-        let (mut forces, mut values) = (forces, stiffness.map(|(v, _)| v));
+        let (mut forces, mut values, mut product) = (forces, values, product);
         for first in (0..ne).step_by(block) {
             let work = &mut self.work[..(ne - first).min(block)];
             element_phase(geo, &self.materials, x, need, first, work)?;
             if need.energy {
                 // Chunk sums, as if over the whole mesh (a block is a multiple of CHUNK).
-                partials.extend(
-                    work.par_chunks(CHUNK)
-                        .map(|c| c.iter().map(|o| o.energy).sum::<f64>())
-                        .collect::<Vec<f64>>(),
-                );
+                let sum = |c: &[ElementOut]| c.iter().map(|o| o.energy).sum::<f64>();
+                if inline(work.len().div_ceil(CHUNK)) {
+                    partials.extend(work.chunks(CHUNK).map(sum));
+                } else {
+                    partials.extend(work.par_chunks(CHUNK).map(sum).collect::<Vec<f64>>());
+                }
             }
-            if forces.is_some() || values.is_some() {
+            if forces.is_some() || values.is_some() || product.is_some() {
                 let elements = first..first + work.len();
+                let vectors = [forces.as_deref_mut(), product.as_deref_mut()];
                 gather_block(
                     geo,
                     work,
                     elements,
                     values.as_deref_mut(),
-                    forces.as_deref_mut(),
+                    vectors,
                     &mut self.cursor,
                 );
             }
@@ -435,12 +503,26 @@ impl Assembly {
     }
 }
 
+/// The outputs of one evaluation, K's as its value array.
+struct Parts<'a> {
+    energy: Option<&'a mut f64>,
+    forces: Option<&'a mut [f64]>,
+    values: Option<&'a mut [f64]>,
+    tangent: Tangent,
+    product: Option<(&'a [f64], &'a mut [f64])>,
+    shift: Option<StiffnessShift<'a>>,
+}
+
 /// What the element phase must produce.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Need {
+pub(crate) struct Need<'a> {
     pub energy: bool,
     pub forces: bool,
-    pub stiffness: Option<Tangent>,
+    pub stiffness: bool,
+    pub tangent: Tangent,
+    /// `w` of the stiffness product.
+    pub product: Option<&'a [f64]>,
+    pub shift: Option<StiffnessShift<'a>>,
 }
 
 pub(crate) fn check_len(
@@ -489,15 +571,19 @@ pub(crate) fn for_each_element<T: Send>(
     buffer: &mut [T],
     body: impl Fn(usize, &mut T) -> Result<(), AssemblyError> + Sync,
 ) -> Result<(), AssemblyError> {
+    let chunk = |(c, chunk): (usize, &mut [T])| {
+        for (i, slot) in chunk.iter_mut().enumerate() {
+            body(first + c * CHUNK + i, slot)?;
+        }
+        Ok(())
+    };
+    if inline(buffer.len().div_ceil(CHUNK)) {
+        return buffer.chunks_mut(CHUNK).enumerate().try_for_each(chunk);
+    }
     let first_error = buffer
         .par_chunks_mut(CHUNK)
         .enumerate()
-        .map(|(c, chunk)| {
-            for (i, slot) in chunk.iter_mut().enumerate() {
-                body(first + c * CHUNK + i, slot)?;
-            }
-            Ok(())
-        })
+        .map(chunk)
         .filter_map(Result::err)
         .collect::<Vec<_>>();
     // Chunks are collected in order; the first error of the first failing chunk is the
@@ -563,22 +649,40 @@ fn element_phase(
                 });
             }
         }
-        match need.stiffness {
-            Some(tangent) => {
-                let (p, c) = m.first_piola_and_tangent(&f, tangent == Tangent::Projected);
-                if !finite9(&c) {
-                    return Err(AssemblyError::NonFiniteElement {
-                        element: e,
-                        what: "tangent",
-                    });
-                }
-                stiffness_blocks(&c, g, w, &mut out.blocks);
-                if need.forces {
-                    out.forces = corner_products(&p, g, -w);
-                }
+        let projected = need.tangent == Tangent::Projected;
+        let (p, c) = if need.stiffness || need.product.is_some() {
+            let (p, c) = m.first_piola_and_tangent(&f, projected);
+            if !finite9(&c) {
+                return Err(AssemblyError::NonFiniteElement {
+                    element: e,
+                    what: "tangent",
+                });
             }
-            None if need.forces => out.forces = corner_products(&m.first_piola(&f), g, -w),
-            None => {}
+            (Some(p), Some(c))
+        } else {
+            (None, None)
+        };
+        if need.forces {
+            let p = p.unwrap_or_else(|| m.first_piola(&f));
+            out.forces = corner_products(&p, g, -w);
+        }
+        if let (Some(v), Some(c)) = (need.product, &c) {
+            // K_e v_e = -(the force differential along v).
+            let df = gradient(&corners(v, &geo.tets[e]), g);
+            out.product = corner_products(&mat3(&(c * vec9(&df))), g, w);
+            if !out.product.iter().all(|v| v.iter().all(|c| c.is_finite())) {
+                return Err(AssemblyError::NonFiniteElement {
+                    element: e,
+                    what: "stiffness product",
+                });
+            }
+        }
+        if let (true, Some(c)) = (need.stiffness, c) {
+            let c = match need.shift {
+                Some(shift) => shifted_tangent(geo, m, e, &f, c, projected, shift)?,
+                None => c,
+            };
+            stiffness_blocks(&c, g, w, &mut out.blocks);
         }
         if need.forces && !out.forces.iter().all(|v| v.iter().all(|c| c.is_finite())) {
             return Err(AssemblyError::NonFiniteElement {
@@ -588,6 +692,34 @@ fn element_phase(
         }
         Ok(())
     })
+}
+
+/// `c + scale (C(F + step dF_w) - c) / step`: element `e`'s tangent `c` at `f` with
+/// [`StiffnessShift`]'s derivative added.
+fn shifted_tangent(
+    geo: &Geometry,
+    m: &Model,
+    e: usize,
+    f: &Matrix3<f64>,
+    c: Matrix9,
+    projected: bool,
+    shift: StiffnessShift<'_>,
+) -> Result<Matrix9, AssemblyError> {
+    let df = gradient(&corners(shift.direction, &geo.tets[e]), &geo.grads[e]);
+    let f2 = f + df * shift.step;
+    let c2 = if projected {
+        m.dp_df_projected(&f2)
+    } else {
+        m.dp_df(&f2)
+    };
+    let shifted = c + (c2 - c) * (shift.scale / shift.step);
+    if !finite9(&shifted) {
+        return Err(AssemblyError::NonFiniteElement {
+            element: e,
+            what: "shifted tangent",
+        });
+    }
+    Ok(shifted)
 }
 
 /// Whether every entry of `c` is finite: over the contiguous slice and without an early exit,
@@ -637,19 +769,22 @@ pub(crate) fn gather_vertex_vectors(
     corner: impl Fn(usize) -> Vector3<f64> + Sync,
     f: &mut [f64],
 ) {
-    let n = geo.num_vertices;
-    vertex_chunks(f, |v| 3 * v, n)
-        .into_par_iter()
-        .for_each(|(v0, out)| {
-            for (i, fi) in out.chunks_exact_mut(3).enumerate() {
-                let v = v0 + i;
-                let mut acc = Vector3::zeros();
-                for &slot in &geo.vertex_slots[geo.vertex_ptr[v]..geo.vertex_ptr[v + 1]] {
-                    acc += corner(slot as usize);
-                }
-                fi.copy_from_slice(acc.as_slice());
+    let chunk = |(v0, out): (usize, &mut [f64])| {
+        for (i, fi) in out.chunks_exact_mut(3).enumerate() {
+            let v = v0 + i;
+            let mut acc = Vector3::zeros();
+            for &slot in &geo.vertex_slots[geo.vertex_ptr[v]..geo.vertex_ptr[v + 1]] {
+                acc += corner(slot as usize);
             }
-        });
+            fi.copy_from_slice(acc.as_slice());
+        }
+    };
+    let chunks = vertex_chunks(f, |v| 3 * v, geo.num_vertices);
+    if inline(chunks.len()) {
+        chunks.into_iter().for_each(chunk);
+    } else {
+        chunks.into_par_iter().for_each(chunk);
+    }
 }
 
 /// [`vertex_range_chunks`] of an optional output, or as many `None`s.
@@ -682,7 +817,7 @@ fn gather_block(
     work: &[ElementOut],
     elements: std::ops::Range<usize>,
     values: Option<&mut [f64]>,
-    forces: Option<&mut [f64]>,
+    [forces, product]: [Option<&mut [f64]>; 2],
     cursor: &mut [usize],
 ) {
     let tets = &geo.tets[elements.clone()];
@@ -692,11 +827,14 @@ fn gather_block(
     let cursors = vertex_range_chunks(&mut cursor[lo..hi], |v| v, lo..hi);
     let rows = optional_chunks(values, |v| 9 * offsets[v], lo..hi, cursors.len());
     let force_chunks = optional_chunks(forces, |v| 3 * v, lo..hi, cursors.len());
-    cursors
-        .into_par_iter()
-        .zip(rows)
-        .zip(force_chunks)
-        .for_each(|(((v0, cursor), mut row_out), mut force_out)| {
+    let product_chunks = optional_chunks(product, |v| 3 * v, lo..hi, cursors.len());
+    let vectors = force_chunks
+        .into_iter()
+        .zip(product_chunks)
+        .collect::<Vec<_>>();
+    let sequential = inline(cursors.len());
+    let chunk =
+        |(((v0, cursor), mut row_out), (mut force_out, mut product_out)): VertexChunk<'_>| {
             let mut acc = Vec::new();
             for (i, next) in cursor.iter_mut().enumerate() {
                 let v = v0 + i;
@@ -711,14 +849,28 @@ fn gather_block(
                     .as_deref_mut()
                     .map(|o| &mut o[9 * (row_start - offsets[v0])..9 * (row_end - offsets[v0])]);
                 let force = force_out.as_deref_mut().map(|o| &mut o[3 * i..3 * i + 3]);
+                let product = product_out.as_deref_mut().map(|o| &mut o[3 * i..3 * i + 3]);
                 let slots = (first, end);
+                let vectors = [force, product];
                 add_vertex_terms(
-                    geo, work, &elements, slots, &mut j, len, row, force, &mut acc,
+                    geo, work, &elements, slots, &mut j, len, row, vectors, &mut acc,
                 );
                 *next = j;
             }
-        });
+        };
+    if sequential {
+        cursors.into_iter().zip(rows).zip(vectors).for_each(chunk);
+    } else {
+        (cursors.into_par_iter().zip(rows).zip(vectors)).for_each(chunk);
+    }
 }
+
+/// One parallel task of [`gather_block`]: a run of vertices (the first, their cursors), their
+/// K rows, their forces and their stiffness products.
+type VertexChunk<'a> = (
+    ((usize, &'a mut [usize]), Option<&'a mut [f64]>),
+    (Option<&'a mut [f64]>, Option<&'a mut [f64]>),
+);
 
 /// The terms of a vertex's slots `*j..end` (its first is `first`) that lie in `elements`,
 /// added into its K `row` (3 rows of `3 len` values) and its `force` (zero before the
@@ -733,7 +885,7 @@ fn add_vertex_terms(
     j: &mut usize,
     len: usize,
     row: Option<&mut [f64]>,
-    force: Option<&mut [f64]>,
+    [force, product]: [Option<&mut [f64]>; 2],
     acc: &mut Vec<Matrix3<f64>>,
 ) {
     let fresh = *j == first;
@@ -745,10 +897,11 @@ fn add_vertex_terms(
             acc.extend((0..len).map(|k| Matrix3::from_fn(|p, q| r[3 * len * p + 3 * k + q])));
         }
     }
-    let mut f_acc = match &force {
+    let start = |out: &Option<&mut [f64]>| match out {
         Some(f) if !fresh => Vector3::new(f[0], f[1], f[2]),
         _ => Vector3::zeros(),
     };
+    let (mut f_acc, mut p_acc) = (start(&force), start(&product));
     while *j < end {
         let slot = geo.vertex_slots[*j] as usize;
         let (e, a) = (slot / 4, slot % 4);
@@ -757,6 +910,7 @@ fn add_vertex_terms(
         }
         let element = &work[e - elements.start];
         f_acc += element.forces[a];
+        p_acc += element.product[a];
         if row.is_some() {
             for b in 0..4 {
                 let (u, transposed) = upper_slot(a, b);
@@ -781,5 +935,8 @@ fn add_vertex_terms(
     }
     if let Some(f) = force {
         f.copy_from_slice(f_acc.as_slice());
+    }
+    if let Some(p) = product {
+        p.copy_from_slice(p_acc.as_slice());
     }
 }

@@ -20,7 +20,7 @@ mod mass;
 mod matrix;
 mod params;
 
-pub use assembly::{Assembly, Outputs, Tangent};
+pub use assembly::{Assembly, Outputs, StiffnessShift, Tangent};
 pub use differential::ElementTangents;
 pub use dof::{DofMap, ReducedMatrix};
 pub use error::AssemblyError;

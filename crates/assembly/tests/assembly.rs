@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 
 use deform_assembly::{
     Assembly, AssemblyError, DofMap, Grouping, Mass, MaterialField, Outputs, StiffnessMatrix,
-    Tangent,
+    StiffnessShift, Tangent,
 };
 use deform_materials::{MaterialSpec, Model};
 use deform_mesh::TetMesh;
@@ -257,6 +257,7 @@ fn refills_equal_fresh_assembly_and_reduction_equals_restriction() {
             forces: Some(&mut f),
             stiffness: Some(&mut k2),
             tangent: Tangent::Exact,
+            ..Outputs::default()
         },
     )
     .unwrap();
@@ -515,7 +516,9 @@ fn inverted_elements_and_bad_input_give_typed_errors() {
 
 #[test]
 fn results_do_not_depend_on_the_thread_count() {
-    let mesh = BoxGrid::beam(3).build().unwrap();
+    // Beam(6): 5184 tets and 1225 vertices, enough chunks of both for the parallel passes
+    // (smaller meshes run on the calling thread).
+    let mesh = BoxGrid::beam(6).build().unwrap();
     let x = deformed(&mesh, 1.0);
     let run = |threads: usize| {
         rayon::ThreadPoolBuilder::new()
@@ -526,6 +529,12 @@ fn results_do_not_depend_on_the_thread_count() {
                 let mut asm =
                     Assembly::new(&mesh, MaterialField::Uniform(model(SPECS[7]))).unwrap();
                 let (mut e, mut f, mut k) = (0.0, vec![0.0; x.len()], asm.stiffness_matrix());
+                let mut kx = vec![0.0; x.len()];
+                let shift = StiffnessShift {
+                    direction: &x,
+                    step: 1e-7,
+                    scale: 0.5,
+                };
                 asm.evaluate(
                     &x,
                     Outputs {
@@ -533,13 +542,15 @@ fn results_do_not_depend_on_the_thread_count() {
                         forces: Some(&mut f),
                         stiffness: Some(&mut k),
                         tangent: Tangent::Projected,
+                        stiffness_product: Some((&x, &mut kx)),
+                        stiffness_shift: Some(shift),
                     },
                 )
                 .unwrap();
                 let mut y = vec![0.0; x.len()];
                 asm.tangents(&x, Tangent::Exact).unwrap().apply(&f, &mut y);
                 let j = asm.term_forces(&x, &Grouping::global(&asm)).unwrap();
-                (e, f, k, y, j)
+                (e, f, k, kx, y, j)
             })
     };
     let one = run(1);
@@ -670,6 +681,7 @@ fn values_on_the_pattern_equal_the_matrix_bit_for_bit() {
         forces: Some(&mut f1),
         stiffness: Some(&mut k),
         tangent: Tangent::Projected,
+        ..Outputs::default()
     };
     asm.evaluate(&x, out).unwrap();
     let (indptr, indices) = asm.stiffness_pattern();
@@ -728,6 +740,7 @@ fn results_do_not_depend_on_the_block_size_and_errors_name_the_first_element() {
                 forces: Some(&mut f),
                 stiffness: Some(&mut k),
                 tangent: Tangent::Exact,
+                ..Outputs::default()
             },
         );
         // Forces alone take the other gather path.
@@ -769,4 +782,73 @@ fn results_do_not_depend_on_the_block_size_and_errors_name_the_first_element() {
     assert!(first <= 100, "{first}");
     assert_eq!(named(Some(512)), first);
     assert_eq!(named(Some(1)), first);
+}
+
+#[test]
+fn the_stiffness_product_and_shift_equal_k_applied_and_its_directional_derivative() {
+    // `K w` element by element equals the assembled K applied to w; `K + s D_w K` from one
+    // pass equals K plus s times the forward difference of two assemblies (the same step,
+    // so both carry the same truncation), and the central difference to its truncation.
+    let mesh = BoxGrid::beam(1).build().unwrap();
+    let x = deformed(&mesh, 1.0);
+    let w: Vec<f64> = (0..x.len())
+        .map(|i| ((i * 29) % 13) as f64 / 13.0 - 0.5)
+        .collect();
+    let step = 1e-7 / max_abs(w.iter().copied());
+    let scale = 0.3;
+    for spec in SPECS {
+        let mut asm = Assembly::new(&mesh, MaterialField::Uniform(model(spec))).unwrap();
+        for tangent in [Tangent::Exact, Tangent::Projected] {
+            let k = stiffness(&mut asm, &x, tangent);
+            let (mut kw, mut shifted) = (vec![0.0; x.len()], asm.stiffness_matrix());
+            let outputs = Outputs {
+                stiffness: Some(&mut shifted),
+                tangent,
+                stiffness_product: Some((&w, &mut kw)),
+                stiffness_shift: Some(StiffnessShift {
+                    direction: &w,
+                    step,
+                    scale,
+                }),
+                ..Outputs::default()
+            };
+            asm.evaluate(&x, outputs).unwrap();
+            let expected = &dense(&k) * nalgebra::DVector::from_column_slice(&w);
+            let size = max_abs(expected.iter().copied());
+            let error = max_abs(kw.iter().zip(expected.iter()).map(|(a, b)| a - b));
+            assert!(
+                error <= 1e-12 * size,
+                "{spec} {tangent:?}: K w off by {error:e}"
+            );
+            let mut at = |e: f64| -> Vec<f64> {
+                let xe: Vec<f64> = x.iter().zip(&w).map(|(x, w)| x + e * w).collect();
+                stiffness(&mut asm, &xe, tangent).csr().data().to_vec()
+            };
+            let (ahead, behind) = (at(step), at(-step));
+            let k0 = k.csr().data();
+            let forward: Vec<f64> = (0..k0.len())
+                .map(|i| k0[i] + scale * (ahead[i] - k0[i]) / step)
+                .collect();
+            let derivative = max_abs((0..k0.len()).map(|i| (ahead[i] - k0[i]) / step));
+            let got = shifted.csr().data();
+            let error = max_abs(got.iter().zip(&forward).map(|(a, b)| a - b));
+            assert!(
+                error <= 1e-6 * scale * derivative.max(1e-3 * max_abs(k0.iter().copied())),
+                "{spec} {tangent:?}: K + s D_w K off the forward difference by {error:e}"
+            );
+            // A linear model's K does not move: its derivative is (rounding) zero.
+            if spec.starts_with("LinearElastic") {
+                assert!(derivative <= 1e-6 * max_abs(k0.iter().copied()), "{spec}");
+                continue;
+            }
+            let central: Vec<f64> = (0..k0.len())
+                .map(|i| k0[i] + scale * (ahead[i] - behind[i]) / (2.0 * step))
+                .collect();
+            let error = max_abs(got.iter().zip(&central).map(|(a, b)| a - b));
+            assert!(
+                error <= 1e-4 * scale * derivative,
+                "{spec} {tangent:?}: K + s D_w K off the central difference by {error:e}"
+            );
+        }
+    }
 }

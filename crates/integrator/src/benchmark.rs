@@ -155,6 +155,7 @@ pub fn time_assembly(
                 forces: forces.then_some(&mut f[..]),
                 stiffness: stiffness.then_some(&mut k),
                 tangent: Tangent::Exact,
+                ..Default::default()
             },
         )
     });

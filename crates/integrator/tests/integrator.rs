@@ -693,43 +693,55 @@ fn bundled_scenes_dissipate_energy_with_and_without_damping() {
 
 #[test]
 fn newton_with_the_direct_solver_converges_quadratically() {
+    // Also with Rayleigh stiffness damping, positive and negative: Newton's matrix then
+    // carries the damping force's derivative in x (dt^2 gamma D_u K); without it the rate
+    // is linear.
     let mesh = beam();
-    let options = IntegratorOptions {
-        newton: NewtonOptions {
-            rel: 1e-13,
-            abs: 1e-13,
-            line_search: false,
-            ..NewtonOptions::default()
-        },
-        max_retries: 0,
-        ..IntegratorOptions::default()
-    };
-    let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
-    let mut state = s.rest_state();
-    // A sharp kick: Newton starts far enough away to show its rate.
-    for (v, p) in mesh.rest_positions().iter().enumerate() {
-        state.v[3 * v + 2] = -3.0 * p.x;
-    }
-    let report = match s.step(&mut state) {
-        Ok(r) => r,
-        Err(StepError::NotConverged { report }) => *report,
-        Err(e) => panic!("{e}"),
-    };
-    let r: Vec<f64> = report
-        .iterations
-        .iter()
-        .map(|i| i.residual / report.initial_residual)
-        .collect();
-    // In the quadratic regime (relative residual below 1e-2, above the rounding floor), each
-    // residual is bounded by a constant times the square of the previous one.
-    let mut checked = 0;
-    for w in r.windows(2) {
-        if w[0] < 1e-2 && w[1] > 1e-12 {
-            assert!(w[1] <= 50.0 * w[0] * w[0], "not quadratic: {r:?}");
-            checked += 1;
+    for gamma in [0.0, 0.02, -0.004] {
+        let options = IntegratorOptions {
+            gamma,
+            newton: NewtonOptions {
+                rel: 1e-13,
+                abs: 1e-13,
+                line_search: false,
+                ..NewtonOptions::default()
+            },
+            max_retries: 0,
+            ..IntegratorOptions::default()
+        };
+        let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
+        let mut state = s.rest_state();
+        // A sharp kick: Newton starts far enough away to show its rate.
+        for (v, p) in mesh.rest_positions().iter().enumerate() {
+            state.v[3 * v + 2] = -3.0 * p.x;
         }
+        let report = match s.step(&mut state) {
+            Ok(r) => r,
+            Err(StepError::NotConverged { report }) => *report,
+            Err(e) => panic!("{e}"),
+        };
+        let r: Vec<f64> = report
+            .iterations
+            .iter()
+            .map(|i| i.residual / report.initial_residual)
+            .collect();
+        // In the quadratic regime (relative residual below 1e-2, above the rounding floor),
+        // each residual is bounded by a constant times the square of the previous one.
+        let mut checked = 0;
+        for w in r.windows(2) {
+            if w[0] < 1e-2 && w[1] > 1e-12 {
+                assert!(
+                    w[1] <= 50.0 * w[0] * w[0],
+                    "gamma {gamma}: not quadratic: {r:?}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(
+            checked >= 1,
+            "gamma {gamma}: no iteration in the quadratic regime: {r:?}"
+        );
     }
-    assert!(checked >= 1, "no iteration in the quadratic regime: {r:?}");
 }
 
 #[test]

@@ -711,9 +711,6 @@ struct Adjoint {
     /// With stiffness damping: `D_v K`, the derivative of K along the step's end velocity,
     /// and scratch for the Newton matrix's stiffness part (see [`Adjoint::damping_terms`]).
     damped: Option<(StiffnessMatrix, StiffnessMatrix)>,
-    /// The largest displacement of `D_v K`'s forward difference: 1e-7 of the rest shape's
-    /// bounding-box diagonal (an error of about 1e-6 relative, rounding about 1e-9).
-    difference_step: f64,
     reduced: ReducedMatrix,
     mass: Mass,
     grouping: Grouping,
@@ -732,19 +729,9 @@ impl Adjoint {
     ) -> Result<Self, FitError> {
         let kmat = sim.assembly().stiffness_matrix();
         let damped = (sim.options().gamma != 0.0).then(|| (kmat.clone(), kmat.clone()));
-        let rest = sim.rest_state().x;
-        let diagonal = (0..3)
-            .map(|d| {
-                let axis = rest.iter().skip(d).step_by(3);
-                let (lo, hi) = axis.fold((f64::MAX, f64::MIN), |(l, h), &x| (l.min(x), h.max(x)));
-                (hi - lo).powi(2)
-            })
-            .sum::<f64>()
-            .sqrt();
         Ok(Self {
             reduced: sim.dofs().reduced_matrix(&kmat)?,
             damped,
-            difference_step: 1e-7 * diagonal,
             kmat,
             mass: sim.mass().clone(),
             grouping,
@@ -754,8 +741,8 @@ impl Adjoint {
     }
 
     /// With stiffness damping, the derivative of the damping force `-gamma K(x) v` in `x`:
-    /// `D_v K = d/de K(x + e v)` (symmetric, a third derivative of the energy along `v`) by a
-    /// forward difference into the first matrix of `damped`, and the
+    /// `D_v K = d/de K(x + e v)` (symmetric, a third derivative of the energy along `v`) by
+    /// [`Integrator::stiffness_derivative`] into the first matrix of `damped`, and the
     /// Newton matrix's stiffness part `K + s D_v K` into the second (with `s = dt gamma / (dt
     /// + gamma)`, so that `A = (1 + dt alpha) M + dt (dt + gamma) (K + s D_v K)`).
     fn damping_terms(
@@ -767,19 +754,7 @@ impl Adjoint {
         let Some((dvk, a)) = &mut self.damped else {
             return Ok(());
         };
-        // One-sided, from the K already assembled: one assembly more per step, not two.
-        let speed = next.v.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        if speed == 0.0 {
-            dvk.values_mut().fill(0.0);
-        } else {
-            let e = self.difference_step / speed;
-            let shifted: Vec<f64> = next.x.iter().zip(&next.v).map(|(x, v)| x + e * v).collect();
-            sim.assembly_mut()
-                .stiffness(&shifted, Tangent::Exact, dvk)?;
-            for (h, k) in dvk.values_mut().iter_mut().zip(self.kmat.csr().data()) {
-                *h = (*h - k) / e;
-            }
-        }
+        sim.stiffness_derivative(&next.x, &next.v, &self.kmat, dvk)?;
         let k = self.kmat.csr().data();
         for ((a, h), k) in a.values_mut().iter_mut().zip(dvk.csr().data()).zip(k) {
             *a = k + s * h;
