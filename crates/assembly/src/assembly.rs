@@ -650,7 +650,7 @@ fn element_phase(
             }
         }
         let projected = need.tangent == Tangent::Projected;
-        let (p, c) = if need.stiffness || need.product.is_some() {
+        let (p, c) = if need.stiffness {
             let (p, c) = m.first_piola_and_tangent(&f, projected);
             if !finite9(&c) {
                 return Err(AssemblyError::NonFiniteElement {
@@ -666,10 +666,16 @@ fn element_phase(
             let p = p.unwrap_or_else(|| m.first_piola(&f));
             out.forces = corner_products(&p, g, -w);
         }
-        if let (Some(v), Some(c)) = (need.product, &c) {
-            // K_e v_e = -(the force differential along v).
+        if let Some(v) = need.product {
+            // K_e v_e = -(the force differential along v); without K, from the model's
+            // directional derivative of P (no 9x9 tangent for the exact one).
             let df = gradient(&corners(v, &geo.tets[e]), g);
-            out.product = corner_products(&mat3(&(c * vec9(&df))), g, w);
+            let dp = match &c {
+                Some(c) => mat3(&(c * vec9(&df))),
+                None if projected => mat3(&(m.dp_df_projected(&f) * vec9(&df))),
+                None => m.dp(&f, &df),
+            };
+            out.product = corner_products(&dp, g, w);
             if !out.product.iter().all(|v| v.iter().all(|c| c.is_finite())) {
                 return Err(AssemblyError::NonFiniteElement {
                     element: e,

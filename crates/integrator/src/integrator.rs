@@ -930,9 +930,9 @@ impl Integrator {
         }
     }
 
-    /// With stiffness damping and the exact tangent, the shift that makes the assembled K
-    /// Newton's `K + s D_u K` (see [`Integrator::newton_matrix`]); `None` otherwise, or when
-    /// `u` is 0 (no derivative along it).
+    /// With positive stiffness damping and the exact tangent, the shift that makes the
+    /// assembled K Newton's `K + s D_u K` (see [`Integrator::newton_matrix`]); `None`
+    /// otherwise, or when `u` is 0 (no derivative along it).
     fn damping_shift<'a>(
         &self,
         mode: Mode,
@@ -944,7 +944,7 @@ impl Integrator {
         };
         let gamma = self.options.stiffness_damping(dt);
         let speed = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        (gamma != 0.0 && tangent == Tangent::Exact && speed > 0.0).then(|| StiffnessShift {
+        (gamma > 0.0 && tangent == Tangent::Exact && speed > 0.0).then(|| StiffnessShift {
             direction: u,
             step: self.difference_step / speed,
             scale: dt * gamma / (dt + gamma),
@@ -985,8 +985,12 @@ impl Integrator {
     /// (by a forward difference in the same element pass, [`StiffnessShift`]) is the
     /// derivative of the damping force `-gamma K(x) u` in `x`. Without it Newton converges
     /// only linearly when `gamma != 0` (a fitted coarse model took 1.6x the iterations). It
-    /// is left out with the projected tangent (whose derivative is not the energy's) and in
-    /// matrix-free solves, which apply the element tangents' `c_m M + c_k K`.
+    /// is left out with the projected tangent (whose derivative is not the energy's), in
+    /// matrix-free solves, which apply the element tangents' `c_m M + c_k K`, and for
+    /// negative gamma: that damping gives energy back (Backward Euler's own dissipation, at
+    /// a coarse step), `s` is negative (`-dt` at `gamma = -dt/2`), and on fast states the
+    /// exact matrix sent Newton into inverted elements where `c_m M + c_k K`, positive
+    /// definite, converges linearly (a 4x-step coarse fit failed at its first rollout).
     fn newton_matrix(&mut self, mode: Mode) -> Result<(f64, f64), AssemblyError> {
         let o = &self.options;
         let (c_m, c_k) = match mode {

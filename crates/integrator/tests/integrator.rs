@@ -693,11 +693,11 @@ fn bundled_scenes_dissipate_energy_with_and_without_damping() {
 
 #[test]
 fn newton_with_the_direct_solver_converges_quadratically() {
-    // Also with Rayleigh stiffness damping, positive and negative: Newton's matrix then
-    // carries the damping force's derivative in x (dt^2 gamma D_u K); without it the rate
-    // is linear.
+    // Also with Rayleigh stiffness damping: Newton's matrix then carries the damping force's
+    // derivative in x (dt^2 gamma D_u K); without it the rate is linear (negative gamma
+    // keeps the positive definite matrix without it, see `Integrator::newton_matrix`).
     let mesh = beam();
-    for gamma in [0.0, 0.02, -0.004] {
+    for gamma in [0.0, 0.02] {
         let options = IntegratorOptions {
             gamma,
             newton: NewtonOptions {
