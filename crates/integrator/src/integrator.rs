@@ -738,15 +738,7 @@ impl Integrator {
             }
             let clock = Instant::now();
             if !k_at_x {
-                let shift = self.damping_shift(mode, &u, tangent);
-                let outputs = Outputs {
-                    stiffness: Some(&mut self.k),
-                    tangent,
-                    stiffness_shift: shift,
-                    ..Outputs::default()
-                };
-                self.asm
-                    .evaluate(&x, outputs)
+                self.newton_stiffness(mode, &x, &u, tangent)
                     .map_err(|e| fail_assembly(e, &report))?;
             }
             let (c_m, c_k) = self
@@ -920,6 +912,25 @@ impl Integrator {
             return Err(StageError::NonFinite("residual"));
         }
         Ok(rn)
+    }
+
+    /// Newton's K at the iterate `(x, u)` alone (see [`Integrator::newton_matrix`]), when
+    /// the residual came from the line search's trial.
+    fn newton_stiffness(
+        &mut self,
+        mode: Mode,
+        x: &[f64],
+        u: &[f64],
+        tangent: Tangent,
+    ) -> Result<(), AssemblyError> {
+        let shift = self.damping_shift(mode, u, tangent);
+        let outputs = Outputs {
+            stiffness: Some(&mut self.k),
+            tangent,
+            stiffness_shift: shift,
+            ..Outputs::default()
+        };
+        self.asm.evaluate(x, outputs)
     }
 
     /// Rayleigh stiffness damping of this solve: `gamma` at the step (0 when static).
