@@ -228,8 +228,8 @@ pub struct Integrator {
     gravity_forces: Vec<f64>,
     /// Per-vertex lumped-mass scales and the mesh's own masses they multiply, when set.
     mass_scale: Option<(Vec<f64>, Vec<f64>)>,
-    /// K at Newton's iterate; with stiffness damping and the exact tangent, `K + s D_u K`
-    /// (see [`Integrator::newton_matrix`]).
+    /// K at Newton's iterate; with positive stiffness damping and the exact tangent,
+    /// `K + s D_u K` (see [`Integrator::newton_matrix`]).
     k: StiffnessMatrix,
     /// The largest displacement of [`Integrator::stiffness_derivative`]'s forward difference:
     /// 1e-7 of the rest shape's bounding-box diagonal (truncation about 1e-6 relative,
@@ -991,7 +991,7 @@ impl Integrator {
     /// returns `(c_m, c_k)`.
     ///
     /// It is the residual's Jacobian in `u`. Dynamic: `c_m = 1 + dt alpha`,
-    /// `c_k = dt (dt + gamma)`, and with stiffness damping and the exact tangent the K
+    /// `c_k = dt (dt + gamma)`, and with positive stiffness damping and the exact tangent the K
     /// assembled at the iterate is `K + s D_u K` with `s = dt gamma / (dt + gamma)`: `D_u K`
     /// (by a forward difference in the same element pass, [`StiffnessShift`]) is the
     /// derivative of the damping force `-gamma K(x) u` in `x`. Without it Newton converges
@@ -1027,14 +1027,13 @@ impl Integrator {
         k: &StiffnessMatrix,
         out: &mut StiffnessMatrix,
     ) -> Result<(), AssemblyError> {
+        if k.nnz() != out.nnz() {
+            return Err(AssemblyError::PatternMismatch);
+        }
         let speed = v.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        if speed == 0.0 || k.nnz() != out.nnz() {
+        if speed == 0.0 {
             out.values_mut().fill(0.0);
-            return if k.nnz() == out.nnz() {
-                Ok(())
-            } else {
-                Err(AssemblyError::PatternMismatch)
-            };
+            return Ok(());
         }
         let shift = StiffnessShift {
             direction: v,
