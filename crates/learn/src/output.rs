@@ -9,7 +9,7 @@
 //! damping term below).
 //! Its exact gradient comes from implicit differentiation of the converged step: with the
 //! residual `r(v, c) = 0` and its Jacobian `A = dr/dv` (the Newton matrix at the converged
-//! state, with the damping term Newton omits), `dv/dc = -A^-1 dr/dc`, and in adjoint form
+//! state, with the damping term), `dv/dc = -A^-1 dr/dc`, and in adjoint form
 //! `dL/dc = -lambda^T dr/dc` with `A lambda = dL/dv`: one extra solve per pair, whatever the number of parameters. The
 //! Jacobian `dr/dc = -dt (J_f - gamma J_k)` comes from the materials' parameter split.
 //!
@@ -25,7 +25,8 @@
 //! With stiffness damping `A` and `dr/dx_k` also carry the damping force's derivative in `x`,
 //! `dt^2 gamma D_v K` and `dt gamma D_v K` (`D_v K`, the derivative of K along the step's end
 //! velocity, by a forward difference: one assembly more per step), so the gradient is that of
-//! the converged steps for any gamma, although Newton's tangent omits the term.
+//! the converged steps for any gamma (Newton's matrix has the term for gamma > 0 only; the
+//! converged steps are the same).
 
 use std::cell::RefCell;
 use std::sync::{Arc, Mutex};
@@ -66,9 +67,9 @@ pub struct OutputErrorOptions {
     pub max_evaluations: usize,
     /// Accept rollout steps that converged only in halved substeps. Off by default: such a
     /// step is not the Backward-Euler step being fitted, and its gradient is approximate.
-    /// Fits that explore stiffness damping far from the data's may need it: Newton's tangent
-    /// omits `dt^2 gamma (dK/dx) v`, so on fast states it converges linearly and can reach
-    /// its iteration cap.
+    /// Fits that explore negative stiffness damping may need it: there Newton's matrix leaves
+    /// out `dt^2 gamma (dK/dx) v`, so on fast states it converges linearly and can reach its
+    /// iteration cap.
     pub allow_retries: bool,
     /// Estimate each rollout's initial state with the parameters, under this prior
     /// ([`StartPrior`]); `None` starts every rollout from the data's state. On noisy data a

@@ -81,7 +81,7 @@ pub struct CoarseRow {
     /// Mean test RMS position error at each coarse state (m); zeros for the fine model.
     pub errors: Vec<f64>,
     /// Wall time per simulated second of the test motions (s / s), the median of
-    /// [`COST_REPEATS`] timed repetitions of their rollouts (the fine model's too).
+    /// three timed repetitions of their rollouts (the fine model's too).
     pub cost: f64,
     /// Rayleigh alpha and gamma.
     pub damping: (f64, f64),
