@@ -163,11 +163,13 @@ pub fn measure(
         times.push(seconds);
         step_times.push(step_seconds);
     }
-    let median = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     row.seconds = median(times);
     row.step_seconds = median(step_times);
     Ok(row)
+}
+
+/// The median of `v` (the upper one of an even count); `v` is not empty.
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }

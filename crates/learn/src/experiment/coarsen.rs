@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 use super::{Context, ExperimentObserver, Series, Stage, Task};
 use crate::basis::Basis;
 use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
+use crate::compare::median;
 use crate::dataset::{Dataset, Split, Trajectory, generate};
 use crate::error::LearnError;
 use crate::output::{
@@ -80,8 +81,8 @@ pub struct CoarseRow {
     pub model: CoarseModel,
     /// Mean test RMS position error at each coarse state (m); zeros for the fine model.
     pub errors: Vec<f64>,
-    /// Wall time per simulated second of the test motions (s / s), the median of
-    /// three timed repetitions of their rollouts (the fine model's too).
+    /// Wall time per simulated second of the test motions (s / s), the median of three
+    /// rounds that time the fine model and every coarse one back to back.
     pub cost: f64,
     /// Rayleigh alpha and gamma.
     pub damping: (f64, f64),
@@ -242,8 +243,8 @@ impl Settings<'_> {
     }
 }
 
-/// Runs [`Task::Coarsen`]: the held-out motions first (their wall time is the fine model's
-/// cost), then one case per coarse step.
+/// Runs [`Task::Coarsen`]: the held-out motions first (the fine model's rollouts of them
+/// are its cost), then one case per coarse step.
 ///
 /// # Errors
 /// [`LearnError`] naming the scene, trajectory or step.
@@ -272,10 +273,10 @@ pub fn run(
     let test_data = generate(&cx.base, origin, test, |_, _| observer.advance(1))?;
     let test_seconds = (test.trajectories * test.steps) as f64 * cx.base.integrator.dt;
     observer.finish();
-    // The fine model's cost as every coarse model's: its rollouts of the held-out motions.
+    // The fine model's cost as every coarse model's: its rollouts of the held-out motions,
+    // timed in the same rounds as the coarse models'.
     let mut fine = cx.base.build(origin)?.integrator;
     let fine_tests: Vec<&Trajectory> = test_data.trajectories.iter().collect();
-    let (_, fine_cost) = timed_rollouts(&mut fine, &fine_tests)?;
     let coarse = Scene {
         name: "coarse".into(),
         mesh: mesh.clone(),
@@ -304,7 +305,9 @@ pub fn run(
         let (data, m) = map(&cx.data)?;
         let (tests, _) = map(&test_data)?;
         mapping = Some(m);
-        let (mut case, fitted) = run_case((&data, &tests, k), &settings, origin, observer)?;
+        let fine = (&mut fine, fine_tests.as_slice());
+        let cased = run_case((&data, &tests, k), fine, &settings, origin, observer)?;
+        let (mut case, fitted, fine_cost) = cased;
         case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
         if let Some(out) = cx.out {
             let scene = Scene {
@@ -324,8 +327,8 @@ pub fn run(
     })
 }
 
-/// The truth's row: no error, the cost of simulating the held-out motions (measured as the
-/// coarse models' are, [`timed_rollouts`]).
+/// The truth's row: no error, the cost of simulating the held-out motions (measured with
+/// the coarse models', [`time_in_rounds`]).
 fn fine_row(case: &CoarsenCase, cost: f64, base: &Scene) -> CoarseRow {
     let untuned = case.row(CoarseModel::Untuned).expect("measured first");
     CoarseRow {
@@ -373,18 +376,19 @@ fn fitted_model(sim: &Integrator) -> FittedModel {
 }
 
 /// The untuned, homogeneous, per-region, smooth (when asked) and per-element rows on the
-/// coarse data, and the per-element model.
+/// coarse data, the per-element model, and the cost of `fine` on its held-out motions.
 fn run_case(
     (data, tests, dt_factor): (&Dataset, &Dataset, usize),
+    fine: (&mut Integrator, &[&Trajectory]),
     settings: &Settings<'_>,
     origin: &Path,
     observer: &mut dyn ExperimentObserver,
-) -> Result<(CoarsenCase, Fitted), LearnError> {
+) -> Result<(CoarsenCase, Fitted, f64), LearnError> {
     let built = data.meta.scene.build(origin)?;
     let (mesh, mut sim) = (built.mesh, built.integrator);
     let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
     let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
-    let mut rows = vec![measure(&mut sim, &test, CoarseModel::Untuned, None)?];
+    let mut models = vec![(CoarseModel::Untuned, None, fitted_model(&sim))];
     if let Some(m) = settings.material {
         let model = m.build()?;
         set_materials(&mut sim, MaterialField::Uniform(model))?;
@@ -398,21 +402,11 @@ fn run_case(
     let field = |labels, regularisation| settings.field(labels, regularisation);
     let whole = field(Vec::new(), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
-    rows.push(measure(
-        &mut sim,
-        &test,
-        CoarseModel::Homogeneous,
-        Some(summary),
-    )?);
     let homogeneous = fitted_model(&sim);
+    models.push((CoarseModel::Homogeneous, Some(summary), homogeneous.clone()));
     let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
-    rows.push(measure(
-        &mut sim,
-        &test,
-        CoarseModel::PerRegion,
-        Some(summary),
-    )?);
+    models.push((CoarseModel::PerRegion, Some(summary), fitted_model(&sim)));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
         let smooth = Field {
@@ -420,8 +414,7 @@ fn run_case(
             ..field(Vec::new(), Regularisation::default())
         };
         let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
-        let row = measure(&mut sim, &test, CoarseModel::Smooth, Some(summary))?;
-        rows.push(row);
+        models.push((CoarseModel::Smooth, Some(summary), fitted_model(&sim)));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
@@ -449,13 +442,10 @@ fn run_case(
     let seconds = started.elapsed().as_secs_f64();
     let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
-    restore(&mut sim, &model)?;
-    rows.push(measure(
-        &mut sim,
-        &test,
-        CoarseModel::PerElement,
-        Some(summary),
-    )?);
+    let mass_scale = model.2.clone();
+    models.push((CoarseModel::PerElement, Some(summary), model));
+    // Leaves the per-element model in `sim`, the last one timed.
+    let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
     // The term coefficients, without the mass scales, alpha and gamma.
     c.truncate(labels.len() * homogeneous.0.max_terms());
     let case = CoarsenCase {
@@ -470,10 +460,10 @@ fn run_case(
     let fitted = Fitted {
         coefficients: c,
         options: sim.options().clone(),
-        mass_scale: model.2,
+        mass_scale,
         mesh,
     };
-    Ok((case, fitted))
+    Ok((case, fitted, fine_cost))
 }
 
 /// The per-element fit at one regularisation weight.
@@ -594,49 +584,52 @@ fn fit(
     Ok((fit.coefficients, summary))
 }
 
-/// Timed repetitions of the held-out rollouts behind each cost figure, the median reported:
-/// one timing of each varied by up to 1.5x between runs on this 2-core VM.
+/// Rounds of timing behind each cost figure, the median reported: one timing of a model
+/// varies by up to 1.5x between runs on this 2-core VM, and the machine's speed drifts
+/// over minutes, so each round times every model once, back to back.
 const COST_REPEATS: usize = 3;
 
-/// `sim`'s rollouts of `test`, [`COST_REPEATS`] times: their mean errors (the same each
-/// time) and the median wall time per simulated second.
-fn timed_rollouts(
-    sim: &mut Integrator,
-    test: &[&Trajectory],
-) -> Result<(Vec<f64>, f64), LearnError> {
-    let steps: usize = test.iter().map(|t| t.steps()).sum();
-    let simulated = steps as f64 * sim.options().dt;
-    let mut errors = None;
-    let mut costs = Vec::with_capacity(COST_REPEATS);
-    for _ in 0..COST_REPEATS {
+/// The fine model's cost (wall time per simulated second of its rollouts of its held-out
+/// motions) and each coarse model's row: its mean errors on `test` and its cost. The models
+/// are timed in [`COST_REPEATS`] rounds of the fine one, then each coarse one; each cost is
+/// the median of its rounds. `sim` keeps the last model.
+fn time_in_rounds(
+    (fine, fine_test): (&mut Integrator, &[&Trajectory]),
+    (sim, test): (&mut Integrator, &[&Trajectory]),
+    models: Vec<(CoarseModel, Option<FitSummary>, FittedModel)>,
+) -> Result<(f64, Vec<CoarseRow>), LearnError> {
+    let timed = |sim: &mut Integrator, test: &[&Trajectory]| {
+        let steps: usize = test.iter().map(|t| t.steps()).sum();
+        let simulated = steps as f64 * sim.options().dt;
         let started = Instant::now();
-        let e = mean_rollout_errors(sim, test)?;
-        costs.push(started.elapsed().as_secs_f64() / simulated);
-        errors.get_or_insert(e);
+        let errors = mean_rollout_errors(sim, test)?;
+        Ok::<_, LearnError>((errors, started.elapsed().as_secs_f64() / simulated))
+    };
+    let mut fine_costs = Vec::with_capacity(COST_REPEATS);
+    let mut costs = vec![Vec::with_capacity(COST_REPEATS); models.len()];
+    let mut errors = Vec::with_capacity(models.len());
+    for round in 0..COST_REPEATS {
+        fine_costs.push(timed(fine, fine_test)?.1);
+        for (k, (_, _, model)) in models.iter().enumerate() {
+            restore(sim, model)?;
+            let (e, cost) = timed(sim, test)?;
+            costs[k].push(cost);
+            if round == 0 {
+                errors.push(e);
+            }
+        }
     }
-    costs.sort_by(f64::total_cmp);
-    Ok((
-        errors.expect("at least one repeat"),
-        costs[COST_REPEATS / 2],
-    ))
-}
-
-/// `sim`'s model on the held-out motions: errors and wall time per simulated second.
-fn measure(
-    sim: &mut Integrator,
-    test: &[&Trajectory],
-    model: CoarseModel,
-    fit: Option<FitSummary>,
-) -> Result<CoarseRow, LearnError> {
-    let (errors, cost) = timed_rollouts(sim, test)?;
-    let damping = (sim.options().alpha, sim.options().gamma);
-    Ok(CoarseRow {
-        model,
-        errors,
-        cost,
-        damping,
-        fit,
-    })
+    let rows = models.into_iter().zip(errors).zip(costs);
+    let rows = rows.map(
+        |(((model, fit, (_, options, _)), errors), costs)| CoarseRow {
+            model,
+            errors,
+            cost: median(costs),
+            damping: (options.alpha, options.gamma),
+            fit,
+        },
+    );
+    Ok((median(fine_costs), rows.collect()))
 }
 
 /// Each element's position along the rest shape's longest axis, from 0 to 1 (by its
