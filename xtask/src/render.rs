@@ -389,7 +389,7 @@ fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
             tried.join(", "),
             c.chosen
         )?;
-        md.push_str("| model | mean RMS error (m) | final RMS error (m) | error / untuned | cost (s/s) | cost / fine | alpha | gamma | coefficients | loss | fit time (s) | optimiser |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+        md.push_str("| model | mean RMS error (m) | final RMS error (m) | error / untuned | cost (s/s) | cost / fine | alpha | gamma | Newton rel | coefficients | loss | fit time (s) | optimiser |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
         for row in &c.rows {
             let vs_untuned = c
                 .error_ratio(row.model, CoarseModel::Untuned)
@@ -410,11 +410,12 @@ fn coarsen(r: &CoarsenReport, md: &mut String) -> Result<()> {
             });
             writeln!(
                 md,
-                "| {} | {:.4e} | {:.4e} | {vs_untuned:.3} | {:.4} | {vs_fine:.3} | {alpha:.4} | {gamma:.3e} {fit} |",
+                "| {} | {:.4e} | {:.4e} | {vs_untuned:.3} | {:.4} | {vs_fine:.3} | {alpha:.4} | {gamma:.3e} | {:.0e} {fit} |",
                 row.model.name(),
                 row.mean_error(),
                 row.final_error(),
-                row.cost
+                row.cost,
+                row.newton_rel
             )?;
         }
         if !c.files.is_empty() {

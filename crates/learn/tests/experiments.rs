@@ -338,6 +338,11 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
         ),
         (
             "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "regions: 2, newton_rel: [1e-3, 1.0]"),
+            "task.newton_rel",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
             coarsen.replace("steps: 8, seed: 2", "steps: 0, seed: 2"),
             "task.test",
         ),
@@ -451,12 +456,22 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
         assert_eq!(per_element.fit.as_ref().unwrap().coefficients, 50);
         assert!(per_element.damping.1 > -0.5 * c.dt);
         assert_eq!(c.regularisation.len(), 2);
+        // Fitted models keep the scene's Newton tolerance or take a looser one tried on the
+        // validation trajectories; the fine and untuned ones keep the scene's.
+        let scene_rel = c.rows[0].newton_rel;
+        assert_eq!(c.rows[1].newton_rel, scene_rel);
+        assert!(
+            c.rows[2..]
+                .iter()
+                .all(|row| [scene_rel, 1e-3, 1e-1].contains(&row.newton_rel))
+        );
         // The model is a scene to keep: it loads, with the fitted damping and its field.
         let saved = deform_integrator::Scene::load(&dir.path().join(&c.files[0])).unwrap();
         assert_eq!(
             (saved.integrator.alpha, saved.integrator.gamma),
             per_element.damping
         );
+        assert_eq!(saved.integrator.newton.rel, per_element.newton_rel);
         assert_eq!(saved.integrator.dt, c.dt);
         let built = saved.build(&dir.path().join(&c.files[0])).unwrap();
         assert!(matches!(

@@ -86,6 +86,8 @@ pub struct CoarseRow {
     pub cost: f64,
     /// Rayleigh alpha and gamma.
     pub damping: (f64, f64),
+    /// Newton's relative tolerance (the scene's, or the one chosen on validation).
+    pub newton_rel: f64,
     /// The fit, for fitted models.
     pub fit: Option<FitSummary>,
 }
@@ -178,7 +180,7 @@ impl CoarsenReport {
     pub fn csv_files(&self) -> Vec<(String, String)> {
         let mut files = Vec::new();
         let mut csv = String::from(
-            "dt_factor,model,mean_error,final_error,cost,alpha,gamma,coefficients,loss_before,loss_after,evaluations,fit_seconds,termination\n",
+            "dt_factor,model,mean_error,final_error,cost,alpha,gamma,newton_rel,coefficients,loss_before,loss_after,evaluations,fit_seconds,termination\n",
         );
         for c in &self.cases {
             for row in &c.rows {
@@ -195,12 +197,13 @@ impl CoarsenReport {
                 let (alpha, gamma) = row.damping;
                 let _ = writeln!(
                     csv,
-                    "{},\"{}\",{:e},{:e},{:e},{alpha:e},{gamma:e},{fit}",
+                    "{},\"{}\",{:e},{:e},{:e},{alpha:e},{gamma:e},{:e},{fit}",
                     c.dt_factor,
                     row.model.name(),
                     row.mean_error(),
                     row.final_error(),
-                    row.cost
+                    row.cost,
+                    row.newton_rel
                 );
             }
             let series: Vec<Series> = c
@@ -225,6 +228,8 @@ struct Settings<'a> {
     smooth: Option<[usize; 3]>,
     /// The fitted models' material (`None`: the base's).
     material: Option<&'a MaterialSpec>,
+    /// Newton tolerances tried for the fitted models.
+    newton_rel: &'a [f64],
     options: OutputErrorOptions,
 }
 
@@ -263,6 +268,7 @@ pub fn run(
         mass_scale,
         smooth,
         material,
+        newton_rel,
         output_error,
     } = &cx.experiment.task
     else {
@@ -289,6 +295,7 @@ pub fn run(
         mass_scale: *mass_scale,
         smooth: *smooth,
         material: material.as_ref(),
+        newton_rel,
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -336,6 +343,7 @@ fn fine_row(case: &CoarsenCase, cost: f64, base: &Scene) -> CoarseRow {
         errors: vec![0.0; untuned.errors.len()],
         cost,
         damping: (base.integrator.alpha, base.integrator.gamma),
+        newton_rel: base.integrator.newton.rel,
         fit: None,
     }
 }
@@ -403,10 +411,13 @@ fn run_case(
     let whole = field(Vec::new(), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
     let homogeneous = fitted_model(&sim);
-    models.push((CoarseModel::Homogeneous, Some(summary), homogeneous.clone()));
+    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous)?;
+    models.push((CoarseModel::Homogeneous, Some(summary), tuned));
     let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
-    models.push((CoarseModel::PerRegion, Some(summary), fitted_model(&sim)));
+    let fitted = fitted_model(&sim);
+    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+    models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
         let smooth = Field {
@@ -414,7 +425,9 @@ fn run_case(
             ..field(Vec::new(), Regularisation::default())
         };
         let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
-        models.push((CoarseModel::Smooth, Some(summary), fitted_model(&sim)));
+        let fitted = fitted_model(&sim);
+        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+        models.push((CoarseModel::Smooth, Some(summary), tuned));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
@@ -443,7 +456,8 @@ fn run_case(
     let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
     let mass_scale = model.2.clone();
-    models.push((CoarseModel::PerElement, Some(summary), model));
+    let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
+    models.push((CoarseModel::PerElement, Some(summary), tuned));
     // Leaves the per-element model in `sim`, the last one timed.
     let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
     // The term coefficients, without the mass scales, alpha and gamma.
@@ -464,6 +478,43 @@ fn run_case(
         mesh,
     };
     Ok((case, fitted, fine_cost))
+}
+
+/// How much more mean validation error a looser Newton tolerance may cost than the
+/// scene's: a coarse model's error is its discretisation's, which a few per cent hide.
+const NEWTON_SLACK: f64 = 0.02;
+
+impl Settings<'_> {
+    /// `model` with the loosest of [`Settings::newton_rel`] whose mean validation rollout
+    /// error is within [`NEWTON_SLACK`] of the model's own tolerance's (a tolerance under
+    /// which a step fails is passed over). `sim` is left with `model`, so later fits start
+    /// from what they would without the choice.
+    fn loosest_newton(
+        &self,
+        sim: &mut Integrator,
+        validation: &[&Trajectory],
+        model: &FittedModel,
+    ) -> Result<FittedModel, LearnError> {
+        let own = model.1.newton.rel;
+        let mut chosen = model.clone();
+        if self.newton_rel.iter().all(|&r| r <= own) {
+            return Ok(chosen);
+        }
+        restore(sim, model)?;
+        let bound = (1.0 + NEWTON_SLACK) * mean_error(&mean_rollout_errors(sim, validation)?);
+        for &rel in self.newton_rel.iter().filter(|&&r| r > own) {
+            let mut candidate = model.clone();
+            candidate.1.newton.rel = rel;
+            restore(sim, &candidate)?;
+            let within =
+                mean_rollout_errors(sim, validation).is_ok_and(|e| mean_error(&e) <= bound);
+            if within && rel > chosen.1.newton.rel {
+                chosen = candidate;
+            }
+        }
+        restore(sim, model)?;
+        Ok(chosen)
+    }
 }
 
 /// The per-element fit at one regularisation weight.
@@ -626,6 +677,7 @@ fn time_in_rounds(
             errors,
             cost: median(costs),
             damping: (options.alpha, options.gamma),
+            newton_rel: options.newton.rel,
             fit,
         },
     );

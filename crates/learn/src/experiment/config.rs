@@ -155,6 +155,12 @@ pub enum Task {
         /// base's material.
         #[serde(default)]
         material: Option<deform_materials::MaterialSpec>,
+        /// Relative Newton tolerances tried for every fitted model after its fit, besides
+        /// the scene's (solver optimisation): the loosest whose mean validation rollout error
+        /// is within 1 % of the one at the scene's tolerance is kept. A coarse model's error
+        /// is its discretisation's, far above what a tight tolerance buys. Empty: the scene's.
+        #[serde(default)]
+        newton_rel: Vec<f64>,
         /// Options of every output-error fit.
         output_error: OutputErrorOptions,
     },
@@ -586,6 +592,7 @@ impl Experiment {
             regions,
             regularisation,
             material,
+            newton_rel,
             ..
         } = &self.task
         else {
@@ -628,6 +635,12 @@ impl Experiment {
             return Err((
                 "task.regularisation",
                 format!("{regularisation:?}: needs weights >= 0"),
+            ));
+        }
+        if !newton_rel.iter().all(|r| *r > 0.0 && *r < 1.0) {
+            return Err((
+                "task.newton_rel",
+                format!("{newton_rel:?}: needs tolerances in (0, 1)"),
             ));
         }
         Ok(())
