@@ -157,7 +157,7 @@ pub enum Task {
         material: Option<deform_materials::MaterialSpec>,
         /// Relative Newton tolerances tried for every fitted model after its fit, besides
         /// the scene's (solver optimisation): the loosest whose mean validation rollout error
-        /// is within 1 % of the one at the scene's tolerance is kept. A coarse model's error
+        /// is within 2 % of the one at the scene's tolerance is kept. A coarse model's error
         /// is its discretisation's, far above what a tight tolerance buys. Empty: the scene's.
         #[serde(default)]
         newton_rel: Vec<f64>,
