@@ -12,6 +12,10 @@ use sprs::CsMat;
 
 use crate::operator::LinearOperator;
 
+/// A transformation of a product's block row `i` (its block columns and double-precision
+/// values) before it is stored.
+pub(crate) type RowFinish<'a> = dyn Fn(usize, &[u32], &mut [f64]) + Sync + 'a;
+
 /// Block rows per parallel task.
 const BLOCK_ROWS_PER_TASK: usize = 256;
 /// Blocks per parallel task of an element-wise pass.
@@ -341,10 +345,17 @@ impl Blocks<f64> {
 
 /// Products and transposes, in double precision whatever the factors' storage.
 impl<T: Scalar> Blocks<T> {
-    /// `self * other`: block rows in parallel; each output block accumulates its products in
-    /// the order of `self`'s blocks, then `other`'s.
-    pub fn multiply<U: Scalar>(&self, other: &Blocks<U>) -> Blocks {
-        self.product(other, false)
+    /// `self * other` stored in precision `O`: block rows in parallel; each output block
+    /// accumulates its products in double, in the order of `self`'s blocks, then `other`'s,
+    /// and is rounded after `finish(i, columns, values)` has transformed
+    /// each block row's double-precision values: a product that feeds single-precision
+    /// storage is written once, at half the memory traffic and page faults.
+    pub fn multiply_into<U: Scalar, O: Scalar>(
+        &self,
+        other: &Blocks<U>,
+        finish: &RowFinish,
+    ) -> Blocks<O> {
+        self.product(other, false, finish)
     }
 
     /// `self * other` for a product known to be symmetric (a Galerkin operator `P^T (A P)`):
@@ -356,7 +367,7 @@ impl<T: Scalar> Blocks<T> {
             (other.cols, other.c),
             "a square product"
         );
-        let mut upper = self.product(other, true);
+        let mut upper: Blocks = self.product(other, true, &|_, _, _| {});
         let b = upper.r;
         upper.for_each_row_mut(|i, idx, val| {
             // The diagonal block, first in an upper row, mirrored within itself too.
@@ -397,7 +408,12 @@ impl<T: Scalar> Blocks<T> {
     /// `self * other`, only the blocks on and above the diagonal when `upper`: the pattern
     /// first (each row's sorted columns), then the values summed in place, so the result is
     /// written once.
-    fn product<U: Scalar>(&self, other: &Blocks<U>, upper: bool) -> Blocks {
+    fn product<U: Scalar, O: Scalar>(
+        &self,
+        other: &Blocks<U>,
+        upper: bool,
+        finish: &RowFinish,
+    ) -> Blocks<O> {
         assert_eq!(self.c, other.r, "inner block sizes");
         assert_eq!(self.cols, other.rows, "inner dimensions");
         let (r, inner, c) = (self.r, self.c, other.c);
@@ -445,11 +461,13 @@ impl<T: Scalar> Blocks<T> {
         }
         let mut out = Blocks::with_pattern(r, c, other.cols, &lengths, idx);
         out.for_each_row_mut_init(
-            || vec![0u32; other.cols],
-            |slot, i, idx, val| {
+            || (vec![0u32; other.cols], Vec::new()),
+            |(slot, sums), i, idx, val| {
                 for (s, &col) in idx.iter().enumerate() {
                     slot[col as usize] = s as u32;
                 }
+                sums.clear();
+                sums.resize(val.len(), 0.0);
                 // Each block sums in the order of `self`'s blocks, then `other`'s.
                 for ka in self.ptr[i]..self.ptr[i + 1] {
                     let a = self.block(ka);
@@ -461,9 +479,13 @@ impl<T: Scalar> Blocks<T> {
                             c,
                             a,
                             other.block(kb),
-                            &mut val[s * size..][..size],
+                            &mut sums[s * size..][..size],
                         );
                     }
+                }
+                finish(i, idx, sums);
+                for (v, &sum) in val.iter_mut().zip(sums.iter()) {
+                    *v = O::from_f64(sum);
                 }
             },
         );
@@ -651,13 +673,30 @@ mod tests {
         let a = Blocks::<f64>::from_csr(&random(36, 36, 1), 3).unwrap();
         let b = Blocks::<f64>::from_csr(&random(36, 36, 2), 3).unwrap();
         let (da, db) = (a.to_csr().to_dense(), b.to_csr().to_dense());
-        let c = a.multiply(&b).to_csr().to_dense();
+        let c = a
+            .multiply_into::<_, f64>(&b, &|_, _, _| {})
+            .to_csr()
+            .to_dense();
         let expected = da.dot(&db);
         let t = a.transpose().to_csr().to_dense();
         for i in 0..36 {
             for j in 0..36 {
                 assert!((c[[i, j]] - expected[[i, j]]).abs() < 1e-14);
                 assert_eq!(t[[j, i]], da[[i, j]]);
+            }
+        }
+        // Stored in single precision after a per-row transformation: the double-precision
+        // values, transformed, then rounded.
+        let finish = |i: usize, _: &[u32], v: &mut [f64]| v.iter_mut().for_each(|x| *x *= i as f64);
+        let single: Blocks<f32> = a.multiply_into(&b, &finish);
+        let double: Blocks = a.multiply_into(&b, &finish);
+        assert_eq!((&single.ptr, &single.idx), (&double.ptr, &double.idx));
+        let rounded: Vec<f32> = double.val.iter().map(|&v| v as f32).collect();
+        assert_eq!(single.val, rounded);
+        let transformed = double.to_csr().to_dense();
+        for i in 0..36 {
+            for j in 0..36 {
+                assert_eq!(transformed[[i, j]], (i / 3) as f64 * c[[i, j]]);
             }
         }
         let x: Vec<f64> = (0..36).map(|i| (i as f64 * 0.3).sin()).collect();
@@ -728,10 +767,12 @@ mod tests {
             p.ptr.push(p.idx.len());
         }
         assert_eq!(p.to_csr().to_dense(), csr.to_dense());
-        let ap = a.multiply(&p);
+        let ap: Blocks = a.multiply_into(&p, &|_, _, _| {});
         let r = p.transpose();
         let (full, half) = (
-            r.multiply(&ap).to_csr().to_dense(),
+            r.multiply_into::<_, f64>(&ap, &|_, _, _| {})
+                .to_csr()
+                .to_dense(),
             r.multiply_symmetric(&ap),
         );
         let half = half.to_csr().to_dense();
