@@ -286,21 +286,6 @@ impl<T: Scalar> Blocks<T> {
             idx,
         }
     }
-}
-
-impl Blocks<f64> {
-    /// These values in single precision, for products with vectors.
-    pub fn to_single(&self) -> Blocks<f32> {
-        Blocks {
-            r: self.r,
-            c: self.c,
-            rows: self.rows,
-            cols: self.cols,
-            ptr: self.ptr.clone(),
-            idx: self.idx.clone(),
-            val: self.val.par_iter().map(|&v| v as f32).collect(),
-        }
-    }
 
     /// The same matrix as scalar CSR (every stored block entry, zeros included).
     pub fn to_csr(&self) -> CsMat<f64> {
@@ -316,7 +301,7 @@ impl Blocks<f64> {
                     let block = self.block(k);
                     for col in 0..self.c {
                         indices.push(j * self.c + col);
-                        data.push(block[local * self.c + col]);
+                        data.push(block[local * self.c + col].into());
                     }
                 }
                 indptr.push(indices.len());
@@ -334,8 +319,8 @@ impl Blocks<f64> {
             if let Ok(k) = row.binary_search(&(i as u32)) {
                 let at = (self.ptr[i] + k) * b * b;
                 for d in 0..b {
-                    if self.val[at + d * b + d] == 0.0 {
-                        self.val[at + d * b + d] = value;
+                    if self.val[at + d * b + d].into() == 0.0 {
+                        self.val[at + d * b + d] = T::from_f64(value);
                     }
                 }
             }
@@ -361,13 +346,13 @@ impl<T: Scalar> Blocks<T> {
     /// `self * other` for a product known to be symmetric (a Galerkin operator `P^T (A P)`):
     /// the blocks on and above the diagonal are computed as by [`Self::multiply`] and mirrored
     /// below it, so the result is exactly symmetric at about half the arithmetic.
-    pub fn multiply_symmetric<U: Scalar>(&self, other: &Blocks<U>) -> Blocks {
+    pub fn multiply_symmetric<U: Scalar, O: Scalar>(&self, other: &Blocks<U>) -> Blocks<O> {
         assert_eq!(
             (self.rows, self.r),
             (other.cols, other.c),
             "a square product"
         );
-        let mut upper: Blocks = self.product(other, true, &|_, _, _| {});
+        let mut upper: Blocks<O> = self.product(other, true, &|_, _, _| {});
         let b = upper.r;
         upper.for_each_row_mut(|i, idx, val| {
             // The diagonal block, first in an upper row, mirrored within itself too.
@@ -709,7 +694,10 @@ mod tests {
         // In single precision: within the values' rounding. A single-precision copy made
         // straight from the CSR is the rounded double one.
         let single = Blocks::<f32>::from_csr(&random(36, 36, 1), 3).unwrap();
-        assert_eq!(single.val, a.to_single().val);
+        assert_eq!(
+            single.val,
+            a.val.iter().map(|&v| v as f32).collect::<Vec<_>>()
+        );
         assert_eq!((&single.ptr, &single.idx), (&a.ptr, &a.idx));
         let mut y32 = vec![0.0; 36];
         single.multiply_vector(&x, &mut y32);
@@ -773,7 +761,7 @@ mod tests {
             r.multiply_into::<_, f64>(&ap, &|_, _, _| {})
                 .to_csr()
                 .to_dense(),
-            r.multiply_symmetric(&ap),
+            r.multiply_symmetric::<_, f64>(&ap),
         );
         let half = half.to_csr().to_dense();
         for i in 0..24 {

@@ -103,8 +103,9 @@ const LANCZOS_STEPS: usize = 8;
 /// products that are bound by it; every sum is in double): the operator, on the finest level
 /// a copy of the matrix the hierarchy was set up for, so the preconditioner is one fixed
 /// operator; and the prolongator, rounded before the Galerkin product, so the coarse
-/// operator is the Galerkin operator of the prolongator the cycle uses (up to the rounding
-/// of `A P`, which is stored in single precision too).
+/// operator is the Galerkin operator of the prolongator the cycle uses (summed in double,
+/// up to the rounding of `A P` and of the result, which are stored in single precision
+/// too; the coarsest level factorises its operator as rounded).
 #[derive(Debug)]
 struct Level {
     /// This level's operator.
@@ -152,8 +153,6 @@ impl Amg {
     ) -> Result<(Self, u64), SolverError> {
         let mut modes = near_null_space(a.rows(), coordinates);
         let mut current = finest_blocks(a)?;
-        // The Galerkin operator of the last level, unrounded, for the coarsest factor.
-        let mut exact: Option<Blocks> = None;
         let mut levels: Vec<Level> = Vec::new();
         let mut flops = 0;
         while current.shape().0 > MAX_COARSE && levels.len() + 1 < MAX_LEVELS {
@@ -173,18 +172,18 @@ impl Amg {
             let (next, f) = galerkin(&current, &p, &r);
             flops += f;
             levels.push(Level {
-                a: std::mem::replace(&mut current, next.to_single()),
+                a: std::mem::replace(&mut current, next),
                 inv_diag,
                 lambda,
                 p,
                 r,
             });
-            exact = Some(next);
             modes = coarse_modes;
         }
         let mut coarse = Box::new(Cholesky::new(Ordering::Amd, Indefinite::Error));
         coarse.set_parallel(false);
-        flops += coarse.factorize(coarsest(a, exact).as_ref())?.flops;
+        let last = (!levels.is_empty()).then_some(&current);
+        flops += coarse.factorize(coarsest(a, last).as_ref())?.flops;
         let scratch = levels
             .iter()
             .map(|l| {
@@ -213,16 +212,15 @@ impl Amg {
     pub fn refresh(&mut self, a: &CsMat<f64>) -> Result<u64, SolverError> {
         let mut flops = 0;
         let mut current = finest_blocks(a)?;
-        let mut exact = None;
         for level in &mut self.levels {
             let (inv_diag, lambda, f) = smoother_data(&current)?;
             let (next, g) = galerkin(&current, &level.p, &level.r);
-            level.a = std::mem::replace(&mut current, next.to_single());
+            level.a = std::mem::replace(&mut current, next);
             (level.inv_diag, level.lambda) = (inv_diag, lambda);
             flops += f + g;
-            exact = Some(next);
         }
-        flops += self.coarse.factorize(coarsest(a, exact).as_ref())?.flops;
+        let last = (!self.levels.is_empty()).then_some(&current);
+        flops += self.coarse.factorize(coarsest(a, last).as_ref())?.flops;
         Ok(flops)
     }
 
@@ -338,10 +336,11 @@ fn finest_blocks(a: &CsMat<f64>) -> Result<Blocks<f32>, SolverError> {
     Blocks::from_csr(a, b).ok_or(SolverError::Unsupported("AMG needs a square CSR matrix"))
 }
 
-/// The matrix the coarsest level factorises: the last Galerkin operator before rounding, or
-/// `a` itself when the hierarchy has no level above the coarsest.
-fn coarsest(a: &CsMat<f64>, exact: Option<Blocks>) -> Cow<'_, CsMat<f64>> {
-    exact.map_or(Cow::Borrowed(a), |b| Cow::Owned(b.to_csr()))
+/// The matrix the coarsest level factorises: the last Galerkin operator (as the cycle would
+/// multiply it, in single precision), or `a` itself when the hierarchy has no level above
+/// the coarsest.
+fn coarsest<'a>(a: &'a CsMat<f64>, last: Option<&Blocks<f32>>) -> Cow<'a, CsMat<f64>> {
+    last.map_or(Cow::Borrowed(a), |b| Cow::Owned(b.to_csr()))
 }
 
 /// Near-null-space vectors, row-major: `values[i * k + j]` is mode `j` at unknown `i`.
@@ -635,8 +634,9 @@ fn smooth_prolongator_row(
     }
 }
 
-/// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1) and its flops.
-fn galerkin(a: &Blocks<f32>, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks, u64) {
+/// `P^T A P` (a zero diagonal entry, from a zero column of `P`, set to 1), summed in double
+/// and stored in single precision, and its flops.
+fn galerkin(a: &Blocks<f32>, p: &Blocks<f32>, r: &Blocks<f32>) -> (Blocks<f32>, u64) {
     // `A P` in single precision: the largest buffer of the set-up (171 MB in double on the
     // n = 32 beam), written once and read once.
     let ap: Blocks<f32> = a.multiply_into(p, &|_, _, _| {});
