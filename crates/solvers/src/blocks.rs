@@ -5,7 +5,8 @@
 //! instead of per entry), with block rows in parallel and each output row summed in a fixed
 //! order, so every result is identical for any thread count. Values are stored in `f64` or
 //! `f32` (the multigrid cycle's operators and prolongators: products with them are bound by
-//! memory traffic); every sum, and every product of two matrices, is in `f64`.
+//! memory traffic); every sum is in `f64`, and a product of two matrices sums each output row
+//! in `f64` before storing it in either precision.
 
 use rayon::prelude::*;
 use sprs::CsMat;
@@ -328,13 +329,13 @@ impl<T: Scalar> Blocks<T> {
     }
 }
 
-/// Products and transposes, in double precision whatever the factors' storage.
+/// Products (summed in double whatever the factors' and the result's storage) and transposes.
 impl<T: Scalar> Blocks<T> {
     /// `self * other` stored in precision `O`: block rows in parallel; each output block
-    /// accumulates its products in double, in the order of `self`'s blocks, then `other`'s,
-    /// and is rounded after `finish(i, columns, values)` has transformed
-    /// each block row's double-precision values: a product that feeds single-precision
-    /// storage is written once, at half the memory traffic and page faults.
+    /// accumulates its products in double, in the order of `self`'s blocks, then `other`'s;
+    /// `finish(i, columns, values)` transforms each block row's double-precision values
+    /// before they are rounded and stored, so a product that feeds single-precision storage
+    /// is written once, at half the memory traffic and page faults.
     pub fn multiply_into<U: Scalar, O: Scalar>(
         &self,
         other: &Blocks<U>,
@@ -344,7 +345,7 @@ impl<T: Scalar> Blocks<T> {
     }
 
     /// `self * other` for a product known to be symmetric (a Galerkin operator `P^T (A P)`):
-    /// the blocks on and above the diagonal are computed as by [`Self::multiply`] and mirrored
+    /// the blocks on and above the diagonal are computed as by [`Self::multiply_into`] and mirrored
     /// below it, so the result is exactly symmetric at about half the arithmetic.
     pub fn multiply_symmetric<U: Scalar, O: Scalar>(&self, other: &Blocks<U>) -> Blocks<O> {
         assert_eq!(
