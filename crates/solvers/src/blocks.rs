@@ -331,6 +331,11 @@ impl<T: Scalar> Blocks<T> {
 
 /// Products (summed in double whatever the factors' and the result's storage) and transposes.
 impl<T: Scalar> Blocks<T> {
+    /// `self * other` stored in precision `O` ([`Self::multiply_into`] without a transformation).
+    pub fn multiply<U: Scalar, O: Scalar>(&self, other: &Blocks<U>) -> Blocks<O> {
+        self.product(other, false, &|_, _, _| {})
+    }
+
     /// `self * other` stored in precision `O`: block rows in parallel; each output block
     /// accumulates its products in double, in the order of `self`'s blocks, then `other`'s;
     /// `finish(i, columns, values)` transforms each block row's double-precision values
@@ -659,10 +664,7 @@ mod tests {
         let a = Blocks::<f64>::from_csr(&random(36, 36, 1), 3).unwrap();
         let b = Blocks::<f64>::from_csr(&random(36, 36, 2), 3).unwrap();
         let (da, db) = (a.to_csr().to_dense(), b.to_csr().to_dense());
-        let c = a
-            .multiply_into::<_, f64>(&b, &|_, _, _| {})
-            .to_csr()
-            .to_dense();
+        let c = a.multiply::<_, f64>(&b).to_csr().to_dense();
         let expected = da.dot(&db);
         let t = a.transpose().to_csr().to_dense();
         for i in 0..36 {
@@ -756,12 +758,10 @@ mod tests {
             p.ptr.push(p.idx.len());
         }
         assert_eq!(p.to_csr().to_dense(), csr.to_dense());
-        let ap: Blocks = a.multiply_into(&p, &|_, _, _| {});
+        let ap: Blocks = a.multiply(&p);
         let r = p.transpose();
         let (full, half) = (
-            r.multiply_into::<_, f64>(&ap, &|_, _, _| {})
-                .to_csr()
-                .to_dense(),
+            r.multiply::<_, f64>(&ap).to_csr().to_dense(),
             r.multiply_symmetric::<_, f64>(&ap),
         );
         let half = half.to_csr().to_dense();
