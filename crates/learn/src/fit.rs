@@ -172,6 +172,13 @@ pub enum FitError {
         /// The budget.
         evaluations: usize,
     },
+    /// The best loss has not dropped by a relative
+    /// [`crate::output::STALL_IMPROVEMENT`] in `patience` loss evaluations.
+    #[error("no progress in the last {patience} loss evaluations")]
+    Stalled {
+        /// The evaluations without progress.
+        patience: usize,
+    },
     /// The optimiser asked for this many trial points without spending its budget of
     /// simulations (points it could not use: not finite, or whose projection onto the step
     /// bound was seen before).

@@ -14,6 +14,7 @@ use crate::output::OutputErrorOptions;
 /// What to learn.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[allow(clippy::large_enum_variant)] // one per experiment, parsed once: its size is immaterial
 pub enum Task {
     /// Force-model optimisation: the scene's material family, its Lame pair by equation
     /// error, then (optionally) by output error.
