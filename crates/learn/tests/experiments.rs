@@ -343,6 +343,11 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
         ),
         (
             "trajectories: 3, steps: 8, seed: 1",
+            coarsen.replace("regions: 2", "regions: 2, newton_iterations: Some(0)"),
+            "task.newton_iterations",
+        ),
+        (
+            "trajectories: 3, steps: 8, seed: 1",
             coarsen.replace("steps: 8, seed: 2", "steps: 0, seed: 2"),
             "task.test",
         ),
@@ -472,6 +477,8 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
             per_element.damping
         );
         assert_eq!(saved.integrator.newton.rel, per_element.newton_rel);
+        // The task's Newton iteration cap, not the scene's.
+        assert_eq!(saved.integrator.newton.max_iterations, 27);
         assert_eq!(saved.integrator.dt, c.dt);
         let built = saved.build(&dir.path().join(&c.files[0])).unwrap();
         assert!(matches!(

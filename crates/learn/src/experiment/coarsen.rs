@@ -269,6 +269,7 @@ pub fn run(
         smooth,
         material,
         newton_rel,
+        newton_iterations,
         output_error,
     } = &cx.experiment.task
     else {
@@ -283,11 +284,14 @@ pub fn run(
     // timed in the same rounds as the coarse models'.
     let mut fine = cx.base.build(origin)?.integrator;
     let fine_tests: Vec<&Trajectory> = test_data.trajectories.iter().collect();
-    let coarse = Scene {
+    let mut coarse = Scene {
         name: "coarse".into(),
         mesh: mesh.clone(),
         ..cx.base.clone()
     };
+    if let Some(n) = newton_iterations {
+        coarse.integrator.newton.max_iterations = *n;
+    }
     let settings = Settings {
         regions: *regions,
         regularisation,
