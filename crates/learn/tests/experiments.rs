@@ -343,8 +343,8 @@ fn every_bad_setting_is_refused_at_load_naming_its_field() {
         ),
         (
             "trajectories: 3, steps: 8, seed: 1",
-            coarsen.replace("regions: 2", "regions: 2, newton_iterations: Some(0)"),
-            "task.newton_iterations",
+            coarsen.replace("regions: 2", "regions: 2, fit_newton_iterations: Some(0)"),
+            "task.fit_newton_iterations",
         ),
         (
             "trajectories: 3, steps: 8, seed: 1",
@@ -477,8 +477,8 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
             per_element.damping
         );
         assert_eq!(saved.integrator.newton.rel, per_element.newton_rel);
-        // The task's Newton iteration cap, not the scene's.
-        assert_eq!(saved.integrator.newton.max_iterations, 27);
+        // The fits' Newton iteration cap (27) is not the model's: it runs with the scene's.
+        assert_eq!(saved.integrator.newton.max_iterations, 30);
         assert_eq!(saved.integrator.dt, c.dt);
         let built = saved.build(&dir.path().join(&c.files[0])).unwrap();
         assert!(matches!(
@@ -546,6 +546,27 @@ fn small_coarsen(weights: Vec<f64>) -> Experiment {
     };
     (*dt_factors, *smooth, *regularisation) = (vec![2], None, weights);
     e
+}
+
+/// The fits' Newton iteration cap reaches their rollouts: with one iteration a step no
+/// step of the tight tolerance converges, and the fit fails naming the step.
+#[test]
+fn the_fits_newton_cap_is_the_one_their_rollouts_run_with() {
+    let with_cap = |cap| {
+        let mut e = small_coarsen(vec![0.0]);
+        let deform_learn::experiment::Task::Coarsen {
+            fit_newton_iterations,
+            ..
+        } = &mut e.task
+        else {
+            panic!("task")
+        };
+        *fit_newton_iterations = Some(cap);
+        run(&e, None, &mut NoProgress)
+    };
+    let error = with_cap(1).unwrap_err().to_string();
+    assert!(error.contains("Newton did not converge"), "{error}");
+    with_cap(30).unwrap();
 }
 
 #[test]

@@ -230,6 +230,8 @@ struct Settings<'a> {
     material: Option<&'a MaterialSpec>,
     /// Newton tolerances tried for the fitted models.
     newton_rel: &'a [f64],
+    /// Newton's iteration cap in the fits (`None`: the scene's).
+    fit_newton_iterations: Option<usize>,
     options: OutputErrorOptions,
 }
 
@@ -269,7 +271,7 @@ pub fn run(
         smooth,
         material,
         newton_rel,
-        newton_iterations,
+        fit_newton_iterations,
         output_error,
     } = &cx.experiment.task
     else {
@@ -284,14 +286,11 @@ pub fn run(
     // timed in the same rounds as the coarse models'.
     let mut fine = cx.base.build(origin)?.integrator;
     let fine_tests: Vec<&Trajectory> = test_data.trajectories.iter().collect();
-    let mut coarse = Scene {
+    let coarse = Scene {
         name: "coarse".into(),
         mesh: mesh.clone(),
         ..cx.base.clone()
     };
-    if let Some(n) = newton_iterations {
-        coarse.integrator.newton.max_iterations = *n;
-    }
     let settings = Settings {
         regions: *regions,
         regularisation,
@@ -300,6 +299,7 @@ pub fn run(
         smooth: *smooth,
         material: material.as_ref(),
         newton_rel,
+        fit_newton_iterations: *fit_newton_iterations,
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -400,7 +400,15 @@ fn run_case(
     let (mesh, mut sim) = (built.mesh, built.integrator);
     let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
     let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
-    let mut models = vec![(CoarseModel::Untuned, None, fitted_model(&sim))];
+    let untuned = fitted_model(&sim);
+    // The fitted models run with the scene's cap ([`Settings::loosest_newton`]).
+    let scene_cap = untuned.1.newton.max_iterations;
+    let mut models = vec![(CoarseModel::Untuned, None, untuned)];
+    if let Some(cap) = settings.fit_newton_iterations {
+        let mut o = sim.options().clone();
+        o.newton.max_iterations = cap;
+        sim.set_options(o)?;
+    }
     if let Some(m) = settings.material {
         let model = m.build()?;
         set_materials(&mut sim, MaterialField::Uniform(model))?;
@@ -415,12 +423,12 @@ fn run_case(
     let whole = field(Vec::new(), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
     let homogeneous = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous, scene_cap)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
     let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
     let fitted = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted, scene_cap)?;
     models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
@@ -430,7 +438,7 @@ fn run_case(
         };
         let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
         let fitted = fitted_model(&sim);
-        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted, scene_cap)?;
         models.push((CoarseModel::Smooth, Some(summary), tuned));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
@@ -460,7 +468,7 @@ fn run_case(
     let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
     let mass_scale = model.2.clone();
-    let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &model, scene_cap)?;
     models.push((CoarseModel::PerElement, Some(summary), tuned));
     // Leaves the per-element model in `sim`, the last one timed.
     let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
@@ -489,22 +497,26 @@ fn run_case(
 const NEWTON_SLACK: f64 = 0.02;
 
 impl Settings<'_> {
-    /// `model` with the loosest of [`Settings::newton_rel`] whose mean validation rollout
-    /// error is within [`NEWTON_SLACK`] of the model's own tolerance's (a tolerance under
-    /// which a step fails is passed over). `sim` is left with `model`, so later fits start
-    /// from what they would without the choice.
+    /// `fitted` with Newton's iteration cap `cap` (the scene's) and the loosest of
+    /// [`Settings::newton_rel`] whose mean validation rollout error is within
+    /// [`NEWTON_SLACK`] of the model's own tolerance's (a tolerance under which a step fails
+    /// is passed over). `sim` is left with `fitted`, so later fits start from what they
+    /// would without the choice.
     fn loosest_newton(
         &self,
         sim: &mut Integrator,
         validation: &[&Trajectory],
-        model: &FittedModel,
+        fitted: &FittedModel,
+        cap: usize,
     ) -> Result<FittedModel, LearnError> {
+        let mut model = fitted.clone();
+        model.1.newton.max_iterations = cap;
         let own = model.1.newton.rel;
         let mut chosen = model.clone();
         if self.newton_rel.iter().all(|&r| r <= own) {
             return Ok(chosen);
         }
-        restore(sim, model)?;
+        restore(sim, &model)?;
         let bound = (1.0 + NEWTON_SLACK) * mean_error(&mean_rollout_errors(sim, validation)?);
         for &rel in self.newton_rel.iter().filter(|&&r| r > own) {
             let mut candidate = model.clone();
@@ -516,7 +528,7 @@ impl Settings<'_> {
                 chosen = candidate;
             }
         }
-        restore(sim, model)?;
+        restore(sim, fitted)?;
         Ok(chosen)
     }
 }

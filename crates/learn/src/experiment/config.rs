@@ -162,12 +162,13 @@ pub enum Task {
         /// is its discretisation's, far above what a tight tolerance buys. Empty: the scene's.
         #[serde(default)]
         newton_rel: Vec<f64>,
-        /// Newton's iteration cap of every coarse model, untuned and fitted (`None`: the
-        /// scene's). A coarse step with negative stiffness damping converges only linearly
+        /// Newton's iteration cap in the fits' rollouts (`None`: the scene's); the fitted
+        /// models then run with the scene's cap, under which their Newton tolerance is
+        /// chosen. A coarse step with negative stiffness damping converges only linearly
         /// on fast states (see [`deform_integrator::IntegratorOptions::gamma`]); a step that
         /// reaches the cap is retried in halves, whose gradient the fit only approximates.
         #[serde(default)]
-        newton_iterations: Option<usize>,
+        fit_newton_iterations: Option<usize>,
         /// Options of every output-error fit.
         output_error: OutputErrorOptions,
     },
@@ -600,14 +601,14 @@ impl Experiment {
             regularisation,
             material,
             newton_rel,
-            newton_iterations,
+            fit_newton_iterations,
             ..
         } = &self.task
         else {
             return Ok(());
         };
-        if *newton_iterations == Some(0) {
-            return Err(("task.newton_iterations", "must be at least 1".into()));
+        if *fit_newton_iterations == Some(0) {
+            return Err(("task.fit_newton_iterations", "must be at least 1".into()));
         }
         if let Some(m) = material {
             m.build().map_err(|e| ("task.material", e.to_string()))?;
