@@ -1356,17 +1356,27 @@ mod tests {
     use super::*;
     use crate::dataset::{DatasetSpec, Split, generate};
 
-    /// A fit stops once `patience` simulated evaluations in a row have not lowered the best
-    /// loss (here the data's own model, loss 0, and trial points off it); with patience 0
-    /// it never does.
-    #[test]
-    fn a_fit_that_makes_no_progress_stops_after_its_patience() {
+    /// The n = 1 beam (tight Newton) and three 3-step trajectories of it.
+    fn tiny_beam() -> (
+        deform_integrator::Scene,
+        crate::dataset::Dataset,
+        &'static Path,
+    ) {
         let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
             density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
             integrator: (dt: 0.01, newton: (rel: 1e-10, abs: 1e-12)), steps: 3)"#;
         let origin = Path::new("t.ron");
         let scene = deform_integrator::Scene::parse(text, origin).unwrap();
         let data = generate(&scene, origin, &DatasetSpec::new(3, 3, 5), |_, _| ()).unwrap();
+        (scene, data, origin)
+    }
+
+    /// A fit stops once `patience` simulated evaluations in a row have not lowered the best
+    /// loss (here the data's own model, loss 0, and trial points off it); with patience 0
+    /// it never does.
+    #[test]
+    fn a_fit_that_makes_no_progress_stops_after_its_patience() {
+        let (scene, data, origin) = tiny_beam();
         let train = data.split(Split::Train);
         for patience in [0, 3] {
             let mut sim = scene.build(origin).unwrap().integrator;
@@ -1557,12 +1567,7 @@ mod tests {
     /// (nor the one the adjoint differentiates): refused, naming it.
     #[test]
     fn a_retried_step_is_refused() {
-        let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
-            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
-            integrator: (dt: 0.01, newton: (rel: 1e-10, abs: 1e-12)), steps: 3)"#;
-        let origin = Path::new("t.ron");
-        let scene = deform_integrator::Scene::parse(text, origin).unwrap();
-        let data = generate(&scene, origin, &DatasetSpec::new(3, 3, 5), |_, _| ()).unwrap();
+        let (scene, data, origin) = tiny_beam();
         let mut sim = scene.build(origin).unwrap().integrator;
         let mut o = sim.options().clone();
         (o.newton.max_iterations, o.max_retries) = (2, 8);
