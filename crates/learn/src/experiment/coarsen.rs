@@ -444,6 +444,7 @@ fn run_case(
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
     let per_element = PerElement {
+        scene_cap,
         train: &train,
         validation: &validation,
         homogeneous: &homogeneous,
@@ -545,6 +546,9 @@ struct WeightFit {
 
 /// What every per-element fit shares.
 struct PerElement<'d, 's> {
+    /// Newton's iteration cap the fitted model runs with (the scene's), under which its
+    /// validation error is measured.
+    scene_cap: usize,
     train: &'d [&'d Trajectory],
     validation: &'d [&'d Trajectory],
     homogeneous: &'d FittedModel,
@@ -572,13 +576,18 @@ impl PerElement<'_, '_> {
             ..self.settings.field(self.labels.to_vec(), regularisation)
         };
         let (coefficients, summary) = fit(sim, self.train, &field, self.settings, observer)?;
+        let model = fitted_model(sim);
+        let mut running = model.clone();
+        running.1.newton.max_iterations = self.scene_cap;
+        restore(sim, &running)?;
         let validation = mean_error(&mean_rollout_errors(sim, self.validation)?);
+        restore(sim, &model)?;
         Ok(WeightFit {
             weight: w,
             validation,
             coefficients,
             summary,
-            model: fitted_model(sim),
+            model,
         })
     }
 
