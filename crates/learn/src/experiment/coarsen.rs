@@ -232,6 +232,9 @@ struct Settings<'a> {
     newton_rel: &'a [f64],
     /// Newton's iteration cap in the fits (`None`: the scene's).
     fit_newton_iterations: Option<usize>,
+    /// The scene's Newton iteration cap: the fitted models run with it, and their
+    /// validation errors are measured under it.
+    scene_newton_iterations: usize,
     options: OutputErrorOptions,
 }
 
@@ -300,6 +303,7 @@ pub fn run(
         material: material.as_ref(),
         newton_rel,
         fit_newton_iterations: *fit_newton_iterations,
+        scene_newton_iterations: cx.base.integrator.newton.max_iterations,
         options: *output_error,
     };
     let mut cases = Vec::new();
@@ -400,10 +404,7 @@ fn run_case(
     let (mesh, mut sim) = (built.mesh, built.integrator);
     let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
     let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
-    let untuned = fitted_model(&sim);
-    // The fitted models run with the scene's cap ([`Settings::loosest_newton`]).
-    let scene_cap = untuned.1.newton.max_iterations;
-    let mut models = vec![(CoarseModel::Untuned, None, untuned)];
+    let mut models = vec![(CoarseModel::Untuned, None, fitted_model(&sim))];
     if let Some(cap) = settings.fit_newton_iterations {
         let mut o = sim.options().clone();
         o.newton.max_iterations = cap;
@@ -423,12 +424,12 @@ fn run_case(
     let whole = field(Vec::new(), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
     let homogeneous = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous, scene_cap)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
     let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
     let fitted = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted, scene_cap)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
     models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
@@ -438,13 +439,12 @@ fn run_case(
         };
         let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
         let fitted = fitted_model(&sim);
-        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted, scene_cap)?;
+        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
         models.push((CoarseModel::Smooth, Some(summary), tuned));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
     let labels: Vec<u32> = (0..mesh.num_tets() as u32).collect();
     let per_element = PerElement {
-        scene_cap,
         train: &train,
         validation: &validation,
         homogeneous: &homogeneous,
@@ -469,7 +469,7 @@ fn run_case(
     let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
     let mass_scale = model.2.clone();
-    let tuned = settings.loosest_newton(&mut sim, &validation, &model, scene_cap)?;
+    let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
     models.push((CoarseModel::PerElement, Some(summary), tuned));
     // Leaves the per-element model in `sim`, the last one timed.
     let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
@@ -498,7 +498,14 @@ fn run_case(
 const NEWTON_SLACK: f64 = 0.02;
 
 impl Settings<'_> {
-    /// `fitted` with Newton's iteration cap `cap` (the scene's) and the loosest of
+    /// `fitted` as it runs: with the scene's Newton iteration cap, whatever the fits' was.
+    fn running(&self, fitted: &FittedModel) -> FittedModel {
+        let mut model = fitted.clone();
+        model.1.newton.max_iterations = self.scene_newton_iterations;
+        model
+    }
+
+    /// `fitted` with the scene's Newton iteration cap and the loosest of
     /// [`Settings::newton_rel`] whose mean validation rollout error is within
     /// [`NEWTON_SLACK`] of the model's own tolerance's (a tolerance under which a step fails
     /// is passed over). `sim` is left with `fitted`, so later fits start from what they
@@ -508,10 +515,8 @@ impl Settings<'_> {
         sim: &mut Integrator,
         validation: &[&Trajectory],
         fitted: &FittedModel,
-        cap: usize,
     ) -> Result<FittedModel, LearnError> {
-        let mut model = fitted.clone();
-        model.1.newton.max_iterations = cap;
+        let model = self.running(fitted);
         let own = model.1.newton.rel;
         let mut chosen = model.clone();
         if self.newton_rel.iter().all(|&r| r <= own) {
@@ -546,9 +551,6 @@ struct WeightFit {
 
 /// What every per-element fit shares.
 struct PerElement<'d, 's> {
-    /// Newton's iteration cap the fitted model runs with (the scene's), under which its
-    /// validation error is measured.
-    scene_cap: usize,
     train: &'d [&'d Trajectory],
     validation: &'d [&'d Trajectory],
     homogeneous: &'d FittedModel,
@@ -577,9 +579,7 @@ impl PerElement<'_, '_> {
         };
         let (coefficients, summary) = fit(sim, self.train, &field, self.settings, observer)?;
         let model = fitted_model(sim);
-        let mut running = model.clone();
-        running.1.newton.max_iterations = self.scene_cap;
-        restore(sim, &running)?;
+        restore(sim, &self.settings.running(&model))?;
         let validation = mean_error(&mean_rollout_errors(sim, self.validation)?);
         restore(sim, &model)?;
         Ok(WeightFit {
