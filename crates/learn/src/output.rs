@@ -131,16 +131,31 @@ pub enum Termination {
     Converged,
     /// The iteration cap was reached.
     MaxIterations,
+    /// The budget of loss evaluations ([`OutputErrorOptions::max_evaluations`]) is spent.
+    Budget {
+        /// The budget.
+        evaluations: usize,
+    },
+    /// The best loss did not drop in [`OutputErrorOptions::patience`] evaluations.
+    Stalled {
+        /// The evaluations without progress.
+        patience: usize,
+    },
     /// The optimiser stopped for another reason (line search failure, ...).
     Stopped(String),
 }
 
 impl Termination {
-    /// A short phrase for reports: `converged`, `iteration cap` or `stopped: why`.
+    /// A short phrase for reports: `converged`, `iteration cap`, `evaluation budget (200)`,
+    /// `stalled (no progress in 40 evaluations)` or `stopped: why`.
     pub fn describe(&self) -> String {
         match self {
             Termination::Converged => "converged".to_owned(),
             Termination::MaxIterations => "iteration cap".to_owned(),
+            Termination::Budget { evaluations } => format!("evaluation budget ({evaluations})"),
+            Termination::Stalled { patience } => {
+                format!("stalled (no progress in {patience} evaluations)")
+            }
             Termination::Stopped(why) => format!("stopped: {why}"),
         }
     }
@@ -209,6 +224,9 @@ pub struct OutputError<'a> {
     evaluations: RefCell<usize>,
     /// Trial points of the optimiser that could not be simulated.
     failed_trials: RefCell<usize>,
+    /// Why the fit's own rules stopped the optimiser (its budget, its patience): argmin
+    /// reports those errors as text inside its own.
+    stopped_by: RefCell<Option<Termination>>,
     progress: RefCell<Box<dyn FnMut(usize, f64) + 'a>>,
 }
 
@@ -245,6 +263,7 @@ impl<'a> OutputError<'a> {
             cache: RefCell::new(None),
             evaluations: RefCell::new(0),
             failed_trials: RefCell::new(0),
+            stopped_by: RefCell::new(None),
             progress: RefCell::new(Box::new(progress)),
         })
     }
@@ -450,6 +469,9 @@ impl<'a> OutputError<'a> {
             return Ok((*loss, gc.to_vec(), gs.to_vec()));
         }
         if *self.evaluations.borrow() >= self.options.max_evaluations {
+            *self.stopped_by.borrow_mut() = Some(Termination::Budget {
+                evaluations: self.options.max_evaluations,
+            });
             return Err(FitError::Budget {
                 evaluations: self.options.max_evaluations,
             });
@@ -1070,6 +1092,7 @@ impl LogProblem<'_, '_> {
         }
         let patience = self.objective.options.patience;
         if patience > 0 && evaluation >= at + patience {
+            *self.objective.stopped_by.borrow_mut() = Some(Termination::Stalled { patience });
             return Err(FitError::Stalled { patience });
         }
         Ok(())
@@ -1272,6 +1295,7 @@ pub fn fit_output_error_field(
 fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorFit, FitError> {
     let options = objective.options;
     let (initial_loss, _) = objective.evaluate(initial)?;
+    *objective.stopped_by.borrow_mut() = None;
     let records = Arc::new(Mutex::new(Vec::new()));
     // More-Thuente finds good first steps where L-BFGS has no curvature yet; the evaluation
     // budget guards against line searches that thrash on a non-smooth loss.
@@ -1317,7 +1341,10 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
                 Some(TerminationReason::MaxItersReached) => Termination::MaxIterations,
                 Some(TerminationReason::SolverConverged | TerminationReason::TargetCostReached)
                 | None => Termination::Converged,
-                Some(other) => Termination::Stopped(other.text().to_owned()),
+                Some(other) => objective
+                    .stopped_by
+                    .take()
+                    .unwrap_or_else(|| Termination::Stopped(other.text().to_owned())),
             };
             (best, state.get_best_cost(), termination)
         }
@@ -1327,9 +1354,13 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
                 Err(e) => e.to_string(),
                 Ok(_) => "no iterate was accepted".to_owned(),
             };
+            let termination = objective
+                .stopped_by
+                .take()
+                .unwrap_or(Termination::Stopped(why));
             match best_record() {
-                Some(b) => (b.coefficients, b.loss, Termination::Stopped(why)),
-                None => (initial.to_vec(), initial_loss, Termination::Stopped(why)),
+                Some(b) => (b.coefficients, b.loss, termination),
+                None => (initial.to_vec(), initial_loss, termination),
             }
         }
     };
@@ -1405,6 +1436,36 @@ mod tests {
                 (_, other) => panic!("expected a stall, got {other:?}"),
             }
             assert_eq!(*objective.evaluations.borrow(), 4);
+        }
+    }
+
+    /// A fit stopped by its own rules says so: the budget and the patience are typed
+    /// terminations, not argmin's line-search text around them.
+    #[test]
+    fn a_fit_stopped_by_its_budget_or_patience_reports_which() {
+        let (scene, data, origin) = tiny_beam();
+        let train = data.split(Split::Train);
+        for (budget, patience) in [(3, 0), (200, 1)] {
+            let mut sim = scene.build(origin).unwrap().integrator;
+            let options = OutputErrorOptions {
+                rollout: 3,
+                max_evaluations: budget,
+                patience,
+                // Never converged: near the optimum the loss stops dropping by 1e-6.
+                tolerance: 0.0,
+                ..Default::default()
+            };
+            // Off the data's model (mu and lambda doubled), so the first steps make progress.
+            let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
+            let start: Vec<f64> = objective.uniform_start().iter().map(|c| 2.0 * c).collect();
+            let fit = minimise(&objective, &start).unwrap();
+            assert!(fit.loss < fit.initial_loss);
+            let expected = if patience == 0 {
+                Termination::Budget { evaluations: 3 }
+            } else {
+                Termination::Stalled { patience: 1 }
+            };
+            assert_eq!(fit.termination, expected, "{}", fit.termination.describe());
         }
     }
 
