@@ -1000,8 +1000,10 @@ impl Integrator {
     /// matrix-free solves, which apply the element tangents' `c_m M + c_k K`, and for
     /// negative gamma: that damping gives energy back (Backward Euler's own dissipation, at
     /// a coarse step), `s` is negative (`-dt` at `gamma = -dt/2`), and on fast states the
-    /// exact matrix sent Newton into inverted elements where `c_m M + c_k K`, positive
-    /// definite, converges linearly (a 4x-step coarse fit failed at its first rollout).
+    /// exact matrix sent Newton into inverted elements (a 4x-step coarse fit failed at its
+    /// first rollout, also with a line search on the residual's norm) where `c_m M + c_k K`,
+    /// positive definite, converges slowly, or on the fastest states not at all: there the
+    /// residual wanders, and the step's equation may have no solution near the start.
     fn newton_matrix(&mut self, mode: Mode) -> Result<(f64, f64), AssemblyError> {
         let o = &self.options;
         let (c_m, c_k) = match mode {

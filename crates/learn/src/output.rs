@@ -75,8 +75,9 @@ pub struct OutputErrorOptions {
     /// Accept rollout steps that converged only in halved substeps. Off by default: such a
     /// step is not the Backward-Euler step being fitted, and its gradient is approximate.
     /// Fits that explore negative stiffness damping may need it: there Newton's matrix leaves
-    /// out `dt^2 gamma (dK/dx) v`, so on fast states it converges linearly and can reach its
-    /// iteration cap.
+    /// out `dt^2 gamma (dK/dx) v`, so on fast states it converges slowly or, on the fastest,
+    /// not at all (the residual wanders: the step's equation may have no solution near the
+    /// start) and reaches its iteration cap.
     pub allow_retries: bool,
     /// Estimate each rollout's initial state with the parameters, under this prior
     /// ([`StartPrior`]); `None` starts every rollout from the data's state. On noisy data a

@@ -548,8 +548,8 @@ fn small_coarsen(weights: Vec<f64>) -> Experiment {
     e
 }
 
-/// The fits' Newton iteration cap reaches their rollouts: with one iteration a step no
-/// step of the tight tolerance converges, and the fit fails naming the step.
+/// The fits' Newton iteration cap reaches their rollouts: in one iteration no step reaches
+/// the tight tolerance, and the fit fails naming the step.
 #[test]
 fn the_fits_newton_cap_is_the_one_their_rollouts_run_with() {
     let with_cap = |cap| {

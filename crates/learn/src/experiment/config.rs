@@ -164,8 +164,8 @@ pub enum Task {
         newton_rel: Vec<f64>,
         /// Newton's iteration cap in the fits' rollouts (`None`: the scene's); the fitted
         /// models then run with the scene's cap, under which their Newton tolerance is
-        /// chosen. A coarse step with negative stiffness damping converges only linearly
-        /// on fast states (see [`deform_integrator::IntegratorOptions::gamma`]); a step that
+        /// chosen. Under negative stiffness damping Newton converges slowly on fast states,
+        /// or not at all (see [`deform_integrator::IntegratorOptions::gamma`]); a step that
         /// reaches the cap is retried in halves, whose gradient the fit only approximates.
         #[serde(default)]
         fit_newton_iterations: Option<usize>,
