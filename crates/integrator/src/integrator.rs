@@ -16,11 +16,12 @@ use serde::{Deserialize, Serialize};
 use sprs::CsMat;
 use thiserror::Error;
 
+use crate::conditions::{Conditions, Load};
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{Decision, PolicyContext, SolverPolicy};
 use crate::report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
-use crate::state::{Constraint, State};
+use crate::state::{Constraint, Motion, State};
 
 /// Lumped or consistent mass.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -224,8 +225,14 @@ pub struct Integrator {
     constraints: Vec<Constraint>,
     dofs: DofMap,
     options: IntegratorOptions,
-    /// `M g`.
+    /// `M g` of the active gravity (the conditions', else the options').
     gravity_forces: Vec<f64>,
+    /// External loads, each with its vertices' shares of the total force (mass-weighted).
+    loads: Vec<(Load, Vec<f64>)>,
+    /// Overrides of the model's own gravity, motions and loads (see [`Conditions`]).
+    conditions: Conditions,
+    /// `M g` plus the loads acting at Newton's end time (used only when there are loads).
+    external: Vec<f64>,
     /// Per-vertex lumped-mass scales and the mesh's own masses they multiply, when set.
     mass_scale: Option<(Vec<f64>, Vec<f64>)>,
     /// K at Newton's iterate; with positive stiffness damping and the exact tangent,
@@ -282,6 +289,7 @@ pub struct IntegratorBuilder<'a> {
     materials: MaterialField,
     density: f64,
     constraints: Vec<Constraint>,
+    loads: Vec<Load>,
     options: IntegratorOptions,
     policy: Option<Box<dyn SolverPolicy>>,
 }
@@ -296,6 +304,12 @@ impl IntegratorBuilder<'_> {
     /// Constrained vertex sets and their motions.
     pub fn constraints(mut self, constraints: Vec<Constraint>) -> Self {
         self.constraints = constraints;
+        self
+    }
+
+    /// External loads (total forces on vertex sets, see [`LoadForce`]).
+    pub fn loads(mut self, loads: Vec<Load>) -> Self {
+        self.loads = loads;
         self
     }
 
@@ -344,6 +358,7 @@ impl Integrator {
             materials,
             density: 1000.0,
             constraints: Vec::new(),
+            loads: Vec::new(),
             options: IntegratorOptions::default(),
             policy: None,
         }
@@ -355,6 +370,7 @@ impl Integrator {
             materials,
             density,
             constraints,
+            loads,
             options,
             policy,
         } = b;
@@ -388,6 +404,7 @@ impl Integrator {
             .collect();
         let dofs = DofMap::new(mesh.num_vertices(), &constrained)?;
         let gravity_forces = gravity_forces(&asm, &mass, options.gravity)?;
+        let loads = load_shares(&asm, &mass, loads)?;
         let k = asm.stiffness_matrix();
         let a_free = dofs.reduced_matrix(&k)?;
         let (lo, hi) = mesh.bounding_box();
@@ -399,6 +416,9 @@ impl Integrator {
             dofs,
             options,
             gravity_forces,
+            loads,
+            conditions: Conditions::default(),
+            external: Vec::new(),
             mass_scale: None,
             k,
             difference_step: 1e-7 * (hi - lo).norm(),
@@ -450,7 +470,7 @@ impl Integrator {
         }
         let gravity_changed = options.gravity != self.options.gravity;
         self.options = options;
-        if gravity_changed {
+        if gravity_changed && self.conditions.gravity.is_none() {
             self.update_gravity_forces()?;
         }
         Ok(())
@@ -502,10 +522,128 @@ impl Integrator {
         }
     }
 
-    /// `M g` for the current mass and gravity.
+    /// `M g` for the current mass and active gravity.
     fn update_gravity_forces(&mut self) -> Result<(), IntegratorError> {
-        self.gravity_forces = gravity_forces(&self.asm, &self.mass, self.options.gravity)?;
+        self.gravity_forces = gravity_forces(&self.asm, &self.mass, self.gravity())?;
         Ok(())
+    }
+
+    /// The active gravity: the conditions', else the options' (the model's own).
+    pub fn gravity(&self) -> [f64; 3] {
+        self.conditions.gravity.unwrap_or(self.options.gravity)
+    }
+
+    /// The overrides of the model's gravity, constraint motions and loads in force.
+    pub fn conditions(&self) -> &Conditions {
+        &self.conditions
+    }
+
+    /// Steps from now on under `conditions` (the model's own where they say `None`;
+    /// `Conditions::default()` restores the model's own): one model, motions made under
+    /// different forcing.
+    ///
+    /// # Errors
+    /// [`IntegratorError::Invalid`] naming the field when a value is not finite or there is
+    /// not one motion per constraint or one force per load.
+    pub fn set_conditions(&mut self, conditions: &Conditions) -> Result<(), IntegratorError> {
+        conditions
+            .validate(self.constraints.len(), self.loads.len())
+            .map_err(|(field, reason)| IntegratorError::Invalid {
+                field: "conditions",
+                reason: format!("{field}: {reason}"),
+            })?;
+        let gravity_changed = conditions.gravity != self.conditions.gravity;
+        self.conditions = conditions.clone();
+        if gravity_changed {
+            self.update_gravity_forces()?;
+        }
+        Ok(())
+    }
+
+    /// The motion of constraint `i` under the conditions in force.
+    fn motion(&self, i: usize) -> &Motion {
+        match &self.conditions.motions {
+            Some(m) => &m[i],
+            None => &self.constraints[i].motion,
+        }
+    }
+
+    /// Number of external loads.
+    pub fn num_loads(&self) -> usize {
+        self.loads.len()
+    }
+
+    /// The external forces at time `t`: gravity's `M g` and the loads acting at `t`.
+    pub fn external_forces(&self, t: f64) -> Vec<f64> {
+        let mut f = self.gravity_forces.clone();
+        self.add_loads(&self.conditions, t, 1e-9 * self.options.dt, &mut f);
+        f
+    }
+
+    /// [`Integrator::external_forces`] under other conditions than those in force (e.g. a
+    /// trajectory's, for a fit that reads forces off data without stepping).
+    ///
+    /// # Errors
+    /// As [`Integrator::set_conditions`].
+    pub fn external_forces_under(
+        &self,
+        conditions: &Conditions,
+        t: f64,
+    ) -> Result<Vec<f64>, IntegratorError> {
+        conditions
+            .validate(self.constraints.len(), self.loads.len())
+            .map_err(|(field, reason)| IntegratorError::Invalid {
+                field: "conditions",
+                reason: format!("{field}: {reason}"),
+            })?;
+        let g = conditions.gravity.unwrap_or(self.options.gravity);
+        let mut f = if g == self.gravity() {
+            self.gravity_forces.clone()
+        } else {
+            gravity_forces(&self.asm, &self.mass, g)?
+        };
+        self.add_loads(conditions, t, 1e-9 * self.options.dt, &mut f);
+        Ok(f)
+    }
+
+    /// Adds the loads acting at `t` under `conditions` to `f`.
+    fn add_loads(&self, conditions: &Conditions, t: f64, slack: f64, f: &mut [f64]) {
+        for (i, (load, shares)) in self.loads.iter().enumerate() {
+            let force = match &conditions.loads {
+                Some(l) => l[i],
+                None => load.force,
+            };
+            if !force.active(t, slack) {
+                continue;
+            }
+            for (&v, s) in load.vertices.iter().zip(shares) {
+                for d in 0..3 {
+                    f[3 * v + d] += s * force.force[d];
+                }
+            }
+        }
+    }
+
+    /// The external forces Newton uses: `M g`, or with loads those acting at `t` (refreshed
+    /// into the `external` buffer).
+    fn refresh_external(&mut self, t: f64, slack: f64) {
+        if self.loads.is_empty() {
+            return;
+        }
+        let mut f = std::mem::take(&mut self.external);
+        f.clear();
+        f.extend_from_slice(&self.gravity_forces);
+        self.add_loads(&self.conditions, t, slack, &mut f);
+        self.external = f;
+    }
+
+    /// The external forces of the current Newton solve.
+    fn external(&self) -> &[f64] {
+        if self.loads.is_empty() {
+            &self.gravity_forces
+        } else {
+            &self.external
+        }
     }
 
     /// Replaces the solver policy (kept solvers stay, so factorisations are reused).
@@ -533,7 +671,8 @@ impl Integrator {
         Ok(())
     }
 
-    /// Gravity forces `M g`.
+    /// Gravity forces `M g` (of the active gravity; the loads are in
+    /// [`Integrator::external_forces`]).
     pub fn gravity_forces(&self) -> &[f64] {
         &self.gravity_forces
     }
@@ -552,20 +691,21 @@ impl Integrator {
 
     /// Every constrained vertex with its prescribed position at `t`, in constraint order.
     pub fn constrained_targets(&self, t: f64) -> Vec<(usize, [f64; 3])> {
-        let each = |c: &'_ Constraint| {
-            let at = move |&i: &usize| (i, c.motion.position(&self.rest[i], t).into());
+        let each = |(k, c): (usize, &Constraint)| {
+            let motion = self.motion(k);
+            let at = move |&i: &usize| (i, motion.position(&self.rest[i], t).into());
             c.vertices.iter().map(at).collect::<Vec<_>>()
         };
-        self.constraints.iter().flat_map(each).collect()
+        self.constraints.iter().enumerate().flat_map(each).collect()
     }
 
     /// Sets constrained positions to their targets at `t` and, when `v` is given, the
     /// velocities that reach them from `x_prev` in `dt`.
     fn apply_constraints(&self, x: &mut [f64], v: Option<(&mut [f64], &[f64])>, t: f64, dt: f64) {
         let mut v = v;
-        for c in &self.constraints {
+        for (k, c) in self.constraints.iter().enumerate() {
             for &i in &c.vertices {
-                let target = c.motion.position(&self.rest[i], t);
+                let target = self.motion(k).position(&self.rest[i], t);
                 if let Some((v, x_prev)) = v.as_mut() {
                     for d in 0..3 {
                         v[3 * i + d] = (target[d] - x_prev[3 * i + d]) / dt;
@@ -688,6 +828,7 @@ impl Integrator {
             Mode::Dynamic { dt } => (state.t + dt, dt),
             Mode::Static => (state.t, 0.0),
         };
+        self.refresh_external(t1, 1e-9 * self.options.dt);
         let mut report = StepReport {
             t: t1,
             dt,
@@ -883,6 +1024,7 @@ impl Integrator {
         u: &[f64],
         w: &mut Work,
     ) -> Result<f64, StageError> {
+        let external = self.external();
         match mode {
             Mode::Dynamic { dt } => {
                 let gamma = self.options.stiffness_damping(dt);
@@ -895,12 +1037,12 @@ impl Integrator {
                 }
                 self.asm.mass_apply(&self.mass, &w.dv, &mut w.r)?;
                 for i in 0..w.r.len() {
-                    w.r[i] -= dt * (w.f[i] + w.fd[i] + self.gravity_forces[i]);
+                    w.r[i] -= dt * (w.f[i] + w.fd[i] + external[i]);
                 }
             }
             Mode::Static => {
                 for i in 0..w.r.len() {
-                    w.r[i] = -(w.f[i] + self.gravity_forces[i]);
+                    w.r[i] = -(w.f[i] + external[i]);
                 }
             }
         }
@@ -1240,7 +1382,7 @@ impl Integrator {
         w: &mut Work,
     ) -> f64 {
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
-        let gravity = dot(u, &self.gravity_forces);
+        let gravity = dot(u, self.external());
         match mode {
             Mode::Dynamic { dt } => {
                 for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
@@ -1588,6 +1730,36 @@ fn gravity_forces(
     let mut f = vec![0.0; g.len()];
     asm.mass_apply(mass, &g, &mut f)?;
     Ok(f)
+}
+
+/// Each load with its vertices' shares of its force, in proportion to their masses.
+fn load_shares(
+    asm: &Assembly,
+    mass: &Mass,
+    loads: Vec<Load>,
+) -> Result<Vec<(Load, Vec<f64>)>, IntegratorError> {
+    let masses = asm.vertex_masses(mass);
+    let mut out = Vec::with_capacity(loads.len());
+    for load in loads {
+        let invalid = |reason: String| IntegratorError::Invalid {
+            field: "loads",
+            reason,
+        };
+        load.force.validate().map_err(invalid)?;
+        if let Some(&v) = load.vertices.iter().find(|&&v| v >= masses.len()) {
+            return Err(invalid(format!(
+                "vertex {v} is out of range for {} vertices",
+                masses.len()
+            )));
+        }
+        let total: f64 = load.vertices.iter().map(|&v| masses[v]).sum();
+        if !(total > 0.0) {
+            return Err(invalid("a load on no vertex (or no mass)".into()));
+        }
+        let shares = load.vertices.iter().map(|&v| masses[v] / total).collect();
+        out.push((load, shares));
+    }
+    Ok(out)
 }
 
 /// Why per-vertex mass scales cannot be used (see [`Integrator::set_mass_scale`]).

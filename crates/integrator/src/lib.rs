@@ -36,6 +36,7 @@
 //! ```
 
 pub mod benchmark;
+mod conditions;
 mod integrator;
 mod matrix_free;
 mod policy;
@@ -45,6 +46,7 @@ pub mod scene;
 mod simulate;
 mod state;
 
+pub use conditions::{Conditions, Load, LoadForce, LoadSpec};
 /// What building an [`Integrator`] takes, re-exported from the crates below.
 pub use deform_assembly::MaterialField;
 pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};

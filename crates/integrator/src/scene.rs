@@ -15,7 +15,10 @@ use deform_mesh::{MeshOptions, TetMesh};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::{Constraint, Integrator, IntegratorOptions, Motion, PolicySpec, State};
+use crate::{
+    Conditions, Constraint, Integrator, IntegratorOptions, Load, LoadSpec, Motion, PolicySpec,
+    State,
+};
 
 /// Where the mesh comes from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -136,6 +139,9 @@ pub struct Scene {
     /// Boundary conditions.
     #[serde(default)]
     pub constraints: Vec<ConstraintSpec>,
+    /// External loads: total forces on vertex sets ([`LoadSpec`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub loads: Vec<LoadSpec>,
     /// Time stepping.
     #[serde(default)]
     pub integrator: IntegratorOptions,
@@ -272,6 +278,9 @@ impl Scene {
         for c in &mut scene.constraints {
             c.select.resolve_paths(dir);
         }
+        for l in &mut scene.loads {
+            l.select.resolve_paths(dir);
+        }
         scene.validate(path)?;
         Ok(scene)
     }
@@ -310,6 +319,11 @@ impl Scene {
         for (i, c) in self.constraints.iter().enumerate() {
             if let Err(reason) = c.motion.validate() {
                 return invalid(&format!("constraints[{i}].motion"), reason);
+            }
+        }
+        for (i, l) in self.loads.iter().enumerate() {
+            if let Err(reason) = l.load_force().validate() {
+                return invalid(&format!("loads[{i}]"), reason);
             }
         }
         let finite = |v: &[f64; 3]| v.iter().all(|x| x.is_finite());
@@ -413,6 +427,19 @@ impl Scene {
                 motion: c.motion.clone(),
             });
         }
+        let mut loads = Vec::new();
+        for (i, l) in self.loads.iter().enumerate() {
+            let field = format!("loads[{i}].select");
+            let vertices = l
+                .select
+                .select(&mesh)
+                .map_err(|e| invalid(&field, e.to_string()))?;
+            if vertices.is_empty() {
+                return Err(invalid(&field, "selects no vertex".into()));
+            }
+            let force = l.load_force();
+            loads.push(Load { vertices, force });
+        }
         let policy = self
             .policy
             .build()
@@ -420,6 +447,7 @@ impl Scene {
         let mut integrator = Integrator::builder(&mesh, materials)
             .density(self.density)
             .constraints(constraints)
+            .loads(loads)
             .options(self.integrator.clone())
             .policy(policy)
             .build()
@@ -485,6 +513,49 @@ impl Scene {
             return Err("non-finite initial state".into());
         }
         Ok(state)
+    }
+
+    /// The scene's own conditions, every field given (what [`Conditions`] override).
+    pub fn conditions(&self) -> Conditions {
+        Conditions {
+            gravity: Some(self.integrator.gravity),
+            motions: Some(self.constraints.iter().map(|c| c.motion.clone()).collect()),
+            loads: Some(self.loads.iter().map(LoadSpec::load_force).collect()),
+        }
+    }
+
+    /// The scene under `conditions`: their gravity, constraint motions and load forces where
+    /// they give them. `origin` names the scene in errors.
+    ///
+    /// # Errors
+    /// [`SceneError::Invalid`] naming the field of `conditions` that does not fit the scene.
+    pub fn with_conditions(
+        &self,
+        conditions: &Conditions,
+        origin: &Path,
+    ) -> Result<Scene, SceneError> {
+        conditions
+            .validate(self.constraints.len(), self.loads.len())
+            .map_err(|(field, reason)| SceneError::Invalid {
+                path: origin.to_owned(),
+                field: format!("conditions.{field}"),
+                reason,
+            })?;
+        let mut s = self.clone();
+        if let Some(g) = conditions.gravity {
+            s.integrator.gravity = g;
+        }
+        for (c, m) in s
+            .constraints
+            .iter_mut()
+            .zip(conditions.motions.iter().flatten())
+        {
+            c.motion = m.clone();
+        }
+        for (l, f) in s.loads.iter_mut().zip(conditions.loads.iter().flatten()) {
+            (l.force, l.until) = (f.force, f.until);
+        }
+        Ok(s)
     }
 
     /// The tracked vertex: the one nearest to `output.track`, or the one with the largest

@@ -1205,3 +1205,125 @@ fn the_reported_residual_is_that_of_the_end_state_with_and_without_stiffness_dam
         }
     }
 }
+
+/// A free body under a load on some of its vertices gains exactly `F dt` of momentum per step
+/// while the load acts (Backward Euler's momentum balance) and none after `until`.
+#[test]
+fn loads_change_momentum_by_their_impulse_until_they_stop() {
+    let mesh = beam();
+    let end: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].x > 1.0 - 1e-9)
+        .collect();
+    let options = IntegratorOptions {
+        gravity: [0.0; 3],
+        ..IntegratorOptions::default()
+    };
+    let dt = options.dt;
+    let force = [3.0, -2.0, 5.0];
+    let load = deform_integrator::Load {
+        vertices: end,
+        force: deform_integrator::LoadForce {
+            force,
+            until: Some(3.0 * dt),
+        },
+    };
+    let mut s = Integrator::builder(&mesh, material(NH))
+        .options(options)
+        .loads(vec![load])
+        .build()
+        .unwrap();
+    assert_eq!(s.num_loads(), 1);
+    let mut state = s.rest_state();
+    for n in 1..=6 {
+        s.step(&mut state).unwrap();
+        let p = momentum(&s, &state.v);
+        let active = n.min(3) as f64;
+        for d in 0..3 {
+            let expected = active * dt * force[d];
+            assert!((p[d] - expected).abs() < 1e-9, "step {n}: {p:?}");
+        }
+    }
+    // The external forces name the load while it acts and only gravity after.
+    let sum = |f: Vec<f64>| {
+        (0..3)
+            .map(|d| f.iter().skip(d).step_by(3).sum::<f64>())
+            .collect::<Vec<_>>()
+    };
+    let during = sum(s.external_forces(dt));
+    assert!((during[2] - 5.0).abs() < 1e-12, "{during:?}");
+    assert!(
+        sum(s.external_forces(4.0 * dt))
+            .iter()
+            .all(|f| f.abs() < 1e-12)
+    );
+}
+
+/// Conditions set on an integrator step exactly like a model built with them, and the
+/// default conditions restore the model's own.
+#[test]
+fn conditions_step_like_a_model_built_with_them() {
+    let mesh = beam();
+    let end: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].x > 1.0 - 1e-9)
+        .collect();
+    let pull = Motion::Translate {
+        velocity: [0.5, 0.0, 0.0],
+        until: None,
+    };
+    let constraints = |motion: Motion| {
+        let mut c = clamp(&mesh);
+        c.push(Constraint {
+            vertices: end.clone(),
+            motion,
+        });
+        c
+    };
+    let other = IntegratorOptions {
+        gravity: [0.0, 4.0, 0.0],
+        ..IntegratorOptions::default()
+    };
+    let run = |s: &mut Integrator| {
+        let mut state = s.rest_state();
+        for _ in 0..4 {
+            s.step(&mut state).unwrap();
+        }
+        state
+    };
+    let mut built = sim(&mesh, constraints(pull.clone()), other, "Fixed(Direct())");
+    let expected = run(&mut built);
+    let own = IntegratorOptions::default();
+    let mut s = sim(&mesh, constraints(Motion::Fixed), own, "Fixed(Direct())");
+    let alone = run(&mut s);
+    let conditions = deform_integrator::Conditions {
+        gravity: Some([0.0, 4.0, 0.0]),
+        motions: Some(vec![Motion::Fixed, pull]),
+        loads: None,
+    };
+    s.set_conditions(&conditions).unwrap();
+    assert_eq!(s.gravity(), [0.0, 4.0, 0.0]);
+    assert_eq!(run(&mut s), expected);
+    s.set_conditions(&deform_integrator::Conditions::default())
+        .unwrap();
+    assert_eq!(run(&mut s), alone);
+    // Conditions that do not fit the model are refused, naming the field.
+    let wrong = deform_integrator::Conditions {
+        motions: Some(vec![Motion::Fixed]),
+        ..Default::default()
+    };
+    let err = s.set_conditions(&wrong).unwrap_err().to_string();
+    assert!(
+        err.contains("motions") && err.contains("2 constraints"),
+        "{err}"
+    );
+    let nan = deform_integrator::Conditions {
+        gravity: Some([f64::NAN, 0.0, 0.0]),
+        ..Default::default()
+    };
+    assert!(
+        s.set_conditions(&nan)
+            .unwrap_err()
+            .to_string()
+            .contains("gravity")
+    );
+    assert_eq!(s.conditions(), &deform_integrator::Conditions::default());
+}

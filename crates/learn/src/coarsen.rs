@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use deform_fs::npy;
 use deform_integrator::scene::{ConstraintSpec, MeshSource};
-use deform_integrator::{Scene, SceneError};
+use deform_integrator::{LoadSpec, Scene, SceneError};
 use deform_mesh::embed::Embedding;
 use deform_mesh::io::{MshFormat, MshVersion};
 use deform_mesh::select::Selector;
@@ -37,9 +37,9 @@ use crate::dataset::{Dataset, Trajectory};
 /// Where the coarse model's constraints come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Constraints {
-    /// Each fine constraint becomes a coarse one on the coarse vertices that lie on its
-    /// vertex set (all their interpolation weight on constrained fine vertices), with the
-    /// same motion.
+    /// Each fine constraint (and load) becomes a coarse one on the coarse vertices that lie
+    /// on its vertex set (all their interpolation weight on its fine vertices), with the
+    /// same motion (force).
     #[default]
     FromFine,
     /// The coarse scene's own selectors.
@@ -82,26 +82,36 @@ pub fn coarsen(
     let coarse_mesh = coarse.build_mesh(origin)?;
     let embedding = Embedding::locate(&fine_mesh, coarse_mesh.rest_positions());
     if constraints == Constraints::FromFine {
-        let mut mapped = Vec::new();
-        for (i, c) in fine_scene.constraints.iter().enumerate() {
-            let on = c
-                .select
+        // The coarse vertices that lie on a fine vertex set.
+        let carry = |select: &Selector, field: String| -> Result<Selector, LearnError> {
+            let on = select
                 .select(&fine_mesh)
-                .map_err(|e| invalid(origin, i, e.to_string()))?;
+                .map_err(|e| invalid(origin, &field, e.to_string()))?;
             let mut set = vec![false; fine_mesh.num_vertices()];
             on.iter().for_each(|&v| set[v] = true);
             let vertices = supported_by(&embedding, &fine_mesh, &set);
             if vertices.is_empty() {
-                let reason = "no coarse vertex lies on this fine constraint".to_owned();
-                return Err(invalid(origin, i, reason));
+                let reason = "no coarse vertex lies on this fine vertex set".to_owned();
+                return Err(invalid(origin, &field, reason));
             }
-            let select = Selector::Indices(vertices);
+            Ok(Selector::Indices(vertices))
+        };
+        let mut mapped = Vec::new();
+        for (i, c) in fine_scene.constraints.iter().enumerate() {
             mapped.push(ConstraintSpec {
-                select,
+                select: carry(&c.select, format!("constraints[{i}].select"))?,
                 motion: c.motion.clone(),
             });
         }
         coarse.constraints = mapped;
+        let mut loads = Vec::new();
+        for (i, l) in fine_scene.loads.iter().enumerate() {
+            loads.push(LoadSpec {
+                select: carry(&l.select, format!("loads[{i}].select"))?,
+                ..l.clone()
+            });
+        }
+        coarse.loads = loads;
     }
     let constrained = coarse
         .constraints
@@ -121,6 +131,7 @@ pub fn coarsen(
             x: map(&t.x),
             v: map(&t.v),
             exact_start: t.exact_start,
+            conditions: t.conditions.clone(),
         })
         .collect();
     let mut meta = fine.meta.clone();
@@ -233,10 +244,10 @@ fn supported_by(e: &Embedding, mesh: &deform_mesh::TetMesh, set: &[bool]) -> Vec
     points.filter(|(_, p)| on(*p)).map(|(i, _)| i).collect()
 }
 
-fn invalid(origin: &Path, constraint: usize, reason: String) -> LearnError {
+fn invalid(origin: &Path, field: &str, reason: String) -> LearnError {
     LearnError::Scene(SceneError::Invalid {
         path: origin.to_owned(),
-        field: format!("constraints[{constraint}].select"),
+        field: field.to_owned(),
         reason,
     })
 }

@@ -14,7 +14,10 @@ use std::path::{Path, PathBuf};
 
 use deform_fs::write_atomic;
 use deform_integrator::scene::{Built, Initial};
-use deform_integrator::{OnStep, RunOptions, Scene, State, StepError, StepReport, Termination};
+use deform_integrator::{
+    Conditions, Integrator, IntegratorError, OnStep, RunOptions, Scene, State, StepError,
+    StepReport, Termination,
+};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -34,7 +37,7 @@ pub enum Split {
 }
 
 /// One trajectory: states at `t_0 + n dt`, `n = 0..=steps`.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Trajectory {
     /// Positions per step, flat `3N` each.
     pub x: Vec<Vec<f64>>,
@@ -43,12 +46,37 @@ pub struct Trajectory {
     /// The first state is known exactly (e.g. a release from a known shape at rest): fits
     /// that estimate rollout starts keep it ([`crate::output::OutputErrorOptions::starts`]).
     pub exact_start: bool,
+    /// The conditions it was made under where they differ from the model's (gravity,
+    /// constraint motions, loads): every fit, rollout and solver log steps it under them.
+    pub conditions: Conditions,
 }
 
 impl Trajectory {
     /// Number of steps (pairs).
     pub fn steps(&self) -> usize {
         self.x.len().saturating_sub(1)
+    }
+
+    /// Runs `f` with `sim` under this trajectory's conditions, then puts back those `sim`
+    /// had: every loop over a dataset's trajectories with one model goes through here.
+    ///
+    /// # Errors
+    /// [`IntegratorError::Invalid`] when the conditions do not fit the model (another
+    /// number of constraints or loads).
+    pub fn under<R>(
+        &self,
+        sim: &mut Integrator,
+        f: impl FnOnce(&mut Integrator) -> R,
+    ) -> Result<R, IntegratorError> {
+        if self.conditions == *sim.conditions() {
+            return Ok(f(sim));
+        }
+        let previous = sim.conditions().clone();
+        sim.set_conditions(&self.conditions)?;
+        let out = f(sim);
+        sim.set_conditions(&previous)
+            .expect("the conditions in force were valid");
+        Ok(out)
     }
 }
 
@@ -69,6 +97,10 @@ pub struct TrajectoryMeta {
     /// Its first state is known exactly ([`Trajectory::exact_start`]).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub exact_start: bool,
+    /// The conditions it was made under where they differ from the scene's
+    /// ([`Trajectory::conditions`]).
+    #[serde(default, skip_serializing_if = "Conditions::is_default")]
+    pub conditions: Conditions,
 }
 
 /// Gaussian noise added after generation.
@@ -219,6 +251,10 @@ pub struct DatasetSpec {
     /// claim: a cheap model fitted to an accurate one). 1 learns at the base's own step.
     #[serde(default = "one")]
     pub subsample: usize,
+    /// Conditions to cycle through: trajectory `k` is made under `conditions[k % len]`
+    /// (gravity, constraint motions, loads overriding the scene's); empty: the scene's own.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub conditions: Vec<Conditions>,
 }
 
 pub(crate) fn one() -> usize {
@@ -241,6 +277,7 @@ impl DatasetSpec {
             split: default_split(),
             noise: None,
             subsample: 1,
+            conditions: Vec::new(),
         }
     }
 }
@@ -288,7 +325,11 @@ pub fn generate(
                 state: None,
             }
         };
-        let mut variant = scene.clone();
+        let conditions = match spec.conditions.as_slice() {
+            [] => Conditions::default(),
+            all => all[k % all.len()].clone(),
+        };
+        let mut variant = scene.with_conditions(&conditions, origin)?;
         variant.initial = initial.clone();
         let Built {
             mut integrator,
@@ -299,6 +340,7 @@ pub fn generate(
             x: vec![state.x.clone()],
             v: vec![state.v.clone()],
             exact_start: false,
+            conditions: conditions.clone(),
         };
         let summary = integrator.run(
             &mut state,
@@ -323,6 +365,7 @@ pub fn generate(
             initial,
             source: None,
             exact_start: false,
+            conditions,
         });
         trajectories.push(traj);
     }
@@ -362,34 +405,52 @@ impl Dataset {
         metas.filter(move |(_, m)| m.split == split).map(|(k, _)| k)
     }
 
-    /// `scene` starting where trajectory `k` starts: the initial conditions that generated
-    /// it, or, for an imported trajectory (which has none), its first state.
-    pub fn scene_of(&self, k: usize, scene: &Scene) -> Scene {
+    /// `scene` as trajectory `k` was made: under its conditions, starting where it starts
+    /// (the initial conditions that generated it, or, for an imported trajectory, which has
+    /// none, its first state).
+    ///
+    /// # Errors
+    /// [`DatasetError::Scene`] when the trajectory's conditions do not fit `scene` (another
+    /// number of constraints or loads).
+    pub fn scene_of(&self, k: usize, scene: &Scene) -> Result<Scene, DatasetError> {
         let meta = &self.meta.trajectories[k];
-        let mut s = scene.clone();
+        let origin = Path::new(&meta.name);
+        let mut s = scene.with_conditions(&self.trajectories[k].conditions, origin)?;
         s.initial = meta.initial.clone();
         if meta.source.is_some() {
             s.initial.state = Some(state_at(&self.trajectories[k], 0, self.meta.dt));
         }
-        s
+        Ok(s)
     }
 
     /// One dataset of several made by the same base model (the parts of a sweep over seeds,
-    /// generated apart): their trajectories in order, renamed `traj_000`, `traj_001`, ...;
-    /// the first part's seed.
+    /// or motions made under other gravity, constraint motions or loads): their trajectories
+    /// in order, renamed `traj_000`, `traj_001`, ...; the first part's scene and seed. A
+    /// part whose scene differs from the first's only in its conditions keeps them: its
+    /// trajectories carry them ([`Trajectory::conditions`]).
     ///
     /// # Errors
     /// [`DatasetError::Inconsistent`] naming the first part that differs from the first in
-    /// scene, time step, vertex count or noise, or for no parts.
+    /// anything else of the scene, time step, vertex count or noise, or for no parts.
     pub fn merge(parts: Vec<Dataset>) -> Result<Dataset, DatasetError> {
         let mut parts = parts.into_iter();
         let Some(mut out) = parts.next() else {
             return Err(DatasetError::Inconsistent("no datasets to merge".into()));
         };
-        for (k, part) in parts.enumerate() {
+        let own = out.meta.scene.conditions();
+        for (k, mut part) in parts.enumerate() {
+            let origin = Path::new("merge");
             let (a, b) = (&out.meta, &part.meta);
+            // The part's scene with the first's conditions: equal when only they differ.
+            let other_scene = match b.scene.with_conditions(&own, origin) {
+                Ok(s) => s != a.scene,
+                Err(_) => true,
+            };
             let differs = [
-                (a.scene != b.scene, "scene"),
+                (
+                    other_scene,
+                    "scene (beyond gravity, constraint motions and loads)",
+                ),
                 (a.dt != b.dt, "time step"),
                 (a.vertices != b.vertices, "vertex count"),
                 (a.noise != b.noise, "noise"),
@@ -399,6 +460,22 @@ impl Dataset {
                     "dataset {} of the merge has another {what} than the first",
                     k + 1
                 )));
+            }
+            if part.meta.scene != out.meta.scene {
+                for (t, m) in part
+                    .trajectories
+                    .iter_mut()
+                    .zip(&mut part.meta.trajectories)
+                {
+                    let made = part.meta.scene.with_conditions(&t.conditions, origin)?;
+                    let full = made.conditions();
+                    t.conditions = if full == own {
+                        Conditions::default()
+                    } else {
+                        full
+                    };
+                    m.conditions = t.conditions.clone();
+                }
             }
             out.meta.trajectories.extend(part.meta.trajectories);
             out.trajectories.extend(part.trajectories);
@@ -554,10 +631,13 @@ impl Dataset {
                     .map(<[f64]>::to_vec)
                     .collect())
             };
+            let origin = dir.join(&m.name);
+            meta.scene.with_conditions(&m.conditions, &origin)?;
             trajectories.push(Trajectory {
                 x: read("x.npy")?,
                 v: read("v.npy")?,
                 exact_start: m.exact_start,
+                conditions: m.conditions.clone(),
             });
         }
         Ok(Self { meta, trajectories })

@@ -363,7 +363,14 @@ fn equation_error(
             let mut b = vec![0.0; n];
             let dv: Vec<f64> = v1.iter().zip(v0).map(|(a, b)| a - b).collect();
             asm.mass_apply(mass, &dv, &mut b).map_err(fail)?;
-            for (bi, gi) in b.iter_mut().zip(sim.gravity_forces()) {
+            let t1 = (step + 1) as f64 * dt;
+            let external =
+                sim.external_forces_under(&t.conditions, t1)
+                    .map_err(|e| FitError::Data {
+                        index: ti,
+                        reason: e.to_string(),
+                    })?;
+            for (bi, gi) in b.iter_mut().zip(&external) {
                 *bi -= dt * gi;
             }
             let mut mv = vec![0.0; n];

@@ -10,7 +10,7 @@
 use std::path::{Path, PathBuf};
 
 use deform_fs::npy::{self, Array};
-use deform_integrator::{MassKind, Scene};
+use deform_integrator::{Conditions, MassKind, Scene};
 use serde::{Deserialize, Serialize};
 
 use crate::dataset::{
@@ -39,13 +39,20 @@ pub struct ImportedTrajectory {
     pub velocities: VelocitySource,
     /// The first frame (positions and velocities) is exact, e.g. a release from a known
     /// shape: fits that estimate rollout starts keep it (not with `Derived` velocities,
-    /// which drop it).
+    /// which drop it). `Initial` velocities imply it.
     #[serde(default)]
     pub exact_start: bool,
+    /// The conditions this trajectory was made under where they differ from the import's
+    /// and the scene's: its gravity, the motions of the scene's constraints, the forces of
+    /// its loads (e.g. `(gravity: Some((0.0, 0.0, 0.0)))` for a motion made without gravity).
+    #[serde(default, skip_serializing_if = "Conditions::is_default")]
+    pub conditions: Conditions,
 }
 
 /// A dataset made elsewhere. Nothing about how the data were made is assumed: `dt`,
-/// `gravity` (`(0, 0, 0)` for none) and `mass` are required and replace the scene's.
+/// `gravity` (`(0, 0, 0)` for none) and `mass` are required and replace the scene's; each
+/// trajectory may have been made under other conditions
+/// ([`ImportedTrajectory::conditions`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ImportSpec {
@@ -95,16 +102,16 @@ impl ImportSpec {
 }
 
 /// Reads the trajectories of `spec` for the model `scene` (whose data's facts `spec` sets:
-/// [`ImportSpec::scene`]), split by `spec.split`. Each trajectory must have the mesh's
-/// vertex count, and its constrained vertices must sit where the scene's constraints put
-/// them (to 1e-9 of the mesh's size): data the model cannot reproduce are refused, naming the
-/// trajectory, step and vertex. Noise and subsampling are the caller's, as for generated data.
+/// [`ImportSpec::scene`]), split by `spec.split`, each with its own conditions. Each
+/// trajectory must have the mesh's vertex count, and its constrained vertices must sit where
+/// the scene's constraints, moving as its conditions say, put them (to 1e-9 of the mesh's
+/// size): data the model cannot reproduce are refused, naming the trajectory, step and vertex. Noise and subsampling are the caller's, as for generated data.
 ///
 /// # Errors
 /// [`DatasetError`] naming the file, or the scene's error.
 pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset, DatasetError> {
     let scene = spec.scene(scene);
-    let built = scene.build(origin)?;
+    let mut built = scene.build(origin)?;
     let vertices = built.mesh.num_vertices();
     let (lo, hi) = built.mesh.bounding_box();
     let tolerance = 1e-9 * (hi - lo).norm();
@@ -124,7 +131,12 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             )));
         }
         let mut trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
-        trajectory.exact_start = t.exact_start;
+        trajectory.exact_start |= t.exact_start;
+        trajectory.conditions = t.conditions.clone();
+        built
+            .integrator
+            .set_conditions(&t.conditions)
+            .map_err(|e| DatasetError::Inconsistent(format!("{}: {e}", t.positions.display())))?;
         let found = trajectory.x[0].len() / 3;
         if found != vertices {
             return Err(DatasetError::Inconsistent(format!(
@@ -153,7 +165,8 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             steps: trajectory.steps(),
             initial: scene.initial.clone(),
             source: Some(t.positions.clone()),
-            exact_start: t.exact_start,
+            exact_start: trajectory.exact_start,
+            conditions: t.conditions.clone(),
         });
         trajectories.push(trajectory);
     }
@@ -305,13 +318,16 @@ pub fn trajectory_from_arrays(
             return Ok(Trajectory {
                 x: x[1..].to_vec(),
                 v,
-                exact_start: false,
+                ..Trajectory::default()
             });
         }
     };
+    // Given initial velocities make the first frame the one state known exactly.
+    let exact_start = matches!(velocities, ArrayVelocities::Initial(_));
     Ok(Trajectory {
         x,
         v,
-        exact_start: false,
+        exact_start,
+        ..Trajectory::default()
     })
 }

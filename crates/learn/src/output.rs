@@ -506,61 +506,75 @@ impl<'a> OutputError<'a> {
         let free: Vec<usize> = (0..n / 3)
             .filter(|&v| !sim.dofs().is_constrained(v))
             .collect();
-        for (r, &(ti, start, len)) in self.rollouts().iter().enumerate() {
-            let t = self.trajectories[ti];
-            // An exactly known first state stays as it is.
-            let offset = starts
-                .filter(|_| !(start == 0 && t.exact_start))
-                .map(|o| &o[2 * n * r..2 * n * (r + 1)]);
-            let mut first = state_at(t, start, dt);
-            if let Some(o) = offset {
-                for &v in &free {
-                    for i in 3 * v..3 * v + 3 {
-                        first.x[i] += o[i];
-                        first.v[i] += o[n + i];
-                        num += wpx * o[i] * o[i] + wpv * o[n + i] * o[n + i];
+        // Each rollout runs under its trajectory's conditions; the model's are put back.
+        let own = sim.conditions().clone();
+        let mut pass = || -> Result<(), FitError> {
+            for (r, &(ti, start, len)) in self.rollouts().iter().enumerate() {
+                let t = self.trajectories[ti];
+                sim.set_conditions(&t.conditions)
+                    .map_err(|e| FitError::Data {
+                        index: ti,
+                        reason: e.to_string(),
+                    })?;
+                // An exactly known first state stays as it is.
+                let offset = starts
+                    .filter(|_| !(start == 0 && t.exact_start))
+                    .map(|o| &o[2 * n * r..2 * n * (r + 1)]);
+                let mut first = state_at(t, start, dt);
+                if let Some(o) = offset {
+                    for &v in &free {
+                        for i in 3 * v..3 * v + 3 {
+                            first.x[i] += o[i];
+                            first.v[i] += o[n + i];
+                            num += wpx * o[i] * o[i] + wpv * o[n + i] * o[n + i];
+                        }
+                    }
+                }
+                let states = forward(
+                    &mut sim,
+                    first,
+                    (ti, start, len),
+                    self.options.allow_retries,
+                )?;
+                // Loss terms and their partial derivatives per predicted state.
+                let mut dl_dx = vec![vec![0.0; n]; len + 1];
+                let mut dl_dv = vec![vec![0.0; n]; len + 1];
+                for k in 1..=len {
+                    let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
+                    for i in 0..n {
+                        let ex = states[k].x[i] - xd[i];
+                        let ev = states[k].v[i] - vd[i];
+                        num += ex * ex + wv * ev * ev;
+                        let motion = xd[i] - t.x[start + k - 1][i];
+                        den += motion * motion;
+                        dl_dx[k][i] = 2.0 * ex;
+                        dl_dv[k][i] = 2.0 * wv * ev;
+                    }
+                }
+                let rollout = Rollout {
+                    trajectory: ti,
+                    start,
+                    states: &states,
+                    dl_dx: &dl_dx,
+                    dl_dv: &dl_dv,
+                };
+                let adjoint = work.backward(&mut sim, &mut solver, &rollout, &mut grad)?;
+                if let Some(o) = offset {
+                    let g = &mut start_grad[2 * n * r..2 * n * (r + 1)];
+                    for &v in &free {
+                        for i in 3 * v..3 * v + 3 {
+                            g[i] = adjoint.0[i] + 2.0 * wpx * o[i];
+                            g[n + i] = adjoint.1[i] + 2.0 * wpv * o[n + i];
+                        }
                     }
                 }
             }
-            let states = forward(
-                &mut sim,
-                first,
-                (ti, start, len),
-                self.options.allow_retries,
-            )?;
-            // Loss terms and their partial derivatives per predicted state.
-            let mut dl_dx = vec![vec![0.0; n]; len + 1];
-            let mut dl_dv = vec![vec![0.0; n]; len + 1];
-            for k in 1..=len {
-                let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
-                for i in 0..n {
-                    let ex = states[k].x[i] - xd[i];
-                    let ev = states[k].v[i] - vd[i];
-                    num += ex * ex + wv * ev * ev;
-                    let motion = xd[i] - t.x[start + k - 1][i];
-                    den += motion * motion;
-                    dl_dx[k][i] = 2.0 * ex;
-                    dl_dv[k][i] = 2.0 * wv * ev;
-                }
-            }
-            let rollout = Rollout {
-                trajectory: ti,
-                start,
-                states: &states,
-                dl_dx: &dl_dx,
-                dl_dv: &dl_dv,
-            };
-            let adjoint = work.backward(&mut sim, &mut solver, &rollout, &mut grad)?;
-            if let Some(o) = offset {
-                let g = &mut start_grad[2 * n * r..2 * n * (r + 1)];
-                for &v in &free {
-                    for i in 3 * v..3 * v + 3 {
-                        g[i] = adjoint.0[i] + 2.0 * wpx * o[i];
-                        g[n + i] = adjoint.1[i] + 2.0 * wpv * o[n + i];
-                    }
-                }
-            }
-        }
+            Ok(())
+        };
+        let outcome = pass();
+        sim.set_conditions(&own)
+            .expect("the model's own conditions were valid");
+        outcome?;
         if den <= 0.0 {
             return Err(FitError::NoData);
         }
@@ -867,7 +881,7 @@ impl Adjoint {
             }
             if let Some(own) = &self.unscaled {
                 // dL/ds_v = -lambda_v . m_v (v^k+1 - v^k + dt alpha v^k+1 - dt g).
-                let (prev, g) = (&r.states[k].v, sim.options().gravity);
+                let (prev, g) = (&r.states[k].v, sim.gravity());
                 let scales = &mut grad[jf.len()..jf.len() + own.len()];
                 for (v, (gs, m)) in scales.iter_mut().zip(own).enumerate() {
                     let dr: f64 = (0..3)

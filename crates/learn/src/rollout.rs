@@ -30,14 +30,29 @@ pub struct Rollout {
     pub summary: RunSummary,
 }
 
-/// Rolls `sim` out from the trajectory's first state, `refine` steps per recorded step (the
-/// data's step is `refine` times the integrator's), and measures it against the data.
+/// Rolls `sim` out from the trajectory's first state under its conditions, `refine` steps
+/// per recorded step (the data's step is `refine` times the integrator's), and measures it
+/// against the data.
 /// `on_sample(n, state)` sees the state at each recorded index `n` (0 first), e.g. to write
 /// frames.
 ///
 /// # Errors
 /// [`LearnError::Step`] naming `what` and the failed step.
 pub fn rollout(
+    sim: &mut Integrator,
+    t: &Trajectory,
+    refine: usize,
+    weights: WorkWeights,
+    what: &str,
+    on_sample: &mut dyn FnMut(usize, &State),
+) -> Result<Rollout, LearnError> {
+    t.under(sim, |sim| {
+        rollout_in(sim, t, refine, weights, what, on_sample)
+    })?
+}
+
+/// [`rollout`] under the conditions in force.
+fn rollout_in(
     sim: &mut Integrator,
     t: &Trajectory,
     refine: usize,

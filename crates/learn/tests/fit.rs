@@ -410,7 +410,7 @@ fn per_region_moduli_on_a_gmsh_mesh() {
     let mut traj = deform_learn::Trajectory {
         x: vec![state.x.clone()],
         v: vec![state.v.clone()],
-        exact_start: false,
+        ..Default::default()
     };
     for _ in 0..8 {
         sim.step(&mut state).unwrap();

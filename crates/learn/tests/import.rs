@@ -270,6 +270,7 @@ fn generated_and_imported(name: &str) -> (TaskReport, TaskReport) {
             positions: folder(k).join("x.npy"),
             velocities: VelocitySource::File(folder(k).join("v.npy")),
             exact_start: false,
+            conditions: Default::default(),
         })
         .collect();
     let scene = Scene::load(&generated.scene).unwrap();

@@ -362,6 +362,7 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
             x,
             v,
             exact_start: m.exact_start,
+            conditions: m.conditions.clone(),
         });
     }
     Ok(deform_learn::Dataset { meta, trajectories })

@@ -308,7 +308,9 @@ pub fn run(
         .map(|r| Ok((Scene::load(&r.scene)?, r.scene.as_path(), r.steps)))
         .collect::<Result<_, LearnError>>()?;
     let runs: Vec<Run<'_>> = of_split(Split::Train)
-        .map(|k| (variant(k), origin, steps))
+        .map(|k| Ok((variant(k)?, origin, steps)))
+        .collect::<Result<Vec<_>, LearnError>>()?
+        .into_iter()
         .chain(also)
         .collect();
     let logged = collect_runs(&runs, candidates, |_| observer.advance(1))?;
@@ -339,7 +341,7 @@ pub fn run(
     // run (and the tuning's own scenes).
     let mut tuning = None;
     if let (Some(t), Some(k)) = (tune, of_split(Split::Train).next()) {
-        let mut runs: Vec<Run<'_>> = vec![(variant(k), origin, steps)];
+        let mut runs: Vec<Run<'_>> = vec![(variant(k)?, origin, steps)];
         for r in &t.scenes {
             runs.push((Scene::load(&r.scene)?, r.scene.as_path(), r.steps));
         }
@@ -356,8 +358,8 @@ pub fn run(
     let mut cases = vec![Case {
         label: format!("test trajectories of `{}`", cx.scene.name),
         runs: of_split(Split::Test)
-            .map(|k| (variant(k), origin))
-            .collect(),
+            .map(|k| Ok((variant(k)?, origin)))
+            .collect::<Result<_, LearnError>>()?,
         steps,
     }];
     for h in held_out {

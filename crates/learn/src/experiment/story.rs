@@ -237,8 +237,8 @@ pub fn run(
     let train_index = cx.data.indices(Split::Train);
     let runs: Vec<Run<'_>> = train_index
         .clone()
-        .map(|k| (cx.data.scene_of(k, &tuned_scene), origin, steps))
-        .collect();
+        .map(|k| Ok((cx.data.scene_of(k, &tuned_scene)?, origin, steps)))
+        .collect::<Result<_, LearnError>>()?;
     let (policy, logged) = learn_policy(&runs, candidates, *weights, fitted, observer)?;
     if let Some(path) = solver_data {
         logged.save(&path)?;
@@ -248,7 +248,7 @@ pub fn run(
     // 4. Solver optimisation: the largest forcing term, on the first training trajectory.
     let mut tune_scene = tuned_scene.clone();
     if let Some(k) = train_index.clone().next() {
-        tune_scene = cx.data.scene_of(k, &tuned_scene);
+        tune_scene = cx.data.scene_of(k, &tuned_scene)?;
     }
     let tuning = tune_forcing(
         &policy,

@@ -71,7 +71,7 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
     // The scene's own motion; imported data have none written, so their first trajectory's.
     let scene = match cx.experiment.data {
         super::Data::Generate(_) => cx.scene.clone(),
-        super::Data::Import(_) => cx.data.scene_of(0, &cx.scene),
+        super::Data::Import(_) => cx.data.scene_of(0, &cx.scene)?,
     };
     let result = tune_solver(
         &scene,
