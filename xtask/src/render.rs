@@ -83,9 +83,11 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
             )?;
         }
     }
-    md.push_str(
-        "| parameters | E (Pa) | nu | E error | nu error | fit time |\n|---|---|---|---|---|---|\n",
-    );
+    md.push_str(if r.truth_known() {
+        "| parameters | E (Pa) | nu | E error | nu error | fit time |\n|---|---|---|---|---|---|\n"
+    } else {
+        "| parameters | E (Pa) | nu | E change from the scene's guess | nu change | fit time |\n|---|---|---|---|---|---|\n"
+    });
     for (i, row) in r.rows.iter().enumerate() {
         let (name, young, poisson, seconds) =
             (row.estimate.name(), row.young, row.poisson, row.seconds);
@@ -105,8 +107,9 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
         .collect();
     writeln!(
         md,
-        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}. Fitted / true parameters: {:.3}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
+        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}. Fitted / {} parameters: {:.3}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
         errors.join(", "),
+        if r.truth_known() { "true" } else { "scene's" },
         r.rollout_ratio()
     )?;
     Ok(())

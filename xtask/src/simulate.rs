@@ -49,13 +49,16 @@ pub fn simulate(
         None => deform_integrator::Scene::load(scene_path)?.steps,
     };
     let bar = crate::experiment::bar(quiet, total as u64, "steps");
-    let result = deform_integrator::simulate(scene_path, steps, out, &mut Bar(&bar));
+    let mut lines = crate::experiment::Lines::new(quiet);
+    lines.tick("steps", &bar, true);
+    let result = deform_integrator::simulate(scene_path, steps, out, &mut Bar(&bar, &mut lines));
+    lines.tick("steps", &bar, true);
     bar.finish_and_clear();
     Ok(result?)
 }
 
 /// The progress bar as an observer.
-struct Bar<'a>(&'a ProgressBar);
+struct Bar<'a>(&'a ProgressBar, &'a mut crate::experiment::Lines);
 
 impl Observer for Bar<'_> {
     fn step(&mut self, report: &StepReport, state: &State) -> ControlFlow<()> {
@@ -67,6 +70,7 @@ impl Observer for Bar<'_> {
             1e3 * report.seconds
         ));
         self.0.inc(1);
+        self.1.tick("steps", self.0, false);
         ControlFlow::Continue(())
     }
 }

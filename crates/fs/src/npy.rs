@@ -39,6 +39,9 @@ pub struct Array {
     pub shape: Vec<usize>,
     /// The values.
     pub data: Vec<f64>,
+    /// numpy's name of the type the values were stored as (`float32`, `int64`, ...): what
+    /// their precision was before they became `f64` ([`Array::rounding`]).
+    pub dtype: String,
 }
 
 /// Writes `data` with `shape` as a version 1.0 `.npy` file.
@@ -181,7 +184,11 @@ fn parse_bytes(bytes: &[u8]) -> Result<Array, String> {
     } else {
         values
     };
-    Ok(Array { shape, data })
+    Ok(Array {
+        shape,
+        data,
+        dtype: dtype.name(),
+    })
 }
 
 /// The element type of an `.npy` array deform reads.
@@ -220,6 +227,16 @@ impl Dtype {
             }),
             _ => Err(unsupported()),
         }
+    }
+
+    /// numpy's name: `float32`, `int16`, `uint8`, ...
+    fn name(self) -> String {
+        let kind = match self.kind {
+            'f' => "float",
+            'i' => "int",
+            _ => "uint",
+        };
+        format!("{kind}{}", 8 * self.size)
     }
 
     /// One value.
@@ -286,6 +303,35 @@ fn c_order(shape: &[usize], values: &[f64]) -> Vec<f64> {
 }
 
 impl Array {
+    /// Float64 values of `shape`.
+    ///
+    /// # Panics
+    /// When `shape` does not hold `data`.
+    #[track_caller]
+    pub fn new(shape: Vec<usize>, data: Vec<f64>) -> Self {
+        assert_eq!(
+            shape.iter().product::<usize>(),
+            data.len(),
+            "shape and data"
+        );
+        Self {
+            shape,
+            data,
+            dtype: "float64".into(),
+        }
+    }
+
+    /// The relative rounding of the values as they were stored: float32's machine epsilon
+    /// (1.2e-7) for `float32` (and `float16`, which deform does not read), float64's for
+    /// floats of 64 bits, 0 for integers (exact).
+    pub fn rounding(&self) -> f64 {
+        match self.dtype.as_str() {
+            "float64" => f64::EPSILON,
+            d if d.starts_with("float") => f32::EPSILON as f64,
+            _ => 0.0,
+        }
+    }
+
     /// The values as indices (vertex ids, tet corners): each must be a non-negative integer.
     ///
     /// # Errors

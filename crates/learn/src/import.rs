@@ -115,6 +115,7 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
     let vertices = built.mesh.num_vertices();
     let (lo, hi) = built.mesh.bounding_box();
     let tolerance = 1e-9 * (hi - lo).norm();
+    let extent = lo.abs().max().max(hi.abs().max()) + (hi - lo).norm();
     let count = spec.trajectories.len();
     let mut trajectories = Vec::with_capacity(count);
     let mut metas = Vec::with_capacity(count);
@@ -130,7 +131,9 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
                 t.positions.display()
             )));
         }
-        let mut trajectory = import_trajectory(&t.positions, velocities, spec.dt)?;
+        let (mut trajectory, stored) = read_trajectory(&t.positions, velocities, spec.dt)?;
+        // Positions stored in single precision sit within their rounding of the targets.
+        let tolerance = tolerance.max(4.0 * stored.rounding() * extent);
         trajectory.exact_start |= t.exact_start;
         trajectory.conditions = t.conditions.clone();
         built
@@ -152,9 +155,10 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
                     .sum::<f64>();
                 if off.sqrt() > tolerance {
                     return Err(DatasetError::Inconsistent(format!(
-                        "{}: step {n}: vertex {i} is constrained by the scene but lies {:.3e} m from where its constraint puts it",
+                        "{}: step {n}: vertex {i} is constrained by the scene but lies {:.3e} m from where its constraint puts it (positions stored as {}, tolerance {tolerance:.1e} m)",
                         t.positions.display(),
-                        off.sqrt()
+                        off.sqrt(),
+                        stored.dtype
                     )));
                 }
             }
@@ -234,6 +238,16 @@ pub fn import_trajectory(
     velocities: Velocities<'_>,
     dt: f64,
 ) -> Result<Trajectory, DatasetError> {
+    read_trajectory(positions, velocities, dt).map(|(t, _)| t)
+}
+
+/// [`import_trajectory`], and how the positions were stored (their dtype, the values not
+/// kept).
+fn read_trajectory(
+    positions: &Path,
+    velocities: Velocities<'_>,
+    dt: f64,
+) -> Result<(Trajectory, Array), DatasetError> {
     let a = npy::read(positions)?;
     let read_v;
     let v = match velocities {
@@ -251,7 +265,12 @@ pub fn import_trajectory(
         positions.display().to_string(),
         v.1.map(|p| p.display().to_string()),
     );
-    trajectory_from_arrays((&names.0, names.1.as_deref()), &a, v.0, dt)
+    let t = trajectory_from_arrays((&names.0, names.1.as_deref()), &a, v.0, dt)?;
+    let stored = Array {
+        data: Vec::new(),
+        ..a
+    };
+    Ok((t, stored))
 }
 
 /// [`import_trajectory`] of arrays in memory (positions (steps + 1, vertices, 3), flat C

@@ -41,7 +41,7 @@ pub use fit::{
     fit_equation_error_field,
 };
 pub use output::{
-    Field, OutputError, OutputErrorFit, OutputErrorOptions, Regularisation, Termination,
-    face_neighbours, field_of, fit_output_error, fit_output_error_field, term_coefficients,
-    with_term_coefficients,
+    Field, OutputError, OutputErrorFit, OutputErrorOptions, Regularisation, StartPrior,
+    Termination, face_neighbours, field_of, fit_output_error, fit_output_error_field,
+    term_coefficients, with_term_coefficients,
 };

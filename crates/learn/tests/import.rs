@@ -371,3 +371,94 @@ fn noisy_imported_positions_give_the_moduli_with_estimated_starts() {
     assert!(fit.start_correction.is_some());
     assert!(r.young_error() < 0.005 && r.poisson_error() < 0.02);
 }
+
+/// `data` of `shape` as a little-endian float32 `.npy` (numpy's `astype(np.float32)`).
+fn write_f32(path: &Path, shape: &[usize], data: &[f64]) {
+    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+    let mut header = format!(
+        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({},), }}",
+        dims.join(", ")
+    );
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((header.len() as u16).to_le_bytes());
+    bytes.extend(header.as_bytes());
+    for v in data {
+        bytes.extend((*v as f32).to_le_bytes());
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// What a user with two float32 trajectories of another simulator meets: the runner takes
+/// two (one to fit, one to test), single-precision clamps pass (a clamp that moves is
+/// still refused, naming the dtype), the scene's moduli are reported as its guess (not as
+/// the truth), and a run refused on its data leaves no results folder behind.
+#[test]
+fn two_float32_trajectories_fit_and_a_refused_run_leaves_no_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = data("tiny_beam.ron");
+    let scene = Scene::load(&scene_path).unwrap();
+    let made = deform_learn::dataset::generate(
+        &scene,
+        &scene_path,
+        &deform_learn::DatasetSpec::new(2, 6, 3),
+        |_, _| {},
+    )
+    .unwrap();
+    let n = made.meta.vertices;
+    let mut list = Vec::new();
+    for (k, t) in made.trajectories.iter().enumerate() {
+        let x = dir.path().join(format!("x{k}.npy"));
+        write_f32(&x, &[t.x.len(), n, 3], &t.x.concat());
+        let v0 = dir.path().join(format!("v{k}.npy"));
+        write_f32(&v0, &[n, 3], &t.v[0]);
+        list.push(format!(
+            "(positions: \"x{k}.npy\", velocities: Initial(\"v{k}.npy\"))"
+        ));
+    }
+    let text = format!(
+        "Experiment(name: \"two\", scene: {scene_path:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.5, 0.0)), task: FitMaterial(output_error: Some((rollout: 3, max_evaluations: 20))))",
+        list.join(", ")
+    );
+    let e = load(dir.path(), &text).unwrap();
+    let Data::Import(spec) = &e.data else {
+        panic!("import")
+    };
+    let imported = deform_learn::import::import(spec, &scene, &scene_path).unwrap();
+    // Given initial velocities make the first frame exact.
+    assert!(imported.trajectories.iter().all(|t| t.exact_start));
+    assert!(imported.meta.trajectories.iter().all(|m| m.exact_start));
+    let report = run(&e, None, &mut NoProgress).unwrap();
+    let TaskReport::FitMaterial(r) = &report.task else {
+        panic!("task")
+    };
+    assert!(!r.truth_known());
+    assert_eq!(r.rows[0].estimate.name(), "scene's guess");
+    assert_eq!(r.rollouts[0].name, "scene's parameters");
+    assert!(
+        report.headline().contains("scene's guess"),
+        "{}",
+        report.headline()
+    );
+    // The start prior's type is where a user looks for it.
+    let _: deform_learn::StartPrior = Default::default();
+    // A clamped vertex that moves by 1 mm in float32 is refused, naming the dtype.
+    let built = scene.build(&scene_path).unwrap();
+    let clamped = built.integrator.dofs().constrained_vertices()[0];
+    let mut x = made.trajectories[1].x.concat();
+    x[3 * n + 3 * clamped] += 1e-3;
+    write_f32(
+        &dir.path().join("x1.npy"),
+        &[made.trajectories[1].x.len(), n, 3],
+        &x,
+    );
+    let out = dir.path().join("results");
+    let err = run(&e, Some(&out), &mut NoProgress)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("x1.npy") && err.contains("float32"), "{err}");
+    assert!(!out.exists(), "a refused run left {}", out.display());
+}

@@ -32,7 +32,12 @@ pub struct Trajectory {
 /// An array argument as deform's array type.
 fn as_array(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Array> {
     let (data, shape) = values::<f64>(name, obj)?;
-    Ok(Array { shape, data })
+    // The precision the values had before they became float64 (numpy's dtype name).
+    let dtype = obj
+        .getattr("dtype")
+        .and_then(|d| d.str().map(|s| s.to_string()))
+        .unwrap_or_else(|_| "float64".into());
+    Ok(Array { shape, data, dtype })
 }
 
 #[pymethods]

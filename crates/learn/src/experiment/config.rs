@@ -696,11 +696,8 @@ impl Experiment {
             }
         };
         let count = self.data.trajectories();
-        if count < 3 {
-            return Err((
-                trajectories,
-                "must be at least 3 (train, validation, test)".into(),
-            ));
+        if count == 0 {
+            return Err((trajectories, "must be at least 1".into()));
         }
         let (a, b) = self.data.split();
         // Every task but solver tuning and coarsening reports on the test trajectories.
@@ -716,15 +713,23 @@ impl Experiment {
                 format!("({a}, {b}) must leave room for a test split"),
             ));
         }
-        if let Task::Coarsen { .. } = self.task {
-            // Its test motions are its own; it chooses weights on validation trajectories.
-            if self.data.subsample() != 1 {
-                return Err((subsample, "must be 1: coarsening has dt_factors".into()));
-            }
-            let (_, validation, _) = crate::dataset::split_counts(count, (a, b));
-            if validation == 0 {
-                return Err((split, format!("({a}, {b}) leaves no validation trajectory")));
-            }
+        if let Task::Coarsen { .. } = self.task
+            && self.data.subsample() != 1
+        {
+            return Err((subsample, "must be 1: coarsening has dt_factors".into()));
+        }
+        // Model selection and coarsening choose on validation trajectories.
+        let needs_validation = match &self.task {
+            Task::SelectModel { .. } | Task::Coarsen { .. } => true,
+            Task::TuneBackwardEuler { members, .. } => !members.is_empty(),
+            _ => false,
+        };
+        let (_, validation, _) = crate::dataset::split_counts(count, (a, b));
+        if needs_validation && validation == 0 {
+            return Err((
+                split,
+                format!("({a}, {b}) of {count} trajectories leaves no validation trajectory"),
+            ));
         }
         if needs_test && crate::dataset::split_counts(count, (a, b)).2 == 0 {
             return Err((

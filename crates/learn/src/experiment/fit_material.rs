@@ -19,6 +19,9 @@ use crate::rollout::mean_error;
 pub enum Estimate {
     /// The base model's own.
     Truth,
+    /// The scene's own moduli when the data were imported: a guess, not the truth (which
+    /// deform does not know).
+    SceneGuess,
     /// Stage 1.
     EquationError,
     /// Stage 2.
@@ -30,6 +33,7 @@ impl Estimate {
     pub fn name(self) -> &'static str {
         match self {
             Estimate::Truth => "truth",
+            Estimate::SceneGuess => "scene's guess",
             Estimate::EquationError => "equation error",
             Estimate::OutputError => "output error",
         }
@@ -69,7 +73,14 @@ pub struct FitMaterialReport {
 }
 
 impl FitMaterialReport {
-    /// Row `i`'s relative errors in Young's modulus and Poisson's ratio against the truth.
+    /// Whether the first row is the truth (generated data) rather than the scene's guess
+    /// (imported data): only then are [`FitMaterialReport::errors`] errors.
+    pub fn truth_known(&self) -> bool {
+        self.rows.first().map(|r| r.estimate) == Some(Estimate::Truth)
+    }
+
+    /// Row `i`'s relative errors in Young's modulus and Poisson's ratio against the truth
+    /// (with imported data, the relative changes from the scene's guess).
     pub fn errors(&self, i: usize) -> (f64, f64) {
         let (truth, row) = (&self.rows[0], &self.rows[i]);
         (
@@ -128,9 +139,15 @@ pub fn run(
     })?;
     let (e0, nu0) = truth.to_young();
     let (e1, nu1) = young(mu1, lambda1);
+    // Imported data were made by a model deform does not know: the scene's moduli are a guess.
+    let known = matches!(cx.experiment.data, super::Data::Generate(_));
     let mut rows = vec![
         ModuliRow {
-            estimate: Estimate::Truth,
+            estimate: if known {
+                Estimate::Truth
+            } else {
+                Estimate::SceneGuess
+            },
             young: e0,
             poisson: nu0,
             seconds: None,
@@ -193,8 +210,13 @@ pub fn run(
     observer.start(Stage::Rollouts, 3);
     let tests = cx.data.split(Split::Test);
     let states = tests.first().map_or(0, |t| t.x.len());
+    let first = if known {
+        "true parameters"
+    } else {
+        "scene's parameters"
+    };
     for (name, (mu, lambda)) in [
-        ("true parameters", (truth.mu, truth.lambda)),
+        (first, (truth.mu, truth.lambda)),
         ("equation error", (mu1, lambda1)),
         ("fitted", fitted),
     ] {

@@ -168,8 +168,10 @@ fn io_error(e: deform_fs::WriteError) -> LearnError {
 }
 
 /// Runs an experiment: makes its dataset (saved in `out/dataset` when `out` is given),
-/// runs its task and returns the report. The folder is locked for the run and cleared of
-/// what an earlier run listed in it (other files stay). Files the task writes (datasets, solver data,
+/// runs its task and returns the report. The folder is locked for the run and, once the
+/// data are made or imported, cleared of what an earlier run listed in it (other files
+/// stay); data refused before that leave the folder as it was (and no folder at all when
+/// the run made it). Files the task writes (datasets, solver data,
 /// ParaView frames) go to `out` and are listed in [`ExperimentReport::files`]; with `out`
 /// `None` nothing is written.
 ///
@@ -183,11 +185,23 @@ pub fn run(
     let started = Instant::now();
     let scene = Scene::load(&experiment.scene)?;
     // One run at a time per results folder, which then holds only this run's files.
-    let _lock = out.map(deform_fs::lock_folder).transpose()?;
+    let created = out.is_some_and(|o| !o.exists());
+    let lock = out.map(deform_fs::lock_folder).transpose()?;
+    let (base, data, built) = match make_data(experiment, &scene, observer) {
+        Ok(made) => made,
+        Err(e) => {
+            drop(lock);
+            if let Some(out) = out.filter(|_| created) {
+                // Nothing of this run is in it but the lock: best effort.
+                let _ = std::fs::remove_dir_all(out);
+            }
+            return Err(e);
+        }
+    };
+    let _lock = lock;
     if let Some(out) = out {
         clear_previous(out)?;
     }
-    let (base, data, built) = make_data(experiment, &scene, observer)?;
     let mut files = Vec::new();
     if let Some(out) = out {
         data.save(&out.join("dataset"))?;
