@@ -976,7 +976,18 @@ struct LogProblem<'p, 'a> {
     /// The best loss that counted as progress and the evaluation that found it
     /// ([`OutputErrorOptions::patience`]).
     progress: std::cell::Cell<(f64, usize)>,
+    /// The trust region of trial points: the best point so far (its coefficients' log
+    /// parameters), its loss and the radius ([`TRUST_RADIUS`]).
+    trust: RefCell<(Vec<f64>, f64, f64)>,
 }
+
+/// The first trust radius (in natural log) of [`LogProblem`]: a trial point that moves a
+/// coefficient by more than a factor of 10 from the best point so far is not simulated but
+/// treated as failed (a loss far above, the last good gradient), so the line search backs
+/// off at no cost. L-BFGS's first step has no curvature to scale it: it went to the 1e6x
+/// bound and spent hundreds of Newton iterations on trials no data could be about. Each new
+/// best point doubles the radius, up to [`MAX_LOG_DISTANCE`].
+const TRUST_RADIUS: f64 = std::f64::consts::LN_10;
 
 /// The relative drop of the best loss that counts as progress for
 /// [`OutputErrorOptions::patience`].
@@ -1024,12 +1035,33 @@ impl LogProblem<'_, '_> {
             last_good: RefCell::new(None),
             calls: std::cell::Cell::new(0),
             progress: std::cell::Cell::new((f64::INFINITY, 0)),
+            trust: RefCell::new((Vec::new(), f64::INFINITY, TRUST_RADIUS)),
         };
         let off = |i: usize| (problem.start[i] - problem.lower[i]).abs().ln();
         let mut p0: Vec<f64> = problem.active().map(off).collect();
+        problem.trust.borrow_mut().0 = p0.clone();
         p0.resize(p0.len() + problem.units.len(), 0.0);
         problem.p0 = p0;
         problem
+    }
+
+    /// Whether `p` moves a coefficient beyond the trust radius of the best point so far.
+    fn outside_trust(&self, p: &[f64]) -> bool {
+        let (centre, _, radius) = &*self.trust.borrow();
+        centre.iter().zip(p).any(|(c, p)| (p - c).abs() > *radius)
+    }
+
+    /// Moves the trust region to `p` and widens it when `loss` is the best so far.
+    fn update_trust(&self, p: &[f64], loss: f64) {
+        let (centre, best, radius) = &mut *self.trust.borrow_mut();
+        if loss < *best {
+            if best.is_finite() {
+                *radius = (2.0 * *radius).min(MAX_LOG_DISTANCE);
+            }
+            *best = loss;
+            let n = centre.len();
+            centre.copy_from_slice(&p[..n]);
+        }
     }
 
     /// The start offsets of parameters `p` (`None` without estimated starts).
@@ -1054,10 +1086,16 @@ impl LogProblem<'_, '_> {
         let c = self.coefficients(p);
         let offsets = self.start_offsets(p);
         let not_finite = p.iter().any(|v| !v.is_finite());
+        let untrusted = !not_finite && self.outside_trust(p);
         let evaluated = if not_finite {
             Err(FitError::Coefficients {
                 coefficients: c.clone(),
                 reason: "a trial step that is not finite".into(),
+            })
+        } else if untrusted {
+            Err(FitError::Coefficients {
+                coefficients: c.clone(),
+                reason: "a trial step beyond the trust region".into(),
             })
         } else {
             self.objective.evaluate_with_starts(&c, offsets.as_deref())
@@ -1071,14 +1109,17 @@ impl LogProblem<'_, '_> {
                 // d offset / d q is the offset's unit.
                 g.extend(gs.iter().zip(&self.units).map(|(g, u)| g * u));
                 *self.last_good.borrow_mut() = Some((loss, g.clone()));
+                self.update_trust(p, loss);
                 self.check_progress(loss)?;
                 (loss, g)
             }
-            Err(e) if e.is_failed_simulation() || not_finite => {
+            Err(e) if e.is_failed_simulation() || not_finite || untrusted => {
                 let Some((loss, g)) = self.last_good.borrow().clone() else {
                     return Err(e);
                 };
-                *self.objective.failed_trials.borrow_mut() += 1;
+                if !untrusted {
+                    *self.objective.failed_trials.borrow_mut() += 1;
+                }
                 (FAILED_TRIAL_FACTOR * loss.abs().max(f64::MIN_POSITIVE), g)
             }
             Err(e) => return Err(e),
@@ -1454,6 +1495,51 @@ mod tests {
         }
     }
 
+    /// Trial points beyond a factor of 10 from the best point so far are not simulated (the
+    /// line search backs off at no cost); each new best point doubles the radius. A fit from
+    /// a start 30x too stiff still reaches the data's model without a failed trial.
+    #[test]
+    fn trial_points_stay_within_the_trust_region_of_the_best_point() {
+        let (scene, data, origin) = tiny_beam();
+        let train = data.split(Split::Train);
+        let mut sim = scene.build(origin).unwrap().integrator;
+        let options = OutputErrorOptions {
+            rollout: 3,
+            ..Default::default()
+        };
+        let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
+        let truth = objective.uniform_start();
+        let start: Vec<f64> = truth.iter().map(|c| 3.0 * c).collect();
+        let problem = LogProblem::new(&objective, &start);
+        let p0 = problem.parameters();
+        let (l0, _) = problem.evaluate(&p0).unwrap();
+        let at = |d: f64| {
+            let mut p = p0.clone();
+            p[0] -= d;
+            p
+        };
+        // 20x away: not simulated, a loss far above.
+        let (far, _) = problem.evaluate(&at(3.0)).unwrap();
+        assert_eq!(*objective.evaluations.borrow(), 1);
+        assert_eq!(far, FAILED_TRIAL_FACTOR * l0);
+        // 3x away (towards the data's model): simulated, better, and the radius doubles.
+        let (near, _) = problem.evaluate(&at(3f64.ln())).unwrap();
+        assert_eq!(*objective.evaluations.borrow(), 2);
+        assert!(near < l0);
+        assert!((problem.trust.borrow().2 - 2.0 * TRUST_RADIUS).abs() < 1e-15);
+        drop(problem);
+        let far_start: Vec<f64> = truth.iter().map(|c| 30.0 * c).collect();
+        let fit = minimise(&objective, &far_start).unwrap();
+        assert_eq!(fit.failed_trials, 0);
+        for (c, t) in fit.coefficients.iter().zip(&truth) {
+            assert!(
+                (c - t).abs() < 1e-4 * t,
+                "{:?} against {truth:?}",
+                fit.coefficients
+            );
+        }
+    }
+
     /// A fit stopped by its own rules says so: the budget and the patience are typed
     /// terminations, not argmin's line-search text around them.
     #[test]
@@ -1507,6 +1593,8 @@ mod tests {
         let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
         let start = objective.uniform_start();
         let problem = LogProblem::new(&objective, &start);
+        // Far trial points simulated (the trust region is tested on its own).
+        problem.trust.borrow_mut().2 = f64::INFINITY;
         let p0 = problem.parameters();
         // Before anything simulated there is nothing to fall back on: the error itself.
         let far: Vec<f64> = p0.iter().map(|p| p + 12.0).collect();
