@@ -166,6 +166,12 @@ fn select_model(r: &SelectModelReport, md: &mut String) -> Result<()> {
         let name = member.map_or("ensemble".to_owned(), |m| format!("{m} alone"));
         writeln!(md, "| {name} | {validation:.4e} | {test:.4e} |")?;
     }
+    if r.best_single().is_none() {
+        writeln!(
+            md,
+            "\nNo single model could be fitted and rolled out on the validation trajectories."
+        )?;
+    }
     if let (Some(best), Some(ratio)) = (r.best_single(), r.ensemble_over_best()) {
         let verdict = ratio.map_or_else(
             || format!("both at rounding level (below {ROUNDING_LEVEL:e} m): equal"),

@@ -184,7 +184,7 @@ fn outside_domains(
 /// out and listed in [`EnsembleFit::excluded`].
 ///
 /// # Errors
-/// [`FitError`]; [`FitError::NoData`] when every candidate is excluded.
+/// [`FitError`]; [`FitError::Invalid`] when every candidate is excluded.
 pub fn fit_ensemble(
     scene: &Scene,
     origin: &Path,
@@ -200,8 +200,11 @@ pub fn fit_ensemble(
         .copied()
         .filter(|n| !excluded.iter().any(|e| e.model == *n))
         .collect();
-    if kept.is_empty() {
-        return Err(FitError::NoData);
+    if let (true, Some(first)) = (kept.is_empty(), excluded.first()) {
+        return Err(FitError::Invalid(format!(
+            "no candidate model can have made the data: each one's energy is undefined on them (first: {} at trajectory {}, step {}, element {}, det F = {:.3e})",
+            first.model, first.trajectory, first.step, first.element, first.det
+        )));
     }
     let names = &kept[..];
     // Any positive starting moduli: the equation error only uses the term split.
@@ -241,10 +244,14 @@ pub fn fit_ensemble(
 
 /// Stage 2 for an ensemble: the output error refines every kept member's effective pair
 /// (members stage 1 dropped stay dropped), starting from `fit`; the energy shares are
-/// recomputed on `evaluate`. `progress(evaluation, loss)` sees every loss evaluation.
+/// recomputed on `evaluate`. When stage 1 kept no member (noisy positions swamp the
+/// accelerations its equations need), every member starts from an equal share of the
+/// scene's own Lame pair, as a single model's stage 2 starts from the scene's guess.
+/// `progress(evaluation, loss)` sees every loss evaluation.
 ///
 /// # Errors
-/// [`FitError`]; [`FitError::NoData`] when `fit` kept no member.
+/// [`FitError`]; [`FitError::Invalid`] when `fit` kept no member and the scene's material
+/// has no single Lame pair to start from.
 pub fn refine_ensemble(
     fit: &EnsembleFit,
     scene: &Scene,
@@ -254,6 +261,13 @@ pub fn refine_ensemble(
     options: OutputErrorOptions,
     progress: impl FnMut(usize, f64),
 ) -> Result<(EnsembleFit, OutputErrorFit), FitError> {
+    let guessed;
+    let fit = if fit.spec().is_some() {
+        fit
+    } else {
+        guessed = from_scene_guess(fit, scene)?;
+        &guessed
+    };
     let spec = fit.spec().ok_or(FitError::NoData)?;
     let kept: Vec<usize> = (0..fit.members.len())
         .filter(|&m| fit.members[m].kept())
@@ -273,6 +287,28 @@ pub fn refine_ensemble(
     }
     energy_shares(&built.mesh, &mut refined.members, evaluate)?;
     Ok((refined, stage2))
+}
+
+/// `fit` with every member at an equal share of `scene`'s Lame pair (see
+/// [`refine_ensemble`]).
+fn from_scene_guess(fit: &EnsembleFit, scene: &Scene) -> Result<EnsembleFit, FitError> {
+    let lame = scene
+        .material
+        .build()
+        .ok()
+        .and_then(|m| m.lame())
+        .ok_or_else(|| {
+            FitError::Invalid(format!(
+                "stage 1 kept no member (relative residual {:.3}: the data do not determine them; noisy positions?) and the scene's material {:?} has no single Lame pair to start stage 2 from",
+                fit.relative_residual, scene.material
+            ))
+        })?;
+    let share = 1.0 / fit.members.len().max(1) as f64;
+    let mut guessed = fit.clone();
+    for m in &mut guessed.members {
+        (m.mu, m.lambda) = (share * lame.mu, share * lame.lambda);
+    }
+    Ok(guessed)
 }
 
 /// Each member's share of the ensemble's elastic energy summed over the states of

@@ -521,6 +521,76 @@ fn output_error_gradient_of_an_ensemble_equals_finite_differences() {
     }
 }
 
+/// When stage 1 keeps no member (what noisy positions do to its equations), stage 2 starts
+/// every member from an equal share of the scene's Lame pair instead of failing with "no
+/// data pairs", and fits the data; a report whose single models all failed names none best.
+#[test]
+fn an_ensemble_that_stage_1_emptied_is_refined_from_the_scene_guess() {
+    let s = scene("", "Beam(1)");
+    let data = make(&s, 2, 6);
+    let train = data.split(Split::Train);
+    let names = [
+        deform_learn::Member::CorotatedLinear,
+        deform_learn::Member::NeoHookean,
+    ];
+    let mut empty =
+        deform_learn::fit_ensemble(&s, Path::new("test"), &names, &train, &train).unwrap();
+    for m in &mut empty.members {
+        (m.mu, m.lambda) = (0.0, 0.0);
+    }
+    assert!(empty.spec().is_none());
+    let mut guess = s.clone();
+    guess.material = ron::from_str("NeoHookean(Young(e: 1.3e5, nu: 0.35))").unwrap();
+    let options = deform_learn::OutputErrorOptions {
+        rollout: 3,
+        ..Default::default()
+    };
+    let (refined, stage2) = deform_learn::refine_ensemble(
+        &empty,
+        &guess,
+        Path::new("test"),
+        &train,
+        &train,
+        options,
+        |_, _| {},
+    )
+    .unwrap();
+    assert!(stage2.loss < 1e-3 * stage2.initial_loss, "{stage2:?}");
+    assert!(refined.spec().is_some());
+    // A scene without one Lame pair to start from: a clear refusal.
+    let mut ensemble = s.clone();
+    ensemble.material = ron::from_str(
+        "Ensemble([(weight: 1.0, model: LinearElastic(Lame(mu: 1e3, lambda: 1e3)))])",
+    )
+    .unwrap();
+    let e = deform_learn::refine_ensemble(
+        &empty,
+        &ensemble,
+        Path::new("test"),
+        &train,
+        &train,
+        options,
+        |_, _| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("stage 1 kept no member"), "{e}");
+    let report = deform_learn::experiment::select_model::SelectModelReport {
+        ensemble: empty,
+        stage2: None,
+        models: names
+            .iter()
+            .map(|&m| deform_learn::experiment::select_model::ModelErrors {
+                member: Some(m),
+                validation: f64::INFINITY,
+                test: f64::INFINITY,
+            })
+            .collect(),
+        rollouts: Vec::new(),
+    };
+    assert!(report.best_single().is_none());
+}
+
 #[test]
 fn output_error_refines_an_ensemble_keeping_signs_and_zeros() {
     // Data from Neo-Hookean; the ensemble starts off the truth with a dropped (zero) member

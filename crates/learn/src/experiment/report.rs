@@ -218,7 +218,8 @@ impl ExperimentReport {
                     100.0 * top.map_or(0.0, |m| m.energy_share),
                     r.best_single()
                         .and_then(|m| m.member)
-                        .map_or("-".to_owned(), |m| m.to_string())
+                        .map_or("none (no single model fitted)".to_owned(), |m| m
+                            .to_string())
                 )
             }
             TaskReport::SelectSolver(r) => r

@@ -42,15 +42,17 @@ pub struct SelectModelReport {
 pub const ROUNDING_LEVEL: f64 = 1e-9;
 
 impl SelectModelReport {
-    /// The single model with the least validation error.
+    /// The single model with the least validation error; `None` when no single model could
+    /// be fitted and rolled out (every validation error infinite).
     pub fn best_single(&self) -> Option<&ModelErrors> {
-        self.models.iter().filter(|m| m.member.is_some()).fold(
-            None,
-            |best: Option<&ModelErrors>, m| match best {
+        let finite = |m: &&ModelErrors| m.member.is_some() && m.validation.is_finite();
+        self.models
+            .iter()
+            .filter(finite)
+            .fold(None, |best: Option<&ModelErrors>, m| match best {
                 Some(b) if b.validation <= m.validation => Some(b),
                 _ => Some(m),
-            },
-        )
+            })
     }
 
     /// The ensemble's row.
