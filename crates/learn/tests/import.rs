@@ -462,3 +462,47 @@ fn two_float32_trajectories_fit_and_a_refused_run_leaves_no_folder() {
     assert!(err.contains("x1.npy") && err.contains("float32"), "{err}");
     assert!(!out.exists(), "a refused run left {}", out.display());
 }
+
+/// The documented noisy path with default options: on noisy states (2 % position, 300 %
+/// velocity noise) stage 1 is
+/// unusable, and stage 2 starts from the scene's guess and fits, accepting rollout steps
+/// that converge only in halves (here every step: Newton is capped at 3 iterations). With
+/// such steps refused, the error says why stage 2 could not start and names the step,
+/// never "mu = 0".
+#[test]
+fn noisy_data_fit_with_default_options_or_say_which_step_failed() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(data("tiny_beam.ron"))
+        .unwrap()
+        .replace(
+            "newton: (rel: 1e-10, abs: 1e-12)",
+            "newton: (rel: 1e-10, abs: 1e-12, max_iterations: 3), max_retries: 6",
+        );
+    let scene_path = dir.path().join("capped.ron");
+    std::fs::write(&scene_path, text).unwrap();
+    let experiment = |options: &str| {
+        format!(
+            "Experiment(name: \"noisy\", scene: {scene_path:?}, dataset: (trajectories: 4, steps: 12, seed: 4, split: (0.5, 0.25), noise: Some((position: 0.02, velocity: 3.0, seed: 1))), task: FitMaterial(output_error: Some(({options}))))"
+        )
+    };
+    let e = load(dir.path(), &experiment("max_evaluations: 30")).unwrap();
+    let report = run(&e, None, &mut NoProgress).unwrap();
+    let TaskReport::FitMaterial(r) = &report.task else {
+        panic!("task")
+    };
+    assert!(
+        r.stage1_unusable.is_some(),
+        "stage 1 was usable: {:?}",
+        r.rows
+    );
+    let fit = r.output_error.as_ref().unwrap();
+    assert!(r.started_from_prior.is_some() && fit.loss <= fit.initial_loss);
+    assert!(r.rows[2].young.is_finite(), "{:?}", r.rows);
+    let e = load(dir.path(), &experiment("allow_retries: false")).unwrap();
+    let err = run(&e, None, &mut NoProgress).unwrap_err().to_string();
+    assert!(
+        err.contains("stage 1 is unusable") && err.contains("step") && err.contains("halvings"),
+        "{err}"
+    );
+    assert!(!err.contains("mu = 0"), "{err}");
+}

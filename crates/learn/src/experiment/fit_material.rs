@@ -184,12 +184,28 @@ pub fn run(
             let mut loss_at = |c: &[f64]| {
                 OutputError::new(&mut sim, &train, *options, |_, _| {})
                     .and_then(|o| o.evaluate(c))
-                    .map_or(f64::INFINITY, |(l, _)| l)
+                    .map(|(l, _)| l)
             };
-            let (l1, l0) = (loss_at(&initial), loss_at(&prior));
-            if l0 < l1 {
-                report.started_from_prior = Some((l0, l1));
+            let l0 = loss_at(&prior);
+            if let Some(why) = &report.stage1_unusable {
+                // Stage 2 can only start from the prior: say why it cannot, if it cannot.
+                let l0 = l0.map_err(|e| {
+                    LearnError::Unsupported(format!(
+                        "stage 1 is unusable ({why}) and stage 2 cannot start from the prior (E = {:.4e} Pa, nu = {:.4}): {e}",
+                        lame.to_young().0,
+                        lame.to_young().1
+                    ))
+                })?;
+                report.started_from_prior = Some((l0, f64::INFINITY));
                 initial = prior;
+            } else {
+                let l1 = loss_at(&initial).unwrap_or(f64::INFINITY);
+                if let Ok(l0) = l0
+                    && l0 < l1
+                {
+                    report.started_from_prior = Some((l0, l1));
+                    initial = prior;
+                }
             }
         }
         let fit = fit_output_error(&mut sim, &train, &initial, *options, |k, loss| {
