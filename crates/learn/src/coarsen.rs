@@ -76,11 +76,39 @@ pub fn coarsen(
     origin: &Path,
     constraints: Constraints,
 ) -> Result<(Dataset, Mapping), LearnError> {
+    coarsen_embedded(fine, coarse, origin, constraints, None)
+}
+
+/// [`coarsen`] with the coarse rest vertices' places in the fine mesh given (see
+/// [`Embedding::given`], e.g. from [`read_embedding`]) instead of located; `None` locates
+/// them.
+///
+/// # Errors
+/// As [`coarsen`]; [`LearnError::Scene`] when the embedding has not one entry per coarse
+/// vertex.
+pub fn coarsen_embedded(
+    fine: &Dataset,
+    coarse: &Scene,
+    origin: &Path,
+    constraints: Constraints,
+    embedding: Option<&Embedding>,
+) -> Result<(Dataset, Mapping), LearnError> {
     let fine_scene = &fine.meta.scene;
     let fine_mesh = fine_scene.build_mesh(origin)?;
     let mut coarse = coarse.clone();
     let coarse_mesh = coarse.build_mesh(origin)?;
-    let embedding = Embedding::locate(&fine_mesh, coarse_mesh.rest_positions());
+    let embedding = match embedding {
+        Some(e) if e.len() != coarse_mesh.num_vertices() => {
+            let reason = format!(
+                "{} embedded points for {} coarse vertices",
+                e.len(),
+                coarse_mesh.num_vertices()
+            );
+            return Err(invalid(origin, "embedding", reason));
+        }
+        Some(e) => e.clone(),
+        None => Embedding::locate(&fine_mesh, coarse_mesh.rest_positions()),
+    };
     if constraints == Constraints::FromFine {
         // The coarse vertices that lie on a fine vertex set.
         let carry = |select: &Selector, field: String| -> Result<Selector, LearnError> {
@@ -234,11 +262,41 @@ pub fn save_model(
     Ok(written)
 }
 
+/// Reads a given embedding of `vertices` coarse vertices in `fine`: `.npy` files of their
+/// fine elements (vertices,) and barycentric weights (vertices, 4) ([`Embedding::given`]).
+///
+/// # Errors
+/// [`LearnError::Scene`] naming the file and what is wrong.
+pub fn read_embedding(
+    elements: &Path,
+    weights: &Path,
+    fine: &deform_mesh::TetMesh,
+    vertices: usize,
+) -> Result<Embedding, LearnError> {
+    let bad = |file: &Path, reason: String| invalid(file, "embedding", reason);
+    let e = npy::read(elements).map_err(|e| bad(elements, e.to_string()))?;
+    let w = npy::read(weights).map_err(|e| bad(weights, e.to_string()))?;
+    if e.shape != [vertices] {
+        let reason = format!(
+            "shape {:?}, expected [{vertices}] (coarse vertices)",
+            e.shape
+        );
+        return Err(bad(elements, reason));
+    }
+    if w.shape != [vertices, 4] {
+        let reason = format!("shape {:?}, expected [{vertices}, 4]", w.shape);
+        return Err(bad(weights, reason));
+    }
+    let element = e.indices().map_err(|r| bad(elements, r))?;
+    let rows = w.data.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect();
+    Embedding::given(fine, element, rows).map_err(|r| bad(weights, r))
+}
+
 /// The located points whose interpolation weight lies entirely on vertices in `set`.
 fn supported_by(e: &Embedding, mesh: &deform_mesh::TetMesh, set: &[bool]) -> Vec<usize> {
     let on = |(&t, w): (&usize, &[f64; 4])| {
         let tet = mesh.tets()[t];
-        (0..4).all(|a| w[a] <= 1e-12 || set[tet[a]])
+        (0..4).all(|a| w[a].abs() <= 1e-12 || set[tet[a]])
     };
     let points = e.element.iter().zip(&e.weights).enumerate();
     points.filter(|(_, p)| on(*p)).map(|(i, _)| i).collect()

@@ -399,6 +399,20 @@ impl Dataset {
             .collect()
     }
 
+    /// The dataset of one split's trajectories only (e.g. the held-out ones).
+    pub fn only(&self, split: Split) -> Dataset {
+        let keep: Vec<usize> = self.indices(split).collect();
+        let mut meta = self.meta.clone();
+        meta.trajectories = keep
+            .iter()
+            .map(|&k| self.meta.trajectories[k].clone())
+            .collect();
+        Dataset {
+            meta,
+            trajectories: keep.iter().map(|&k| self.trajectories[k].clone()).collect(),
+        }
+    }
+
     /// The indices of the trajectories of one split.
     pub fn indices(&self, split: Split) -> impl Iterator<Item = usize> + Clone + '_ {
         let metas = self.meta.trajectories.iter().enumerate();

@@ -7,6 +7,7 @@ use deform_integrator::Scene;
 use deform_integrator::scene::MeshSource;
 use deform_learn::coarsen::{Constraints, coarsen};
 use deform_learn::dataset::{DatasetSpec, generate};
+use deform_learn::npy;
 use deform_mesh::generate::BoxGrid;
 use deform_mesh::select::Selector;
 
@@ -285,4 +286,133 @@ fn gmsh_meshes_of_one_shape_coarsen_with_the_clamp_mapped() {
             assert!((last[3 * v + d] - p[d]).abs() < 1e-12);
         }
     }
+}
+
+/// `Coarsen` on data another simulator made, from the experiment file alone: the fine
+/// body's trajectories under three conditions (released under gravity, kicked at its end
+/// without gravity, and under sideways gravity), a given embedding, region tags, and the
+/// data's own test split held out (no base model to simulate other motions).
+#[test]
+fn coarsen_runs_on_imported_trajectories_of_mixed_conditions_with_a_given_embedding() {
+    use deform_learn::experiment::coarsen::CoarseModel;
+    use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
+    let dir = tempfile::tempdir().unwrap();
+    let data = |name: &str| {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(name)
+    };
+    let fine_path = data("small_beam.ron");
+    let mut fine = Scene::load(&fine_path).unwrap();
+    fine.loads = vec![deform_integrator::LoadSpec {
+        select: deform_mesh::select::Selector::Plane {
+            point: [1.0, 0.0, 0.0],
+            normal: [1.0, 0.0, 0.0],
+        },
+        force: [0.0; 3],
+        until: None,
+    }];
+    let conditions = [
+        "()",
+        "(gravity: Some((0.0, 0.0, 0.0)), loads: Some([(force: (0.0, 30.0, 10.0), until: Some(0.03))]))",
+        "(gravity: Some((0.0, 5.0, -5.0)))",
+    ];
+    let spec = deform_learn::DatasetSpec {
+        conditions: conditions
+            .iter()
+            .map(|c| ron::from_str(c).unwrap())
+            .collect(),
+        ..deform_learn::DatasetSpec::new(6, 8, 3)
+    };
+    let made = deform_learn::dataset::generate(&fine, &fine_path, &spec, |_, _| {}).unwrap();
+    let mut list = Vec::new();
+    for (k, t) in made.trajectories.iter().enumerate() {
+        let n = t.x[0].len() / 3;
+        let x = dir.path().join(format!("x{k}.npy"));
+        npy::write(&x, &[t.x.len(), n, 3], &t.x.concat()).unwrap();
+        let v = dir.path().join(format!("v{k}.npy"));
+        npy::write(&v, &[t.v.len(), n, 3], &t.v.concat()).unwrap();
+        list.push(format!(
+            "(positions: \"x{k}.npy\", velocities: File(\"v{k}.npy\"), conditions: {})",
+            conditions[k % 3]
+        ));
+    }
+    // The fine scene as the user states it (the same mesh, the load's vertex set).
+    let scene_text = std::fs::read_to_string(&fine_path).unwrap().replace(
+        "integrator:",
+        "loads: [(select: Plane(point: (1.0, 0.0, 0.0), normal: (1.0, 0.0, 0.0)), force: (0.0, 0.0, 0.0))],\n    integrator:",
+    );
+    std::fs::write(dir.path().join("fine.ron"), scene_text).unwrap();
+    // The embedding the user's mesher gives (nested grids: located exactly), and 3 tags.
+    let fine_mesh = fine.build_mesh(&fine_path).unwrap();
+    let coarse_mesh = deform_mesh::generate::BoxGrid::beam(1).build().unwrap();
+    let e = deform_mesh::embed::Embedding::locate(&fine_mesh, coarse_mesh.rest_positions());
+    let ids: Vec<f64> = e.element.iter().map(|&t| t as f64).collect();
+    npy::write(&dir.path().join("elements.npy"), &[ids.len()], &ids).unwrap();
+    let w: Vec<f64> = e.weights.iter().flatten().copied().collect();
+    npy::write(&dir.path().join("weights.npy"), &[ids.len(), 4], &w).unwrap();
+    let tags: Vec<f64> = (0..coarse_mesh.num_tets())
+        .map(|t| (t % 3) as f64)
+        .collect();
+    npy::write(&dir.path().join("tags.npy"), &[tags.len()], &tags).unwrap();
+    let text = format!(
+        "Experiment(name: \"outside\", scene: \"fine.ron\",
+            import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.5, 0.17)),
+            task: Coarsen(mesh: Beam(1), embedding: (elements: \"elements.npy\", weights: \"weights.npy\"),
+                region_tags: \"tags.npy\", regularisation: [0.0], output_error: (rollout: 4, max_iterations: 4)))",
+        list.join(", ")
+    );
+    let path = dir.path().join("outside.ron");
+    std::fs::write(&path, text).unwrap();
+    let experiment = Experiment::load(&path).unwrap();
+    let out = dir.path().join("results");
+    let report = run(&experiment, Some(&out), &mut NoProgress).unwrap();
+    let TaskReport::Coarsen(r) = &report.task else {
+        panic!("task")
+    };
+    let case = &r.cases[0];
+    // Held out: the data's two test trajectories (8 steps of 0.01 s each).
+    assert!((r.test_seconds - 0.16).abs() < 1e-12, "{}", r.test_seconds);
+    assert_eq!(case.row(CoarseModel::Untuned).unwrap().errors.len(), 9);
+    // Three tags: three pairs and the damping.
+    let per_region = case.row(CoarseModel::PerRegion).unwrap();
+    assert_eq!(per_region.fit.as_ref().unwrap().coefficients, 8);
+    let per_element = case.row(CoarseModel::PerElement).unwrap();
+    let (before, after) = per_element.fit.as_ref().unwrap().losses;
+    assert!(after < before, "{before} -> {after}");
+    assert!(
+        case.rows
+            .iter()
+            .all(|r| r.mean_error().is_finite() && r.cost > 0.0)
+    );
+    assert!(out.join(&case.files[0]).is_file());
+    // Generated held-out motions need a base model, which imported data do not have.
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "mesh: Beam(1),",
+        "mesh: Beam(1), test: (trajectories: 1, steps: 4, seed: 1),",
+    );
+    std::fs::write(&path, text).unwrap();
+    let error = Experiment::load(&path).unwrap_err().to_string();
+    assert!(
+        error.contains("task.test") && error.contains("imported"),
+        "{error}"
+    );
+    // A given embedding that does not fit is refused, naming the file.
+    npy::write(
+        &dir.path().join("weights.npy"),
+        &[ids.len(), 4],
+        &vec![0.5; 4 * ids.len()],
+    )
+    .unwrap();
+    let broken = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("test: (trajectories: 1, steps: 4, seed: 1),", "");
+    std::fs::write(&path, broken).unwrap();
+    let error = run(&Experiment::load(&path).unwrap(), None, &mut NoProgress)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("weights.npy") && error.contains("sum to 1"),
+        "{error}"
+    );
 }

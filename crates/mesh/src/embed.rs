@@ -73,6 +73,48 @@ impl Embedding {
         e
     }
 
+    /// An embedding given by whoever made the meshes: the element of each point in `mesh`
+    /// and its barycentric weights there, used as given (no clamping: a point just outside
+    /// a faceted surface keeps its slightly negative weight, so a linear field is still
+    /// reproduced exactly).
+    ///
+    /// # Errors
+    /// The first point whose element is out of range or whose weights are not finite or do
+    /// not sum to 1 (to 1e-6), or a length mismatch, as a message naming the point.
+    pub fn given(
+        mesh: &TetMesh,
+        element: Vec<usize>,
+        weights: Vec<[f64; 4]>,
+    ) -> Result<Self, String> {
+        if element.len() != weights.len() {
+            return Err(format!(
+                "{} elements for {} weight rows",
+                element.len(),
+                weights.len()
+            ));
+        }
+        for (i, (&t, w)) in element.iter().zip(&weights).enumerate() {
+            if t >= mesh.num_tets() {
+                return Err(format!(
+                    "point {i}: element {t} is out of range for {} tets",
+                    mesh.num_tets()
+                ));
+            }
+            let sum: f64 = w.iter().sum();
+            if !w.iter().all(|l| l.is_finite()) || (sum - 1.0).abs() > 1e-6 {
+                return Err(format!(
+                    "point {i}: weights {w:?} must be finite and sum to 1"
+                ));
+            }
+        }
+        Ok(Self {
+            element,
+            weights,
+            outside: Vec::new(),
+            max_distance: 0.0,
+        })
+    }
+
     /// Number of located points.
     pub fn len(&self) -> usize {
         self.element.len()

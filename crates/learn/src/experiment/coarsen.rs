@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Context, ExperimentObserver, Series, Stage, Task};
 use crate::basis::Basis;
-use crate::coarsen::{Constraints, Mapping, coarsen, save_model};
+use crate::coarsen::{Constraints, Mapping, coarsen_embedded, save_model};
 use crate::compare::median;
 use crate::dataset::{Dataset, Split, Trajectory, generate};
 use crate::error::LearnError;
@@ -222,6 +222,8 @@ impl CoarsenReport {
 /// The task's settings, borrowed from [`Task::Coarsen`].
 struct Settings<'a> {
     regions: u32,
+    /// Region tags of the coarse elements, when given (else `regions` slabs).
+    tags: Option<Vec<u32>>,
     regularisation: &'a [f64],
     damping: bool,
     mass_scale: bool,
@@ -266,6 +268,8 @@ pub fn run(
     let Task::Coarsen {
         mesh,
         test,
+        embedding,
+        region_tags,
         dt_factors,
         regions,
         regularisation,
@@ -281,21 +285,46 @@ pub fn run(
         unreachable!("dispatched on the task")
     };
     let origin = cx.origin();
-    observer.start(Stage::Dataset, (test.trajectories * test.steps) as u64);
-    let test_data = generate(&cx.base, origin, test, |_, _| observer.advance(1))?;
-    let test_seconds = (test.trajectories * test.steps) as f64 * cx.base.integrator.dt;
-    observer.finish();
+    // The held-out motions: simulated by the base model, or the data's own test split.
+    let test_data = match test {
+        Some(spec) => {
+            observer.start(Stage::Dataset, (spec.trajectories * spec.steps) as u64);
+            let made = generate(&cx.base, origin, spec, |_, _| observer.advance(1))?;
+            observer.finish();
+            made
+        }
+        None => cx.data.only(Split::Test),
+    };
+    let steps: usize = test_data.trajectories.iter().map(Trajectory::steps).sum();
+    let test_seconds = steps as f64 * test_data.meta.dt;
     // The fine model's cost as every coarse model's: its rollouts of the held-out motions,
-    // timed in the same rounds as the coarse models'.
-    let mut fine = cx.base.build(origin)?.integrator;
+    // timed in the same rounds as the coarse models' (for imported data, deform's model of
+    // the fine body, the experiment's scene).
+    let built = cx.base.build(origin)?;
+    let (fine_mesh, mut fine) = (built.mesh, built.integrator);
     let fine_tests: Vec<&Trajectory> = test_data.trajectories.iter().collect();
     let coarse = Scene {
         name: "coarse".into(),
         mesh: mesh.clone(),
         ..cx.base.clone()
     };
+    let coarse_mesh = coarse.build_mesh(origin)?;
+    let embedding = match embedding {
+        Some(files) => Some(crate::coarsen::read_embedding(
+            &files.elements,
+            &files.weights,
+            &fine_mesh,
+            coarse_mesh.num_vertices(),
+        )?),
+        None => None,
+    };
+    let tags = match region_tags {
+        Some(file) => Some(read_tags(file, coarse_mesh.num_tets())?),
+        None => None,
+    };
     let settings = Settings {
         regions: *regions,
+        tags,
         regularisation,
         damping: *damping,
         mass_scale: *mass_scale,
@@ -312,7 +341,8 @@ pub fn run(
         let mut scene = coarse.clone();
         scene.integrator.dt *= k as f64;
         let map = |d: &Dataset| -> Result<(Dataset, Mapping), LearnError> {
-            let (d, mapping) = coarsen(d, &scene, origin, Constraints::FromFine)?;
+            let e = embedding.as_ref();
+            let (d, mapping) = coarsen_embedded(d, &scene, origin, Constraints::FromFine, e)?;
             let mut d = d.subsample(k);
             d.meta.scene.integrator.dt = scene.integrator.dt;
             Ok((d, mapping))
@@ -426,7 +456,11 @@ fn run_case(
     let homogeneous = fitted_model(&sim);
     let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
-    let regions = field(slabs(&mesh, settings.regions), Regularisation::default());
+    let labels = match &settings.tags {
+        Some(tags) => tags.clone(),
+        None => slabs(&mesh, settings.regions),
+    };
+    let regions = field(labels, Regularisation::default());
     let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
     let fitted = fitted_model(&sim);
     let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
@@ -721,6 +755,28 @@ fn along_axis(mesh: &TetMesh) -> Vec<f64> {
     let centroid = |t: &[usize; 4]| t.iter().map(|&v| p[v][axis]).sum::<f64>() / 4.0;
     let along = |t: &[usize; 4]| (centroid(t) - lo[axis]) / extent[axis].max(f64::MIN_POSITIVE);
     mesh.tets().iter().map(along).collect()
+}
+
+/// Region tags of `tets` coarse elements from an `.npy` of integers.
+fn read_tags(file: &Path, tets: usize) -> Result<Vec<u32>, LearnError> {
+    let bad = |reason: String| {
+        LearnError::Scene(deform_integrator::SceneError::Invalid {
+            path: file.to_owned(),
+            field: "region_tags".into(),
+            reason,
+        })
+    };
+    let a = crate::npy::read(file).map_err(|e| bad(e.to_string()))?;
+    if a.shape != [tets] {
+        return Err(bad(format!(
+            "shape {:?}, expected [{tets}] (coarse tets)",
+            a.shape
+        )));
+    }
+    let tags = a.indices().map_err(bad)?;
+    tags.into_iter()
+        .map(|t| u32::try_from(t).map_err(|_| bad(format!("tag {t} is beyond u32"))))
+        .collect()
 }
 
 /// Labels of `regions` slabs of equal length along the rest shape's longest axis, by each

@@ -123,9 +123,22 @@ pub enum Task {
     Coarsen {
         /// The coarse mesh: a generator or a file (relative to the experiment file).
         mesh: deform_integrator::scene::MeshSource,
-        /// The held-out motions (all of its trajectories are test; its split is ignored):
-        /// best of another kind than the dataset's.
-        test: DatasetSpec,
+        /// The held-out motions, simulated by the base model (all of its trajectories are
+        /// test; its split is ignored): best of another kind than the dataset's. `None`: the
+        /// data's own test split (the only choice for imported data, which no base model
+        /// of deform's made).
+        #[serde(default)]
+        test: Option<DatasetSpec>,
+        /// Where each coarse rest vertex sits in the fine mesh, as the data's maker knows it:
+        /// `.npy` files of the fine element of each coarse vertex (vertices,) and its
+        /// barycentric weights there (vertices, 4), used as given (weights may be slightly
+        /// negative for a vertex just outside a faceted fine surface). `None`: located.
+        #[serde(default)]
+        embedding: Option<EmbeddingFiles>,
+        /// Region tags of the coarse elements for the per-region fit: an `.npy` of one
+        /// integer per coarse element. `None`: `regions` slabs along the longest axis.
+        #[serde(default)]
+        region_tags: Option<PathBuf>,
         /// Coarse time steps as multiples of the base's: one case each.
         #[serde(default = "one_factor")]
         dt_factors: Vec<usize>,
@@ -407,15 +420,28 @@ impl From<Experiment> for ExperimentFile {
     }
 }
 
+/// A given embedding of a coarse mesh's vertices in a fine mesh ([`Task::Coarsen`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EmbeddingFiles {
+    /// The fine element of each coarse vertex, an `.npy` of integers (vertices,).
+    pub elements: PathBuf,
+    /// Its barycentric weights in that element's vertex order, (vertices, 4).
+    pub weights: PathBuf,
+}
+
 impl Experiment {
     /// Parses experiment text and validates it; `path` names it in errors. Scene paths
-    /// stay as written.
+    /// stay as written. An optional field may be written bare (`test: (...)` for
+    /// `test: Some((...))`).
     ///
     /// # Errors
     /// [`LearnError::Parse`] (with line and column) or [`LearnError::Config`] naming the
     /// field.
     pub fn parse(text: &str, path: &Path) -> Result<Self, LearnError> {
-        let e: Experiment = ron::from_str(text).map_err(|e| LearnError::Parse {
+        let options = ron::Options::default()
+            .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME);
+        let e: Experiment = options.from_str(text).map_err(|e| LearnError::Parse {
             path: path.to_path_buf(),
             reason: e.to_string(),
         })?;
@@ -456,8 +482,22 @@ impl Experiment {
                 }
             }
         }
-        if let Task::Coarsen { mesh, .. } = &mut e.task {
+        if let Task::Coarsen {
+            mesh,
+            embedding,
+            region_tags,
+            ..
+        } = &mut e.task
+        {
             mesh.resolve_paths(dir);
+            let embedding = embedding
+                .iter_mut()
+                .flat_map(|e| [&mut e.elements, &mut e.weights]);
+            for file in embedding.chain(region_tags) {
+                if file.is_relative() {
+                    *file = dir.join(&*file);
+                }
+            }
         }
         if let Data::Import(import) = &mut e.data {
             import.resolve_paths(dir);
@@ -613,7 +653,9 @@ impl Experiment {
         if let Some(m) = material {
             m.build().map_err(|e| ("task.material", e.to_string()))?;
         }
-        if test.trajectories == 0 || test.steps == 0 {
+        if let Some(test) = test
+            && (test.trajectories == 0 || test.steps == 0)
+        {
             return Err((
                 "task.test",
                 "needs at least one step of one trajectory".into(),
@@ -625,16 +667,31 @@ impl Experiment {
                 format!("{dt_factors:?}: needs factors >= 1"),
             ));
         }
-        let Data::Generate(dataset) = &self.data else {
-            return Err((
-                "import",
-                "coarsening simulates its held-out motions with the base model, which imported data do not have: use a generated `dataset`".into(),
-            ));
+        let data_steps = match (&self.data, test) {
+            (Data::Import(_), Some(_)) => {
+                return Err((
+                    "task.test",
+                    "imported data have no base model of deform's to simulate held-out motions: leave `test` out, and the data's test split is held out".into(),
+                ));
+            }
+            (Data::Generate(d), Some(t)) => d.steps.min(t.steps),
+            (Data::Generate(d), None) => d.steps,
+            // Imported trajectories' lengths are known once read.
+            (Data::Import(_), None) => usize::MAX,
         };
-        if let Some(k) = dt_factors
-            .iter()
-            .find(|&&k| 2 * k > dataset.steps.min(test.steps))
-        {
+        if test.is_none() {
+            let (a, b) = self.data.split();
+            let count = self.data.trajectories();
+            if crate::dataset::split_counts(count, (a, b)).2 == 0 {
+                return Err((
+                    "task.test",
+                    format!(
+                        "without held-out motions the data's test split is held out, and ({a}, {b}) of {count} trajectories leaves none"
+                    ),
+                ));
+            }
+        }
+        if let Some(k) = dt_factors.iter().find(|&&k| 2 * k > data_steps) {
             return Err((
                 "task.dt_factors",
                 format!("{k} leaves less than two coarse steps"),
