@@ -432,6 +432,21 @@ fn coarsen(r: &CoarsenReport, imported: bool, md: &mut String) -> Result<()> {
                 row.newton_rel
             )?;
         }
+        let unstable = c
+            .rows
+            .iter()
+            .filter_map(|r| Some((r.model, r.fit.as_ref()?.unstable.as_ref()?)));
+        for (model, why) in unstable {
+            let start = match model {
+                CoarseModel::Homogeneous => "the untuned model",
+                _ => "the homogeneous fit",
+            };
+            writeln!(
+                md,
+                "\nThe {} failed a free rollout ({why}): the row is {start}, which the fit started from.",
+                model.name()
+            )?;
+        }
         if !c.files.is_empty() {
             let files: Vec<String> = c
                 .files

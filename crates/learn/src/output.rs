@@ -539,21 +539,7 @@ impl<'a> OutputError<'a> {
                     (ti, start, len),
                     self.options.allow_retries,
                 )?;
-                // Loss terms and their partial derivatives per predicted state.
-                let mut dl_dx = vec![vec![0.0; n]; len + 1];
-                let mut dl_dv = vec![vec![0.0; n]; len + 1];
-                for k in 1..=len {
-                    let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
-                    for i in 0..n {
-                        let ex = states[k].x[i] - xd[i];
-                        let ev = states[k].v[i] - vd[i];
-                        num += ex * ex + wv * ev * ev;
-                        let motion = xd[i] - t.x[start + k - 1][i];
-                        den += motion * motion;
-                        dl_dx[k][i] = 2.0 * ex;
-                        dl_dv[k][i] = 2.0 * wv * ev;
-                    }
-                }
+                let (dl_dx, dl_dv) = loss_terms(t, start, &states, wv, (&mut num, &mut den));
                 let rollout = Rollout {
                     trajectory: ti,
                     start,
@@ -590,24 +576,32 @@ impl<'a> OutputError<'a> {
         for gj in grad.iter_mut().chain(&mut start_grad) {
             *gj /= den;
         }
-        if let Some(r) = &self.regularisation {
-            let terms = term_coefficients(&self.base);
-            loss += r.add(&c[..m], &terms, &mut grad[..m]);
-            let v = self.num_mass();
-            if v > 0 && r.towards > 0.0 {
-                // ln s_v towards 0, as the material towards the base.
-                let w = r.towards / v as f64;
-                for (s, g) in c[m..m + v].iter().zip(&mut grad[m..m + v]) {
-                    loss += w * s.ln().powi(2);
-                    *g += 2.0 * w * s.ln() / s;
-                }
-            }
-        }
+        loss += self.penalty(c, &mut grad);
         *self.evaluations.borrow_mut() += 1;
         (self.progress.borrow_mut())(*self.evaluations.borrow(), loss);
         let all: Vec<f64> = grad.iter().chain(&start_grad).copied().collect();
         *self.cache.borrow_mut() = Some((key, loss, all));
         Ok((loss, grad, start_grad))
+    }
+
+    /// The regularisation's penalty at `c`, its gradient added to `grad`.
+    fn penalty(&self, c: &[f64], grad: &mut [f64]) -> f64 {
+        let Some(r) = &self.regularisation else {
+            return 0.0;
+        };
+        let m = self.num_material();
+        let terms = term_coefficients(&self.base);
+        let mut loss = r.add(&c[..m], &terms, &mut grad[..m]);
+        let v = self.num_mass();
+        if v > 0 && r.towards > 0.0 {
+            // ln s_v towards 0, as the material towards the base.
+            let w = r.towards / v as f64;
+            for (s, g) in c[m..m + v].iter().zip(&mut grad[m..m + v]) {
+                loss += w * s.ln().powi(2);
+                *g += 2.0 * w * s.ln() / s;
+            }
+        }
+        loss
     }
 
     /// Puts coefficients `c` (material, mass scales, then damping) into the integrator.
@@ -705,6 +699,34 @@ pub fn face_neighbours(mesh: &deform_mesh::TetMesh, labels: &[u32]) -> Vec<[usiz
     pairs.sort_unstable();
     pairs.dedup();
     pairs
+}
+
+/// The loss terms of a rollout's predicted `states` (from data step `start` of `t`), added
+/// to the sums `(num, den)` (the squared errors, with velocities weighted by `wv`, and the
+/// squared data motion), and their derivatives `dL/dx`, `dL/dv` per state (entry 0 zero).
+fn loss_terms(
+    t: &Trajectory,
+    start: usize,
+    states: &[State],
+    wv: f64,
+    (num, den): (&mut f64, &mut f64),
+) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+    let (len, n) = (states.len() - 1, states[0].x.len());
+    let mut dl_dx = vec![vec![0.0; n]; len + 1];
+    let mut dl_dv = vec![vec![0.0; n]; len + 1];
+    for k in 1..=len {
+        let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
+        for i in 0..n {
+            let ex = states[k].x[i] - xd[i];
+            let ev = states[k].v[i] - vd[i];
+            *num += ex * ex + wv * ev * ev;
+            let motion = xd[i] - t.x[start + k - 1][i];
+            *den += motion * motion;
+            dl_dx[k][i] = 2.0 * ex;
+            dl_dv[k][i] = 2.0 * wv * ev;
+        }
+    }
+    (dl_dx, dl_dv)
 }
 
 /// Forward: the rollout of `len` steps from `first`, the state at step `start` (that state

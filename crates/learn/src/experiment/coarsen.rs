@@ -72,6 +72,12 @@ pub struct FitSummary {
     pub seconds: f64,
     /// How the optimiser stopped (for the per-element fit: the chosen weight's).
     pub termination: Termination,
+    /// Why the fitted model was rejected, when it was: its free rollout of a training or
+    /// validation trajectory failed (for the per-element fit: every weight's did), and the
+    /// row holds the model the fit started from instead (the untuned model for the
+    /// homogeneous fit, the homogeneous fit for the others).
+    #[serde(default)]
+    pub unstable: Option<String>,
 }
 
 /// One model measured on the held-out motions.
@@ -452,18 +458,17 @@ fn run_case(
     }
     let field = |labels, regularisation| settings.field(labels, regularisation);
     let whole = field(Vec::new(), Regularisation::default());
-    let (_, summary) = fit(&mut sim, &train, &whole, settings, observer)?;
-    let homogeneous = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &homogeneous)?;
+    let sets = (train.as_slice(), validation.as_slice());
+    let start = fitted_model(&sim);
+    let (summary, homogeneous, tuned) =
+        fit_row(&mut sim, sets, &whole, &start, settings, observer)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
     let labels = match &settings.tags {
         Some(tags) => tags.clone(),
         None => slabs(&mesh, settings.regions),
     };
     let regions = field(labels, Regularisation::default());
-    let (_, summary) = fit(&mut sim, &train, &regions, settings, observer)?;
-    let fitted = fitted_model(&sim);
-    let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+    let (summary, _, tuned) = fit_row(&mut sim, sets, &regions, &homogeneous, settings, observer)?;
     models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
@@ -471,9 +476,8 @@ fn run_case(
             basis: Some(Basis::hat(&mesh, nodes)?),
             ..field(Vec::new(), Regularisation::default())
         };
-        let (_, summary) = fit(&mut sim, &train, &smooth, settings, observer)?;
-        let fitted = fitted_model(&sim);
-        let tuned = settings.loosest_newton(&mut sim, &validation, &fitted)?;
+        let (summary, _, tuned) =
+            fit_row(&mut sim, sets, &smooth, &homogeneous, settings, observer)?;
         models.push((CoarseModel::Smooth, Some(summary), tuned));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
@@ -500,8 +504,21 @@ fn run_case(
     });
     let best = best.map(|f| (f.validation, f.weight, f.coefficients, f.summary, f.model));
     let seconds = started.elapsed().as_secs_f64();
-    let (_, chosen, mut c, mut summary, model) = best.expect("validated: at least one weight");
+    let (validated, chosen, mut c, mut summary, mut model) =
+        best.expect("validated: at least one weight");
     (summary.evaluations, summary.seconds) = (evaluations, seconds);
+    if validated.is_infinite() {
+        // No weight gave a model that runs: the homogeneous fit, as a field, instead.
+        let why = summary.unstable.take().unwrap_or_default();
+        summary.unstable = Some(format!("at every weight; the chosen one's: {why}"));
+        let uniform = homogeneous.0.max_terms();
+        c = match &homogeneous.0 {
+            MaterialField::Uniform(m) => m.term_coefficients().repeat(labels.len()),
+            _ => c,
+        };
+        c.truncate(labels.len() * uniform);
+        model = homogeneous.clone();
+    }
     let mass_scale = model.2.clone();
     let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
     models.push((CoarseModel::PerElement, Some(summary), tuned));
@@ -525,6 +542,66 @@ fn run_case(
         mesh,
     };
     Ok((case, fitted, fine_cost))
+}
+
+/// Fits `field` from the model in `sim`, rejects the fitted model for `fallback` when it
+/// does not run freely over every training and validation trajectory
+/// ([`free_rollout_failure`]), and chooses its Newton tolerance: the row's summary, the
+/// model kept (left in `sim`) and that model as it runs.
+fn fit_row(
+    sim: &mut Integrator,
+    (train, validation): (&[&Trajectory], &[&Trajectory]),
+    field: &Field,
+    fallback: &FittedModel,
+    settings: &Settings<'_>,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(FitSummary, FittedModel, FittedModel), LearnError> {
+    let (_, mut summary) = fit(sim, train, field, settings, observer)?;
+    let fitted = fitted_model(sim);
+    let sets = [train, validation];
+    let kept = settings.keep_stable(sim, &sets, fitted, fallback, &mut summary)?;
+    let tuned = settings.loosest_newton(sim, validation, &kept)?;
+    Ok((summary, kept, tuned))
+}
+
+impl Settings<'_> {
+    /// `fitted` when it runs freely (as it runs: [`Settings::running`]) over every
+    /// trajectory of `sets`, else `fallback` with the failure in `summary.unstable`; the
+    /// model kept is left in `sim`.
+    fn keep_stable(
+        &self,
+        sim: &mut Integrator,
+        sets: &[&[&Trajectory]],
+        fitted: FittedModel,
+        fallback: &FittedModel,
+        summary: &mut FitSummary,
+    ) -> Result<FittedModel, LearnError> {
+        restore(sim, &self.running(&fitted))?;
+        let kept = match free_rollout_failure(sim, sets) {
+            None => fitted,
+            Some(why) => {
+                summary.unstable = Some(why);
+                fallback.clone()
+            }
+        };
+        restore(sim, &kept)?;
+        Ok(kept)
+    }
+}
+
+/// The first failure of `sim`'s free rollouts of the trajectories of `sets` (training,
+/// then validation), naming the trajectory and step; `None` when every one completes.
+fn free_rollout_failure(sim: &mut Integrator, sets: &[&[&Trajectory]]) -> Option<String> {
+    for (set, name) in sets.iter().zip(["training", "validation"]) {
+        for (k, t) in set.iter().enumerate() {
+            let what = format!("{name} trajectory {k}");
+            let weights = deform_solvers::WorkWeights::default();
+            if let Err(e) = crate::rollout::rollout(sim, t, 1, weights, &what, &mut |_, _| {}) {
+                return Some(e.to_string());
+            }
+        }
+    }
+    None
 }
 
 /// How much more mean validation error a looser Newton tolerance may cost than the
@@ -611,10 +688,20 @@ impl PerElement<'_, '_> {
             mass: self.settings.mass_scale,
             ..self.settings.field(self.labels.to_vec(), regularisation)
         };
-        let (coefficients, summary) = fit(sim, self.train, &field, self.settings, observer)?;
+        let (coefficients, mut summary) = fit(sim, self.train, &field, self.settings, observer)?;
         let model = fitted_model(sim);
         restore(sim, &self.settings.running(&model))?;
-        let validation = mean_error(&mean_rollout_errors(sim, self.validation)?);
+        // A model that does not run freely is not chosen.
+        let validation = match free_rollout_failure(sim, &[self.train]) {
+            Some(why) => Err(why),
+            None => mean_rollout_errors(sim, self.validation)
+                .map(|e| mean_error(&e))
+                .map_err(|e| e.to_string()),
+        };
+        let validation = validation.unwrap_or_else(|why| {
+            summary.unstable = Some(why);
+            f64::INFINITY
+        });
         restore(sim, &model)?;
         Ok(WeightFit {
             weight: w,
@@ -690,6 +777,7 @@ fn fit(
         evaluations: fit.evaluations,
         seconds: started.elapsed().as_secs_f64(),
         termination: fit.termination,
+        unstable: None,
     };
     Ok((fit.coefficients, summary))
 }
@@ -856,4 +944,73 @@ fn save_case(
     let mut files: Vec<PathBuf> = written.iter().map(relative).collect();
     files.push(vtu_name.into());
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fitted model whose free rollout fails (here one far too soft: its elements
+    /// invert under gravity) is rejected for the model the fit started from, and the reason
+    /// names the trajectory and step; a model that runs is kept.
+    #[test]
+    fn a_fitted_model_that_fails_its_free_rollout_is_rejected() {
+        let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+            integrator: (dt: 0.01, max_retries: 2), steps: 3)"#;
+        let origin = Path::new("t.ron");
+        let scene = Scene::parse(text, origin).unwrap();
+        let spec = crate::dataset::DatasetSpec::new(2, 60, 5);
+        let data = generate(&scene, origin, &spec, |_, _| ()).unwrap();
+        let train: Vec<&Trajectory> = data.trajectories.iter().collect();
+        let mut sim = scene.build(origin).unwrap().integrator;
+        let good = fitted_model(&sim);
+        let soft = deform_materials::MaterialSpec::NeoHookean(deform_materials::Moduli::Young {
+            e: 1e-4,
+            nu: 0.4,
+        });
+        let bad = (
+            MaterialField::Uniform(soft.build().unwrap()),
+            good.1.clone(),
+            None,
+        );
+        let settings = Settings {
+            regions: 1,
+            tags: None,
+            regularisation: &[0.0],
+            damping: false,
+            mass_scale: false,
+            smooth: None,
+            material: None,
+            newton_rel: &[],
+            fit_newton_iterations: None,
+            scene_newton_iterations: good.1.newton.max_iterations,
+            options: OutputErrorOptions::default(),
+        };
+        let mut summary = FitSummary {
+            coefficients: 2,
+            losses: (1.0, 0.5),
+            evaluations: 1,
+            seconds: 0.0,
+            termination: Termination::Converged,
+            unstable: None,
+        };
+        let sets = [train.as_slice()];
+        let kept = settings
+            .keep_stable(&mut sim, &sets, bad, &good, &mut summary)
+            .unwrap();
+        let why = summary.unstable.clone().expect("rejected");
+        assert!(
+            why.contains("training trajectory 0") && why.contains("step"),
+            "{why}"
+        );
+        assert_eq!(kept.0, good.0);
+        assert_eq!(sim.assembly().materials(), &good.0);
+        summary.unstable = None;
+        let kept = settings
+            .keep_stable(&mut sim, &sets, good.clone(), &good, &mut summary)
+            .unwrap();
+        assert!(summary.unstable.is_none());
+        assert_eq!(kept.0, good.0);
+    }
 }
