@@ -140,3 +140,71 @@ def test_a_policy_learned_in_python_drives_a_simulation(tmp_path):
     assert np.abs(learned.x - direct.x).max() < 1e-6
     with pytest.raises(deform.LearnError, match="candidate"):
         deform.SolverData.collect(scene, ["Gauss()"], steps=1)
+
+
+FINE = """Scene(
+    name: "fine",
+    mesh: Beam(2),
+    material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+    density: 1000.0,
+    constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+    integrator: (dt: 0.01, gravity: {gravity}, newton: (rel: 1e-10, abs: 1e-12)),
+    steps: 1,
+)"""
+
+
+def barycentric_embedding(fine, points):
+    """Each point's fine element and barycentric weights, found by brute force in numpy
+    (as a user's own mesher would give them)."""
+    x, tets = fine.vertices, fine.tets
+    elements, weights = [], []
+    for p in points:
+        for t, tet in enumerate(tets):
+            d = np.stack([x[tet[1]] - x[tet[0]], x[tet[2]] - x[tet[0]], x[tet[3]] - x[tet[0]]], 1)
+            l = np.linalg.solve(d, p - x[tet[0]])
+            w = np.array([1.0 - l.sum(), *l])
+            if w.min() >= -1e-9:
+                elements.append(t)
+                weights.append(w)
+                break
+    return np.array(elements), np.array(weights)
+
+
+def test_coarsening_outside_data_of_mixed_conditions_with_a_given_embedding():
+    # Motions made elsewhere: two under gravity, two without, each kicked.
+    rng = np.random.default_rng(5)
+    trajectories = []
+    for k in range(4):
+        gravity = "(0.0, 0.0, -9.81)" if k % 2 == 0 else "(0.0, 0.0, 0.0)"
+        sim = deform.Simulation(deform.Scene.from_ron(FINE.format(gravity=gravity)))
+        free = np.setdiff1d(np.arange(sim.x.shape[0]), sim.constrained)
+        kick = np.zeros_like(sim.v)
+        kick[free] = rng.normal(0, 0.3, (len(free), 3))
+        x, v = record(sim, 6, kick)
+        conditions = None if k % 2 == 0 else {"gravity": [0.0, 0.0, 0.0]}
+        trajectories.append(deform.Trajectory(x, 0.01, velocities=v, conditions=conditions))
+    assert trajectories[1].conditions == {"gravity": (0.0, 0.0, 0.0)}
+    fine_scene = deform.Scene.from_ron(FINE.format(gravity="(0.0, 0.0, -9.81)"))
+    data = deform.Dataset.from_trajectories(fine_scene, trajectories, split=(0.5, 0.25))
+    coarse_scene = deform.Scene.from_ron(
+        FINE.format(gravity="(0.0, 0.0, -9.81)").replace("Beam(2)", "Beam(1)")
+    )
+    fine_mesh, coarse_mesh = deform.beam(2), deform.beam(1)
+    elements, weights = barycentric_embedding(fine_mesh, coarse_mesh.vertices)
+    coarse, mapping = data.coarsen(coarse_scene, elements=elements, weights=weights)
+    assert mapping["vertices"] == coarse_mesh.vertices.shape[0]
+    # Every coarse state is the fine one at the given places, conditions kept.
+    for fine_t, coarse_t in zip(data.trajectories, coarse.trajectories):
+        expected = np.einsum("pa,spad->spd", weights, fine_t.x[:, fine_mesh.tets[elements]])
+        np.testing.assert_allclose(coarse_t.x, expected, atol=1e-12)
+        assert coarse_t.conditions == fine_t.conditions
+    # The coarse model's material fitted to the carried data of all four motions at once.
+    fit = deform.fit_material(coarse_scene, coarse.trajectories, rollout=3, max_iterations=10)
+    assert np.isfinite(fit["E"]) and fit["stage2"]["loss"] < fit["stage2"]["initial_loss"]
+    # Conditions that do not fit the scene are refused when the dataset is made.
+    bad = deform.Trajectory(trajectories[0].x, 0.01, velocities=trajectories[0].v,
+                            conditions={"motions": []})
+    with pytest.raises(deform.LearnError, match="motions"):
+        deform.Dataset.from_trajectories(fine_scene, [bad])
+    with pytest.raises(deform.LearnError, match="weights"):
+        data.coarsen(coarse_scene, elements=elements, weights=weights * 2.0)

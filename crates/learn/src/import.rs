@@ -102,24 +102,16 @@ impl ImportSpec {
 }
 
 /// Reads the trajectories of `spec` for the model `scene` (whose data's facts `spec` sets:
-/// [`ImportSpec::scene`]), split by `spec.split`, each with its own conditions. Each
-/// trajectory must have the mesh's vertex count, and its constrained vertices must sit where
-/// the scene's constraints, moving as its conditions say, put them (to 1e-9 of the mesh's
-/// size): data the model cannot reproduce are refused, naming the trajectory, step and vertex. Noise and subsampling are the caller's, as for generated data.
+/// [`ImportSpec::scene`]), split by `spec.split`, each with its own conditions, and checks
+/// them as [`from_trajectories`] does. Noise and subsampling are the caller's, as for
+/// generated data.
 ///
 /// # Errors
 /// [`DatasetError`] naming the file, or the scene's error.
 pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset, DatasetError> {
     let scene = spec.scene(scene);
-    let mut built = scene.build(origin)?;
-    let vertices = built.mesh.num_vertices();
-    let (lo, hi) = built.mesh.bounding_box();
-    let tolerance = 1e-9 * (hi - lo).norm();
-    let extent = lo.abs().max().max(hi.abs().max()) + (hi - lo).norm();
-    let count = spec.trajectories.len();
-    let mut trajectories = Vec::with_capacity(count);
-    let mut metas = Vec::with_capacity(count);
-    for (k, t) in spec.trajectories.iter().enumerate() {
+    let mut read = Vec::with_capacity(spec.trajectories.len());
+    for t in &spec.trajectories {
         let velocities = match &t.velocities {
             VelocitySource::File(p) => Velocities::File(p),
             VelocitySource::Initial(p) => Velocities::Initial(p),
@@ -132,47 +124,107 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             )));
         }
         let (mut trajectory, stored) = read_trajectory(&t.positions, velocities, spec.dt)?;
-        // Positions stored in single precision sit within their rounding of the targets.
-        let tolerance = tolerance.max(4.0 * stored.rounding() * extent);
         trajectory.exact_start |= t.exact_start;
         trajectory.conditions = t.conditions.clone();
+        let source = Source {
+            name: t.positions.clone(),
+            dtype: stored.dtype.clone(),
+            rounding: stored.rounding(),
+        };
+        read.push((trajectory, source));
+    }
+    from_trajectories(&scene, origin, read, spec.split)
+}
+
+/// Where a trajectory of [`from_trajectories`] came from: what names it in errors and
+/// metadata, and how its positions were stored.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Source {
+    /// Its file (or what the caller calls it: `array 0`).
+    pub name: PathBuf,
+    /// numpy's dtype of the positions as stored (`float64`, `float32`).
+    pub dtype: String,
+    /// Their relative rounding ([`Array::rounding`]).
+    pub rounding: f64,
+}
+
+impl Source {
+    /// Float64 values called `name`.
+    pub fn float64(name: impl Into<PathBuf>) -> Self {
+        Self {
+            name: name.into(),
+            dtype: "float64".into(),
+            rounding: f64::EPSILON,
+        }
+    }
+}
+
+/// A dataset of trajectories made elsewhere (each with its conditions) for the model `scene`
+/// at its time step, split in this order by `split`. Each trajectory must have the mesh's
+/// vertex count, and its constrained vertices must sit where the scene's constraints, moving
+/// as its conditions say, put them (to 1e-9 of the mesh's size, or the positions' own
+/// rounding when stored in single precision): data the model cannot reproduce are refused,
+/// naming the source, step and vertex. Each trajectory starts from its own first state.
+///
+/// # Errors
+/// [`DatasetError`] naming the source, or the scene's error.
+pub fn from_trajectories(
+    scene: &Scene,
+    origin: &Path,
+    trajectories: Vec<(Trajectory, Source)>,
+    split: (f64, f64),
+) -> Result<Dataset, DatasetError> {
+    let mut built = scene.build(origin)?;
+    let (dt, vertices) = (scene.integrator.dt, built.mesh.num_vertices());
+    let (lo, hi) = built.mesh.bounding_box();
+    let extent = lo.abs().max().max(hi.abs().max()) + (hi - lo).norm();
+    let count = trajectories.len();
+    let mut metas = Vec::with_capacity(count);
+    let mut kept = Vec::with_capacity(count);
+    for (k, (trajectory, source)) in trajectories.into_iter().enumerate() {
+        let name = source.name.display();
+        let tolerance = (1e-9 * (hi - lo).norm()).max(4.0 * source.rounding * extent);
         built
             .integrator
-            .set_conditions(&t.conditions)
-            .map_err(|e| DatasetError::Inconsistent(format!("{}: {e}", t.positions.display())))?;
-        let found = trajectory.x[0].len() / 3;
-        if found != vertices {
+            .set_conditions(&trajectory.conditions)
+            .map_err(|e| DatasetError::Inconsistent(format!("{name}: {e}")))?;
+        let found = trajectory.x.first().map_or(0, |f| f.len() / 3);
+        let ragged = trajectory.x.len() != trajectory.v.len()
+            || trajectory
+                .x
+                .iter()
+                .chain(&trajectory.v)
+                .any(|f| f.len() != 3 * found);
+        if found != vertices || ragged {
             return Err(DatasetError::Inconsistent(format!(
-                "{}: {found} vertices, the scene's mesh has {vertices}",
-                t.positions.display()
+                "{name}: {found} vertices, the scene's mesh has {vertices}"
             )));
         }
         for (n, x) in trajectory.x.iter().enumerate() {
-            let targets = built.integrator.constrained_targets(n as f64 * spec.dt);
+            let targets = built.integrator.constrained_targets(n as f64 * dt);
             for (i, target) in targets {
                 let off = (0..3)
                     .map(|d| (x[3 * i + d] - target[d]).powi(2))
                     .sum::<f64>();
                 if off.sqrt() > tolerance {
                     return Err(DatasetError::Inconsistent(format!(
-                        "{}: step {n}: vertex {i} is constrained by the scene but lies {:.3e} m from where its constraint puts it (positions stored as {}, tolerance {tolerance:.1e} m)",
-                        t.positions.display(),
+                        "{name}: step {n}: vertex {i} is constrained by the scene but lies {:.3e} m from where its constraint puts it (positions stored as {}, tolerance {tolerance:.1e} m)",
                         off.sqrt(),
-                        stored.dtype
+                        source.dtype
                     )));
                 }
             }
         }
         metas.push(TrajectoryMeta {
             name: format!("traj_{k:03}"),
-            split: split_of(k, count, spec.split),
+            split: split_of(k, count, split),
             steps: trajectory.steps(),
             initial: scene.initial.clone(),
-            source: Some(t.positions.clone()),
+            source: Some(source.name.clone()),
             exact_start: trajectory.exact_start,
-            conditions: t.conditions.clone(),
+            conditions: trajectory.conditions.clone(),
         });
-        trajectories.push(trajectory);
+        kept.push(trajectory);
     }
     Ok(Dataset {
         meta: DatasetMeta {
@@ -180,12 +232,12 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
             deform_version: env!("CARGO_PKG_VERSION").to_owned(),
             scene: scene.clone(),
             seed: 0,
-            dt: spec.dt,
+            dt,
             vertices,
             trajectories: metas,
             noise: None,
         },
-        trajectories,
+        trajectories: kept,
     })
 }
 

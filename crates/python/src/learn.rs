@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use deform_learn::dataset::generate;
 use deform_learn::ensemble::Member;
 use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
-use deform_learn::import::{ArrayVelocities, trajectory_from_arrays};
+use deform_learn::import::{ArrayVelocities, Source, from_trajectories, trajectory_from_arrays};
 use deform_learn::npy::Array;
 use deform_learn::{
     DatasetSpec, EquationErrorOptions, FitError, OutputErrorOptions, Variations,
@@ -27,6 +27,8 @@ use crate::simulation::Scene;
 #[pyclass(module = "deform._deform", name = "Trajectory", frozen)]
 pub struct Trajectory {
     trajectory: deform_learn::Trajectory,
+    /// numpy's dtype of the positions given (their precision).
+    dtype: String,
 }
 
 /// An array argument as deform's array type.
@@ -45,14 +47,23 @@ impl Trajectory {
     /// From `positions` (steps + 1, V, 3) and `velocities` of the same shape, or only the
     /// initial velocity `v0` (V, 3) (the others follow from Backward Euler's relation
     /// `v^n+1 = (x^n+1 - x^n) / dt`), or neither (the first frame is then dropped).
+    /// `conditions` (a dict: `gravity`, `motions` of the scene's constraints, `forces` of its
+    /// loads as `loads`) are those it was made under where they differ from the scene's.
     #[new]
-    #[pyo3(signature = (positions, dt, velocities = None, v0 = None))]
+    #[pyo3(signature = (positions, dt, velocities = None, v0 = None, conditions = None))]
     fn new(
         positions: &Bound<'_, PyAny>,
         dt: f64,
         velocities: Option<&Bound<'_, PyAny>>,
         v0: Option<&Bound<'_, PyAny>>,
+        conditions: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
+        let conditions: deform_integrator::Conditions = match conditions {
+            Some(c) => {
+                pythonize::depythonize(c).map_err(|e| errors::learn(format!("conditions: {e}")))?
+            }
+            None => Default::default(),
+        };
         let x = as_array("positions", positions)?;
         let (v, name) = match (velocities, v0) {
             (Some(v), None) => (Some(as_array("velocities", v)?), "velocities"),
@@ -67,9 +78,19 @@ impl Trajectory {
             (Some(a), false) => ArrayVelocities::Initial(a),
             (None, _) => ArrayVelocities::Derived,
         };
-        let trajectory = trajectory_from_arrays(("positions", Some(name)), &x, velocities, dt)
+        let mut trajectory = trajectory_from_arrays(("positions", Some(name)), &x, velocities, dt)
             .map_err(errors::learn)?;
-        Ok(Self { trajectory })
+        trajectory.conditions = conditions;
+        Ok(Self {
+            trajectory,
+            dtype: x.dtype,
+        })
+    }
+
+    /// The conditions it was made under where they differ from the scene's (a dict).
+    #[getter]
+    fn conditions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_python(py, &self.trajectory.conditions)
     }
 
     /// Number of steps (pairs of consecutive states).
@@ -269,6 +290,94 @@ impl Dataset {
         Ok(Self { dataset })
     }
 
+    /// A dataset of trajectories made elsewhere (each with its conditions) for the model
+    /// `scene`, at the scene's time step, split in this order into train / validation /
+    /// test by `split`. Refused, naming the trajectory, step and vertex, when a constrained
+    /// vertex is not where the scene's constraints put it.
+    #[staticmethod]
+    #[pyo3(signature = (scene, trajectories, *, split = (0.6, 0.2)))]
+    fn from_trajectories(
+        py: Python<'_>,
+        scene: &Scene,
+        trajectories: Vec<PyRef<'_, Trajectory>>,
+        split: (f64, f64),
+    ) -> PyResult<Self> {
+        let given: Vec<_> = trajectories
+            .iter()
+            .enumerate()
+            .map(|(k, t)| {
+                let mut source = Source::float64(format!("trajectory {k}"));
+                if t.dtype != "float64" {
+                    let a = Array {
+                        shape: vec![],
+                        data: vec![],
+                        dtype: t.dtype.clone(),
+                    };
+                    (source.dtype, source.rounding) = (t.dtype.clone(), a.rounding());
+                }
+                (t.trajectory.clone(), source)
+            })
+            .collect();
+        let dataset = py
+            .detach(|| from_trajectories(&scene.scene, &scene.origin, given, split))
+            .map_err(errors::learn)?;
+        Ok(Self { dataset })
+    }
+
+    /// The fine dataset carried onto `coarse`'s mesh (a scene of the same body): every state
+    /// interpolated at the coarse rest vertices, located in the fine mesh or, with
+    /// `elements` (V_coarse,) and `weights` (V_coarse, 4), placed as given (their fine
+    /// element and barycentric weights, used as is). Constraints and loads are carried from
+    /// the fine scene. Returns the coarse dataset and the mapping's report (a dict).
+    #[pyo3(signature = (coarse, *, elements = None, weights = None))]
+    fn coarsen<'py>(
+        &self,
+        py: Python<'py>,
+        coarse: &Scene,
+        elements: Option<&Bound<'py, PyAny>>,
+        weights: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<(Self, Bound<'py, PyAny>)> {
+        let embedding = match (elements, weights) {
+            (Some(e), Some(w)) => {
+                let e = as_array("elements", e)?;
+                let w = as_array("weights", w)?;
+                if w.shape.len() != 2 || w.shape[1] != 4 {
+                    let shape = &w.shape;
+                    return Err(errors::learn(format!(
+                        "weights: shape {shape:?}, expected (V, 4)"
+                    )));
+                }
+                let fine = self
+                    .dataset
+                    .meta
+                    .scene
+                    .build_mesh(&coarse.origin)
+                    .map_err(errors::scene)?;
+                let element = e
+                    .indices()
+                    .map_err(|r| errors::learn(format!("elements: {r}")))?;
+                let rows = w.data.chunks(4).map(|c| [c[0], c[1], c[2], c[3]]).collect();
+                let given = deform_mesh::embed::Embedding::given(&fine, element, rows)
+                    .map_err(|r| errors::learn(format!("embedding: {r}")))?;
+                Some(given)
+            }
+            (None, None) => None,
+            _ => return Err(errors::learn("give elements and weights together")),
+        };
+        let (dataset, mapping) = py
+            .detach(|| {
+                deform_learn::coarsen::coarsen_embedded(
+                    &self.dataset,
+                    &coarse.scene,
+                    &coarse.origin,
+                    deform_learn::coarsen::Constraints::FromFine,
+                    embedding.as_ref(),
+                )
+            })
+            .map_err(errors::learn)?;
+        Ok((Self { dataset }, to_python(py, &mapping)?))
+    }
+
     /// Loads a saved dataset folder.
     #[staticmethod]
     fn load(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {
@@ -296,7 +405,11 @@ impl Dataset {
     #[getter]
     fn trajectories(&self) -> Vec<Trajectory> {
         let t = self.dataset.trajectories.iter().cloned();
-        t.map(|trajectory| Trajectory { trajectory }).collect()
+        t.map(|trajectory| Trajectory {
+            trajectory,
+            dtype: "float64".into(),
+        })
+        .collect()
     }
 
     /// The metadata (scene, seed, dt, each trajectory's split and initial conditions).

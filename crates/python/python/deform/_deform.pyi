@@ -119,7 +119,10 @@ class Trajectory:
         dt: float,
         velocities: Optional[_Floats] = None,
         v0: Optional[_Floats] = None,
+        conditions: Optional[dict[str, Any]] = None,
     ) -> None: ...
+    @property
+    def conditions(self) -> dict[str, Any]: ...
     @property
     def steps(self) -> int: ...
     @property
@@ -137,6 +140,20 @@ def fit_material(
 ) -> dict[str, Any]: ...
 
 class Dataset:
+    @staticmethod
+    def from_trajectories(
+        scene: Scene,
+        trajectories: list[Trajectory],
+        *,
+        split: tuple[float, float] = (0.6, 0.2),
+    ) -> Dataset: ...
+    def coarsen(
+        self,
+        coarse: Scene,
+        *,
+        elements: Optional[npt.ArrayLike] = None,
+        weights: Optional[_Floats] = None,
+    ) -> tuple[Dataset, dict[str, Any]]: ...
     @staticmethod
     def generate(
         scene: Scene,
