@@ -546,18 +546,23 @@ impl Integrator {
     /// [`IntegratorError::Invalid`] naming the field when a value is not finite or there is
     /// not one motion per constraint or one force per load.
     pub fn set_conditions(&mut self, conditions: &Conditions) -> Result<(), IntegratorError> {
-        conditions
-            .validate(self.constraints.len(), self.loads.len())
-            .map_err(|(field, reason)| IntegratorError::Invalid {
-                field: "conditions",
-                reason: format!("{field}: {reason}"),
-            })?;
+        self.check(conditions)?;
         let gravity_changed = conditions.gravity != self.conditions.gravity;
         self.conditions = conditions.clone();
         if gravity_changed {
             self.update_gravity_forces()?;
         }
         Ok(())
+    }
+
+    /// Refuses conditions that do not fit this model (see [`Conditions::validate`]).
+    fn check(&self, conditions: &Conditions) -> Result<(), IntegratorError> {
+        conditions
+            .validate(self.constraints.len(), self.loads.len())
+            .map_err(|(field, reason)| IntegratorError::Invalid {
+                field: "conditions",
+                reason: format!("{field}: {reason}"),
+            })
     }
 
     /// The motion of constraint `i` under the conditions in force.
@@ -590,12 +595,7 @@ impl Integrator {
         conditions: &Conditions,
         t: f64,
     ) -> Result<Vec<f64>, IntegratorError> {
-        conditions
-            .validate(self.constraints.len(), self.loads.len())
-            .map_err(|(field, reason)| IntegratorError::Invalid {
-                field: "conditions",
-                reason: format!("{field}: {reason}"),
-            })?;
+        self.check(conditions)?;
         let g = conditions.gravity.unwrap_or(self.options.gravity);
         let mut f = if g == self.gravity() {
             self.gravity_forces.clone()

@@ -60,6 +60,15 @@ fn dataset(count: usize, steps: usize) -> Dataset {
     generate(&scene(), Path::new("mixed.ron"), &spec, |_, _| {}).unwrap()
 }
 
+/// The trajectories of `data` read as if made under the scene's own conditions.
+fn blind(data: &Dataset) -> Vec<deform_learn::Trajectory> {
+    let blind = |t: &deform_learn::Trajectory| deform_learn::Trajectory {
+        conditions: Conditions::default(),
+        ..t.clone()
+    };
+    data.trajectories.iter().map(blind).collect()
+}
+
 fn relative(a: f64, b: f64) -> f64 {
     (a - b).abs() / b.abs()
 }
@@ -158,14 +167,7 @@ fn the_equation_error_recovers_the_moduli_from_mixed_conditions() {
         "E {e}, nu {nu}"
     );
     // Read as if made under the scene's conditions the same data give a wrong material.
-    let blind: Vec<_> = data
-        .trajectories
-        .iter()
-        .map(|t| deform_learn::Trajectory {
-            conditions: Conditions::default(),
-            ..t.clone()
-        })
-        .collect();
+    let blind = blind(&data);
     let blind: Vec<_> = blind.iter().collect();
     let wrong = fit_equation_error(&sim, &blind, EquationErrorOptions::default()).unwrap();
     assert!(wrong.relative_residual > 1e3 * fit.relative_residual.max(1e-15));
@@ -194,14 +196,7 @@ fn the_output_error_recovers_the_moduli_from_mixed_conditions() {
     // The fit left the model's own conditions in force.
     assert!(sim.conditions().is_default());
     // Read as if made under the scene's conditions, no material reproduces the data.
-    let blind: Vec<_> = data
-        .trajectories
-        .iter()
-        .map(|t| deform_learn::Trajectory {
-            conditions: Conditions::default(),
-            ..t.clone()
-        })
-        .collect();
+    let blind = blind(&data);
     let blind: Vec<_> = blind.iter().collect();
     let mut other = scene().build(Path::new("mixed.ron")).unwrap().integrator;
     let wrong = fit_output_error(&mut other, &blind, &start, options, |_, _| {}).unwrap();
