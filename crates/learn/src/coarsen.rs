@@ -93,6 +93,11 @@ pub fn coarsen_embedded(
     constraints: Constraints,
     embedding: Option<&Embedding>,
 ) -> Result<(Dataset, Mapping), LearnError> {
+    if let Some(k) = fine.trajectories.iter().position(|t| t.observed.is_some()) {
+        return Err(LearnError::Unsupported(format!(
+            "trajectory {k} observes only some vertices: coarsening interpolates whole states"
+        )));
+    }
     let fine_scene = &fine.meta.scene;
     let fine_mesh = fine_scene.build_mesh(origin)?;
     let mut coarse = coarse.clone();
@@ -160,6 +165,7 @@ pub fn coarsen_embedded(
             v: map(&t.v),
             exact_start: t.exact_start,
             conditions: t.conditions.clone(),
+            observed: None,
         })
         .collect();
     let mut meta = fine.meta.clone();

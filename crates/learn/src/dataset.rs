@@ -49,6 +49,11 @@ pub struct Trajectory {
     /// The conditions it was made under where they differ from the model's (gravity,
     /// constraint motions, loads): every fit, rollout and solver log steps it under them.
     pub conditions: Conditions,
+    /// The vertices whose positions were observed, when not all were (what a capture of
+    /// markers gives): the output error and the rollout error compare only these, and the
+    /// other vertices' entries of the frames after the first are not read. The first frame
+    /// must be complete (e.g. a release from a known shape).
+    pub observed: Option<Vec<usize>>,
 }
 
 impl Trajectory {
@@ -101,6 +106,9 @@ pub struct TrajectoryMeta {
     /// ([`Trajectory::conditions`]).
     #[serde(default, skip_serializing_if = "Conditions::is_default")]
     pub conditions: Conditions,
+    /// The observed vertices, when not all were ([`Trajectory::observed`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observed: Option<Vec<usize>>,
 }
 
 /// Gaussian noise added after generation.
@@ -341,6 +349,7 @@ pub fn generate(
             v: vec![state.v.clone()],
             exact_start: false,
             conditions: conditions.clone(),
+            observed: None,
         };
         let summary = integrator.run(
             &mut state,
@@ -366,6 +375,7 @@ pub fn generate(
             source: None,
             exact_start: false,
             conditions,
+            observed: None,
         });
         trajectories.push(traj);
     }
@@ -652,6 +662,7 @@ impl Dataset {
                 v: read("v.npy")?,
                 exact_start: m.exact_start,
                 conditions: m.conditions.clone(),
+                observed: m.observed.clone(),
             });
         }
         Ok(Self { meta, trajectories })

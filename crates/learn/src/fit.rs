@@ -343,6 +343,12 @@ fn equation_error(
     let mut bb = 0.0;
     let mut equations = 0;
     for (ti, t) in trajectories.iter().enumerate() {
+        if t.observed.is_some() {
+            return Err(FitError::Data {
+                index: ti,
+                reason: "observes only some vertices: the equation error needs whole states (use the output error)".into(),
+            });
+        }
         if t.x.iter().chain(&t.v).any(|f| f.len() != n) {
             return Err(FitError::Data {
                 index: ti,

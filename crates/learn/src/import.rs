@@ -223,6 +223,7 @@ pub fn from_trajectories(
             source: Some(source.name.clone()),
             exact_start: trajectory.exact_start,
             conditions: trajectory.conditions.clone(),
+            observed: trajectory.observed.clone(),
         });
         kept.push(trajectory);
     }

@@ -509,6 +509,7 @@ impl<'a> OutputError<'a> {
         let free: Vec<usize> = (0..n / 3)
             .filter(|&v| !sim.dofs().is_constrained(v))
             .collect();
+        self.check_observed(n / 3)?;
         // Each rollout runs under its trajectory's conditions; the model's are put back.
         let own = sim.conditions().clone();
         let mut pass = || -> Result<(), FitError> {
@@ -582,6 +583,35 @@ impl<'a> OutputError<'a> {
         let all: Vec<f64> = grad.iter().chain(&start_grad).copied().collect();
         *self.cache.borrow_mut() = Some((key, loss, all));
         Ok((loss, grad, start_grad))
+    }
+
+    /// Refuses partially observed trajectories the fit cannot use: their rollouts must run
+    /// from their complete first state over their whole length (the other states are not
+    /// known where they were not observed), without estimated starts, and their vertices
+    /// must exist.
+    fn check_observed(&self, vertices: usize) -> Result<(), FitError> {
+        for (index, t) in self.trajectories.iter().enumerate() {
+            let Some(observed) = &t.observed else {
+                continue;
+            };
+            let bad = |reason: String| Err(FitError::Data { index, reason });
+            if let Some(v) = observed.iter().find(|&&v| v >= vertices) {
+                return bad(format!(
+                    "observed vertex {v} is out of range for {vertices}"
+                ));
+            }
+            if observed.is_empty() {
+                return bad("observes no vertex".into());
+            }
+            if self.options.rollout < t.steps() || self.options.starts.is_some() {
+                return bad(format!(
+                    "observes {} of {vertices} vertices: the fit needs one rollout over its whole length from its complete first state (rollout >= {} steps, no estimated starts)",
+                    observed.len(),
+                    t.steps()
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// The regularisation's penalty at `c`, its gradient added to `grad`.
@@ -714,9 +744,16 @@ fn loss_terms(
     let (len, n) = (states.len() - 1, states[0].x.len());
     let mut dl_dx = vec![vec![0.0; n]; len + 1];
     let mut dl_dv = vec![vec![0.0; n]; len + 1];
+    // The observed DOFs: all, or the observed vertices' (positions only: a capture gives no
+    // velocities, so the velocity term is left out).
+    let observed: Vec<usize> = match &t.observed {
+        None => (0..n).collect(),
+        Some(vertices) => vertices.iter().flat_map(|&v| 3 * v..3 * v + 3).collect(),
+    };
+    let wv = if t.observed.is_some() { 0.0 } else { wv };
     for k in 1..=len {
         let (xd, vd) = (&t.x[start + k], &t.v[start + k]);
-        for i in 0..n {
+        for &i in &observed {
             let ex = states[k].x[i] - xd[i];
             let ev = states[k].v[i] - vd[i];
             *num += ex * ex + wv * ev * ev;

@@ -15,6 +15,19 @@ pub fn rms_distance(x: &[f64], y: &[f64]) -> f64 {
     (sq / (x.len() / 3).max(1) as f64).sqrt()
 }
 
+/// [`rms_distance`] over the `observed` vertices only (all with `None`).
+pub fn rms_distance_of(x: &[f64], y: &[f64], observed: Option<&[usize]>) -> f64 {
+    let Some(vertices) = observed else {
+        return rms_distance(x, y);
+    };
+    let sq: f64 = vertices
+        .iter()
+        .flat_map(|&v| 3 * v..3 * v + 3)
+        .map(|i| (x[i] - y[i]).powi(2))
+        .sum();
+    (sq / vertices.len().max(1) as f64).sqrt()
+}
+
 /// Mean of a rollout's errors over its predicted states (entry 0, the start, excluded).
 pub fn mean_error(errors: &[f64]) -> f64 {
     let predicted = errors.get(1..).unwrap_or(&[]);
@@ -72,7 +85,7 @@ fn rollout_in(
             taken += 1;
             if taken.is_multiple_of(refine) {
                 let n = taken / refine;
-                errors.push(rms_distance(&s.x, &t.x[n]));
+                errors.push(rms_distance_of(&s.x, &t.x[n], t.observed.as_deref()));
                 on_sample(n, s);
             }
         }),

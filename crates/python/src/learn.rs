@@ -481,6 +481,7 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
             v,
             exact_start: m.exact_start,
             conditions: m.conditions.clone(),
+            observed: m.observed.clone(),
         });
     }
     Ok(deform_learn::Dataset { meta, trajectories })
