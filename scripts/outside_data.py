@@ -7,6 +7,17 @@ scene and experiment files that import them (docs/experiments.md, "Your own data
     cargo xtask experiment OUT/fit.ron --out OUT/fit       # E, nu from the noisy positions
     cargo xtask experiment OUT/select.ron --out OUT/select # which model made the clean ones
 
+    python scripts/outside_data.py OUT --coarsen           # a heterogeneous fine bar instead
+    cargo xtask experiment OUT/coarsen.ron --out OUT/coarsen  # a coarse model learns from it
+
+`--coarsen` makes a fine bar (its own structured mesh, 1,920 tets) with a stiff inclusion
+(5x the Young's modulus over the middle fifth), six motions under three gravities (two
+each: a swing and a spin), a coarse mesh of the same bar that is not nested in the fine one
+(168 tets), the embedding of its vertices in the fine mesh (fine element and barycentric
+weights), and `coarsen.ron`: deform's `Coarsen` on the imported motions, each with its
+gravity, the embedding given, the held-out motions the data's test split. The scene's
+material is the bar's bulk (the inclusion unknown to it).
+
 `--model stvk` makes St. Venant-Kirchhoff data instead (use `--speed 0.5`: faster spins
 invert elements beyond what its Newton converges through); its swing still inverts elements
 (StVK allows it), so model selection leaves out Neo-Hookean, whose energy is undefined
@@ -26,6 +37,11 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 E, NU, RHO, DT, STEPS, TRAJECTORIES = 2e5, 0.35, 1000.0, 0.01, 40, 5
+STEPS_COARSEN = 60
+E_BAR = 2e6  # the coarsening bar's bulk (its inclusion 5x): it sags about 0.2 m
+# Newton's tolerance on the update relative to the velocities (the torus reaches 1e-12; the
+# bar's stiff inclusion leaves rounding above that).
+TOLERANCE = 1e-12
 GRAVITY = np.array([0.0, 0.0, -9.81])
 MU = E / (2 * (1 + NU))
 LAM = E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -130,20 +146,174 @@ class StVenantKirchhoff(NeoHookean):
 MODELS = {"neo-hookean": NeoHookean, "stvk": StVenantKirchhoff}
 
 
-def step(model, mass, free, x, v):
+class Heterogeneous(NeoHookean):
+    """Neo-Hookean with a Lame pair per element (`mu`, `lam` arrays)."""
+
+    def __init__(self, x0, tets, mu, lam):
+        super().__init__(x0, tets)
+        self.mu, self.lam = mu[:, None, None], lam[:, None, None]
+
+    def piola(self, f):
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))[:, None, None]
+        return self.mu * (f - fit) + self.lam * lnj * fit
+
+    def dpiola(self, f, df):
+        fit = np.linalg.inv(f).transpose(0, 2, 1)
+        lnj = np.log(np.linalg.det(f))[:, None, None]
+        tr = np.einsum("eij,eij->e", fit, df)[:, None, None]
+        return self.mu * df + (self.mu - self.lam * lnj) * fit @ df.transpose(0, 2, 1) @ fit + self.lam * tr * fit
+
+
+def bar(cells, size):
+    """A box of `cells` hexahedral cells, each split into six tets around its main diagonal
+    (the same split in every cell, so faces match): vertices (V, 3) and tets (T, 4)."""
+    nx, ny, nz = cells
+    axes = [np.linspace(0.0, s, n + 1) for s, n in zip(size, cells)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    index = lambda i, j, k: (i * (ny + 1) + j) * (nz + 1) + k
+    unit = np.eye(3, dtype=int)
+    tets = []
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                base = np.array([i, j, k])
+                for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
+                    a = base + unit[perm[0]]
+                    b = a + unit[perm[1]]
+                    corners = [base, a, b, base + 1]
+                    tets.append([index(*c) for c in corners])
+    tets = np.array(tets, dtype=np.int64)
+    d = np.einsum("eij->eji", grid[tets[:, 1:]] - grid[tets[:, :1]])
+    neg = np.linalg.det(d) < 0
+    tets[neg, 1], tets[neg, 2] = tets[neg, 2].copy(), tets[neg, 1].copy()
+    return grid, tets
+
+
+def embed(x, tets, points):
+    """Each point's element in (x, tets) and its barycentric weights there."""
+    d = np.einsum("eij->eji", x[tets[:, 1:]] - x[tets[:, :1]])
+    inv = np.linalg.inv(d)
+    elements, weights = [], []
+    for p in points:
+        l = np.einsum("eij,ej->ei", inv, p - x[tets[:, 0]])
+        w = np.concatenate([1.0 - l.sum(1, keepdims=True), l], 1)
+        e = int(np.argmax(w.min(1)))  # the element the point is most inside
+        elements.append(e)
+        weights.append(w[e])
+    return np.array(elements, dtype=np.int64), np.array(weights)
+
+
+def coarsen_example(out):
+    """The heterogeneous fine bar, its six motions under three gravities, the coarse mesh
+    and its embedding, and `coarsen.ron` (see the module docs)."""
+    global TOLERANCE
+    TOLERANCE = 1e-10
+    size = (1.0, 0.2, 0.2)
+    x0, tets = bar((20, 4, 4), size)
+    centroid = x0[tets].mean(1)
+    inclusion = np.abs(centroid[:, 0] - 0.5) < 0.1
+    young = np.where(inclusion, 5.0 * E_BAR, E_BAR)
+    mu = young / (2 * (1 + NU))
+    lam = young * NU / ((1 + NU) * (1 - 2 * NU))
+    model = Heterogeneous(x0, tets, mu, lam)
+    mass = np.zeros(len(x0))
+    np.add.at(mass, tets, np.repeat(RHO * model.vol[:, None] / 4, 4, axis=1))
+    clamped = np.flatnonzero(x0[:, 0] <= 1e-9)
+    free = np.ones(3 * len(x0), dtype=bool)
+    free[(3 * clamped[:, None] + np.arange(3)).ravel()] = False
+    np.save(out / "fine_vertices.npy", x0)
+    np.save(out / "fine_tets.npy", tets)
+    np.save(out / "clamped.npy", clamped.astype(np.int64))
+    cx, ctets = bar((7, 2, 2), size)
+    np.save(out / "coarse_vertices.npy", cx)
+    np.save(out / "coarse_tets.npy", ctets)
+    elements, weights = embed(x0, tets, cx)
+    np.save(out / "embedding_elements.npy", elements)
+    np.save(out / "embedding_weights.npy", weights)
+    gravities = [(0.0, 0.0, -9.81), (0.0, 0.0, 0.0), (0.0, 9.81, 0.0)]
+    rng = np.random.default_rng(40)
+    entries = []
+    for k in range(6):
+        g = gravities[k % 3]
+        # A swing (uniform velocity) or a spin about the bar's axis, growing along it.
+        along = x0[:, 0:1] / size[0]
+        if k < 3:
+            v = along * rng.normal(size=3) * 1.0
+        else:
+            w = np.array([rng.normal() * 10.0, 0.0, 0.0])
+            v = along * np.cross(w, x0 - np.array([0.0, 0.1, 0.1]))
+        v[clamped] = 0.0
+        x, frames, velocities = x0.copy(), [x0.copy()], [v.copy()]
+        for _ in range(STEPS_COARSEN):
+            x, v = step(model, mass, free, x, v, np.array(g))
+            frames.append(x.copy())
+            velocities.append(v.copy())
+        np.save(out / f"motion_{k}_x.npy", np.array(frames))
+        np.save(out / f"motion_{k}_v.npy", np.array(velocities))
+        conditions = "" if k % 3 == 0 else f", conditions: (gravity: Some(({g[0]}, {g[1]}, {g[2]})))"
+        entries.append(
+            f'        (positions: "motion_{k}_x.npy", velocities: File("motion_{k}_v.npy"){conditions}),'
+        )
+        print(f"motion {k} (gravity {g}): max displacement {np.abs(np.array(frames) - x0).max():.3e} m")
+    (out / "fine.ron").write_text(
+        f"""// The fine bar as deform sees it: the data's mesh and clamp, the bulk material (the
+// stiff inclusion over the middle fifth, 5x E, is not in it: the coarse fits find it).
+Scene(
+    name: "fine_bar",
+    mesh: Arrays(vertices: "fine_vertices.npy", tets: "fine_tets.npy"),
+    material: NeoHookean(Young(e: {E_BAR}, nu: {NU})),
+    density: {RHO},
+    constraints: [(select: File("clamped.npy"), motion: Fixed)],
+    integrator: (newton: (rel: 1e-8, abs: 1e-12)),
+    steps: {STEPS_COARSEN},
+)
+"""
+    )
+    listing = "\n".join(entries)
+    (out / "coarsen.ron").write_text(
+        f"""// A coarse model learns from a heterogeneous fine bar simulated elsewhere: six motions
+// under three gravities (the import's, none, sideways), the coarse mesh's embedding in the
+// fine one as given, the data's test split held out (no base model of deform's made them).
+Experiment(
+    name: "outside_coarsen",
+    scene: "fine.ron",
+    import: (
+        dt: {DT},
+        gravity: ({GRAVITY[0]}, {GRAVITY[1]}, {GRAVITY[2]}),
+        mass: Lumped,
+        trajectories: [
+{listing}
+        ],
+        split: (0.5, 0.17),
+    ),
+    task: Coarsen(
+        mesh: Arrays(vertices: "coarse_vertices.npy", tets: "coarse_tets.npy"),
+        embedding: (elements: "embedding_elements.npy", weights: "embedding_weights.npy"),
+        regions: 7,
+        regularisation: [0.0, 1e-3, 1e-2],
+        damping: true,
+        output_error: (rollout: 20, max_iterations: 50),
+    ),
+)
+"""
+    )
+
+
+def step(model, mass, free, x, v, gravity=GRAVITY):
     """One Backward-Euler step by Newton on v1: M (v1 - v) = dt (f(x + dt v1) + M g)."""
     v1 = v.copy()
     m3 = np.repeat(mass, 3)
     for _ in range(50):
         x1 = x + DT * v1
-        r = (m3 * (v1 - v).ravel()) - DT * (model.forces(x1) + mass[:, None] * GRAVITY).ravel()
+        r = (m3 * (v1 - v).ravel()) - DT * (model.forces(x1) + mass[:, None] * gravity).ravel()
         a = scipy.sparse.diags(m3) + DT * DT * model.stiffness(x1)
         a = a[free][:, free]
         dv = np.zeros(3 * len(x))
         dv[free] = scipy.sparse.linalg.spsolve(a.tocsc(), -r[free])
         v1 = v1 + dv.reshape(-1, 3)
         # Converged when the update is at rounding level of the velocities.
-        if np.linalg.norm(dv) <= 1e-12 * np.linalg.norm(v1) + 1e-16:
+        if np.linalg.norm(dv) <= TOLERANCE * np.linalg.norm(v1) + 1e-16:
             return x + DT * v1, v1
     raise RuntimeError("Newton did not converge")
 
@@ -154,9 +324,13 @@ def main():
     parser.add_argument("--mesh", default="assets/meshes/torus.msh")
     parser.add_argument("--model", choices=sorted(MODELS), default="neo-hookean")
     parser.add_argument("--speed", type=float, default=1.0, help="scale of the initial velocities")
+    parser.add_argument("--coarsen", action="store_true", help="the heterogeneous bar for Coarsen")
     args = parser.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
+    if args.coarsen:
+        coarsen_example(out)
+        return
     x0, tets = mesh(args.mesh)
     model = MODELS[args.model](x0, tets)
     mass = np.zeros(len(x0))
