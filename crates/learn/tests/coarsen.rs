@@ -416,3 +416,80 @@ fn coarsen_runs_on_imported_trajectories_of_mixed_conditions_with_a_given_embedd
         "{error}"
     );
 }
+
+/// The coarsening study's fits as a library call, without the runner: the same models and
+/// figures as the experiment, and the per-element model saved as a scene that builds.
+#[test]
+fn the_coarse_fits_are_a_library_function_with_the_experiments_figures() {
+    use deform_learn::experiment::coarsen::{CoarseModel, CoarseSettings, fit_coarse_models};
+    use deform_learn::experiment::{Experiment, NoProgress, Task, TaskReport, run};
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/coarsen.ron");
+    let mut experiment = Experiment::load(&path).unwrap();
+    let Task::Coarsen {
+        dt_factors,
+        smooth,
+        regularisation,
+        regions,
+        newton_rel,
+        fit_newton_iterations,
+        output_error,
+        ..
+    } = &mut experiment.task
+    else {
+        panic!("task")
+    };
+    *dt_factors = vec![1];
+    let settings = CoarseSettings {
+        regions: *regions,
+        smooth: *smooth,
+        regularisation: regularisation.clone(),
+        newton_rel: newton_rel.clone(),
+        fit_newton_iterations: *fit_newton_iterations,
+        ..CoarseSettings::new(30, *output_error)
+    };
+    let report = run(&experiment, None, &mut NoProgress).unwrap();
+    let TaskReport::Coarsen(r) = &report.task else {
+        panic!("task")
+    };
+    // The same data and coarse scene as the experiment's, by the library alone.
+    let fine = Scene::load(&experiment.scene).unwrap();
+    let deform_learn::experiment::Data::Generate(spec) = &experiment.data else {
+        panic!("generated data")
+    };
+    let data = generate(&fine, &experiment.scene, spec, |_, _| {}).unwrap();
+    let coarse = Scene {
+        name: "coarse".into(),
+        mesh: MeshSource::Beam(1),
+        ..fine.clone()
+    };
+    let (coarse_data, _) =
+        coarsen(&data, &coarse, &experiment.scene, Constraints::FromFine).unwrap();
+    let fits =
+        fit_coarse_models(&coarse_data, &experiment.scene, &settings, &mut NoProgress).unwrap();
+    let kinds: Vec<CoarseModel> = fits.models.iter().map(|m| m.model).collect();
+    let rows: Vec<CoarseModel> = r.cases[0]
+        .rows
+        .iter()
+        .skip(1)
+        .map(|row| row.model)
+        .collect();
+    assert_eq!(kinds, rows);
+    for (m, row) in fits.models.iter().zip(r.cases[0].rows.iter().skip(1)) {
+        assert_eq!(
+            m.fit.as_ref().map(|f| f.losses),
+            row.fit.as_ref().map(|f| f.losses)
+        );
+        assert_eq!((m.options.alpha, m.options.gamma), row.damping);
+    }
+    assert_eq!(fits.regularisation, r.cases[0].regularisation);
+    let dir = tempfile::tempdir().unwrap();
+    let files = fits
+        .save(&coarse_data.meta.scene, "mine", dir.path())
+        .unwrap();
+    let saved = Scene::load(&dir.path().join(&files[0])).unwrap();
+    let built = saved.build(&dir.path().join(&files[0])).unwrap();
+    assert!(matches!(
+        built.integrator.assembly().materials(),
+        deform_assembly::MaterialField::PerElement { .. }
+    ));
+}

@@ -225,28 +225,54 @@ impl CoarsenReport {
     }
 }
 
-/// The task's settings, borrowed from [`Task::Coarsen`].
-struct Settings<'a> {
-    regions: u32,
+/// How coarse models are fitted ([`fit_coarse_models`]; the fields of [`Task::Coarsen`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CoarseSettings {
+    /// Slabs of the per-region fit along the rest shape's longest axis (without `tags`).
+    pub regions: u32,
     /// Region tags of the coarse elements, when given (else `regions` slabs).
-    tags: Option<Vec<u32>>,
-    regularisation: &'a [f64],
-    damping: bool,
-    mass_scale: bool,
-    smooth: Option<[usize; 3]>,
-    /// The fitted models' material (`None`: the base's).
-    material: Option<&'a MaterialSpec>,
-    /// Newton tolerances tried for the fitted models.
-    newton_rel: &'a [f64],
+    pub tags: Option<Vec<u32>>,
+    /// Regularisation weights of the per-element field tried; the least validation error
+    /// is kept.
+    pub regularisation: Vec<f64>,
+    /// Fit Rayleigh alpha and gamma with every field.
+    pub damping: bool,
+    /// Fit per-vertex mass scales with the per-element field.
+    pub mass_scale: bool,
+    /// Also fit a smooth field of hat functions with these node counts.
+    pub smooth: Option<[usize; 3]>,
+    /// The fitted models' material (`None`: the data's scene's).
+    pub material: Option<MaterialSpec>,
+    /// Newton tolerances tried for the fitted models after their fit.
+    pub newton_rel: Vec<f64>,
     /// Newton's iteration cap in the fits (`None`: the scene's).
-    fit_newton_iterations: Option<usize>,
+    pub fit_newton_iterations: Option<usize>,
     /// The scene's Newton iteration cap: the fitted models run with it, and their
     /// validation errors are measured under it.
-    scene_newton_iterations: usize,
-    options: OutputErrorOptions,
+    pub scene_newton_iterations: usize,
+    /// Options of every output-error fit.
+    pub options: OutputErrorOptions,
 }
 
-impl Settings<'_> {
+impl CoarseSettings {
+    /// The settings of a coarse model whose scene has Newton cap `newton_iterations`:
+    /// 8 slabs, weights 0, 1e-3 and 1e-2, damping fitted, nothing else, `options`.
+    pub fn new(newton_iterations: usize, options: OutputErrorOptions) -> Self {
+        Self {
+            regions: 8,
+            tags: None,
+            regularisation: vec![0.0, 1e-3, 1e-2],
+            damping: true,
+            mass_scale: false,
+            smooth: None,
+            material: None,
+            newton_rel: Vec::new(),
+            fit_newton_iterations: None,
+            scene_newton_iterations: newton_iterations,
+            options,
+        }
+    }
+
     /// A field over `labels` (none: one set for the whole mesh), with damping as asked and
     /// without mass scales.
     fn field(&self, labels: Vec<u32>, regularisation: Regularisation) -> Field {
@@ -328,15 +354,15 @@ pub fn run(
         Some(file) => Some(read_tags(file, coarse_mesh.num_tets())?),
         None => None,
     };
-    let settings = Settings {
+    let settings = CoarseSettings {
         regions: *regions,
         tags,
-        regularisation,
+        regularisation: regularisation.clone(),
         damping: *damping,
         mass_scale: *mass_scale,
         smooth: *smooth,
-        material: material.as_ref(),
-        newton_rel,
+        material: material.clone(),
+        newton_rel: newton_rel.clone(),
         fit_newton_iterations: *fit_newton_iterations,
         scene_newton_iterations: cx.base.integrator.newton.max_iterations,
         options: *output_error,
@@ -358,14 +384,14 @@ pub fn run(
         mapping = Some(m);
         let fine = (&mut fine, fine_tests.as_slice());
         let cased = run_case((&data, &tests, k), fine, &settings, origin, observer)?;
-        let (mut case, fitted, fine_cost) = cased;
+        let (mut case, fits, fine_cost) = cased;
         case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
         if let Some(out) = cx.out {
             let scene = Scene {
                 material: material.clone().unwrap_or(data.meta.scene.material.clone()),
                 ..data.meta.scene.clone()
             };
-            case.files = save_case(&scene, &case, &fitted, out)?;
+            case.files = save_case(&scene, &case, &fits, out)?;
             files.extend(case.files.iter().cloned());
         }
         cases.push(case);
@@ -392,18 +418,6 @@ fn fine_row(case: &CoarsenCase, cost: f64, base: &Scene) -> CoarseRow {
     }
 }
 
-/// The per-element model of a case, kept to save it.
-struct Fitted {
-    /// Term coefficients by element, then term.
-    coefficients: Vec<f64>,
-    /// Its integrator options (with the fitted damping).
-    options: IntegratorOptions,
-    /// Its per-vertex mass scales, when fitted.
-    mass_scale: Option<Vec<f64>>,
-    /// The coarse mesh.
-    mesh: TetMesh,
-}
-
 /// A fitted model in an integrator: its materials, options and mass scales.
 type FittedModel = (MaterialField, IntegratorOptions, Option<Vec<f64>>);
 
@@ -427,26 +441,82 @@ fn fitted_model(sim: &Integrator) -> FittedModel {
     )
 }
 
-/// The untuned, homogeneous, per-region, smooth (when asked) and per-element rows on the
-/// coarse data, the per-element model, and the cost of `fine` on its held-out motions.
-fn run_case(
-    (data, tests, dt_factor): (&Dataset, &Dataset, usize),
-    fine: (&mut Integrator, &[&Trajectory]),
-    settings: &Settings<'_>,
+/// One coarse model as fitted ([`fit_coarse_models`]): which, what its fit took, and the
+/// model as it runs (materials, options with the fitted damping and chosen Newton
+/// tolerance, mass scales).
+#[derive(Debug, Clone)]
+pub struct CoarseModelFit {
+    /// Which model.
+    pub model: CoarseModel,
+    /// Its fit (none for the untuned model).
+    pub fit: Option<FitSummary>,
+    /// Its materials.
+    pub materials: MaterialField,
+    /// Its integrator options.
+    pub options: IntegratorOptions,
+    /// Its per-vertex mass scales, when fitted.
+    pub mass_scale: Option<Vec<f64>>,
+}
+
+impl CoarseModelFit {
+    /// Puts the model into `sim` (an integrator of the coarse scene).
+    ///
+    /// # Errors
+    /// [`LearnError`] when the model does not fit `sim`.
+    pub fn apply(&self, sim: &mut Integrator) -> Result<(), LearnError> {
+        restore(sim, &self.as_tuple())
+    }
+
+    fn as_tuple(&self) -> FittedModel {
+        let (m, o, s) = (&self.materials, &self.options, &self.mass_scale);
+        (m.clone(), o.clone(), s.clone())
+    }
+}
+
+/// What [`fit_coarse_models`] fitted.
+#[derive(Debug, Clone)]
+pub struct CoarseFits {
+    /// The untuned model, then the homogeneous, per-region, smooth (when asked) and
+    /// per-element fits, in that order, each as it runs.
+    pub models: Vec<CoarseModelFit>,
+    /// The validation error (m) of the per-element field at each regularisation weight.
+    pub regularisation: Vec<(f64, f64)>,
+    /// The chosen weight.
+    pub chosen: f64,
+    /// The per-element field's term coefficients (element, then term).
+    pub coefficients: Vec<f64>,
+    /// The coarse mesh.
+    pub mesh: TetMesh,
+}
+
+/// Fits the coarse models of the coarse-data `data` (its scene is the coarse model; see
+/// [`crate::coarsen::coarsen_embedded`]) on its training trajectories, choosing on its
+/// validation ones: homogeneous, per region (`settings.tags` or slabs), smooth (when
+/// asked) and per element (each regularisation weight, concurrently; the least validation
+/// error kept). Every fitted model must run freely over every training and validation
+/// trajectory, or it is rejected for the model its fit started from
+/// ([`FitSummary::unstable`]); each then takes the loosest of `settings.newton_rel` within
+/// 2 % of its validation error. The library function behind [`Task::Coarsen`], for callers
+/// without the runner.
+///
+/// # Errors
+/// [`LearnError`] naming the scene, trajectory or step.
+pub fn fit_coarse_models(
+    data: &Dataset,
     origin: &Path,
+    settings: &CoarseSettings,
     observer: &mut dyn ExperimentObserver,
-) -> Result<(CoarsenCase, Fitted, f64), LearnError> {
+) -> Result<CoarseFits, LearnError> {
     let built = data.meta.scene.build(origin)?;
     let (mesh, mut sim) = (built.mesh, built.integrator);
     let (train, validation) = (data.split(Split::Train), data.split(Split::Validation));
-    let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
     let mut models = vec![(CoarseModel::Untuned, None, fitted_model(&sim))];
     if let Some(cap) = settings.fit_newton_iterations {
         let mut o = sim.options().clone();
         o.newton.max_iterations = cap;
         sim.set_options(o)?;
     }
-    if let Some(m) = settings.material {
+    if let Some(m) = &settings.material {
         let model = m.build()?;
         set_materials(&mut sim, MaterialField::Uniform(model))?;
     }
@@ -519,29 +589,57 @@ fn run_case(
         c.truncate(labels.len() * uniform);
         model = homogeneous.clone();
     }
-    let mass_scale = model.2.clone();
     let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
     models.push((CoarseModel::PerElement, Some(summary), tuned));
-    // Leaves the per-element model in `sim`, the last one timed.
-    let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
     // The term coefficients, without the mass scales, alpha and gamma.
     c.truncate(labels.len() * homogeneous.0.max_terms());
+    let models =
+        models.into_iter().map(
+            |(model, fit, (materials, options, mass_scale))| CoarseModelFit {
+                model,
+                fit,
+                materials,
+                options,
+                mass_scale,
+            },
+        );
+    Ok(CoarseFits {
+        models: models.collect(),
+        regularisation: tried,
+        chosen,
+        coefficients: c,
+        mesh,
+    })
+}
+
+/// The rows of the fitted coarse models of `data` measured on the held-out `tests`, the
+/// per-element model, and the cost of `fine` on its held-out motions.
+fn run_case(
+    (data, tests, dt_factor): (&Dataset, &Dataset, usize),
+    fine: (&mut Integrator, &[&Trajectory]),
+    settings: &CoarseSettings,
+    origin: &Path,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<(CoarsenCase, CoarseFits, f64), LearnError> {
+    let fits = fit_coarse_models(data, origin, settings, observer)?;
+    let mut sim = data.meta.scene.build(origin)?.integrator;
+    let test: Vec<&Trajectory> = tests.trajectories.iter().collect();
+    let models = fits
+        .models
+        .iter()
+        .map(|m| (m.model, m.fit.clone(), m.as_tuple()))
+        .collect();
+    let (fine_cost, rows) = time_in_rounds(fine, (&mut sim, &test), models)?;
     let case = CoarsenCase {
         dt_factor,
         dt: sim.options().dt,
         rows,
-        regularisation: tried,
-        chosen,
+        regularisation: fits.regularisation.clone(),
+        chosen: fits.chosen,
         files: Vec::new(),
-        field: field_series(&mesh, &c),
+        field: field_series(&fits.mesh, &fits.coefficients),
     };
-    let fitted = Fitted {
-        coefficients: c,
-        options: sim.options().clone(),
-        mass_scale,
-        mesh,
-    };
-    Ok((case, fitted, fine_cost))
+    Ok((case, fits, fine_cost))
 }
 
 /// Fits `field` from the model in `sim`, rejects the fitted model for `fallback` when it
@@ -553,7 +651,7 @@ fn fit_row(
     (train, validation): (&[&Trajectory], &[&Trajectory]),
     field: &Field,
     fallback: &FittedModel,
-    settings: &Settings<'_>,
+    settings: &CoarseSettings,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<(FitSummary, FittedModel, FittedModel), LearnError> {
     let (_, mut summary) = fit(sim, train, field, settings, observer)?;
@@ -564,7 +662,7 @@ fn fit_row(
     Ok((summary, kept, tuned))
 }
 
-impl Settings<'_> {
+impl CoarseSettings {
     /// `fitted` when it runs freely (as it runs: [`Settings::running`]) over every
     /// trajectory of `sets`, else `fallback` with the failure in `summary.unstable`; the
     /// model kept is left in `sim`.
@@ -608,7 +706,7 @@ fn free_rollout_failure(sim: &mut Integrator, sets: &[&[&Trajectory]]) -> Option
 /// scene's: a coarse model's error is its discretisation's, which a few per cent hide.
 const NEWTON_SLACK: f64 = 0.02;
 
-impl Settings<'_> {
+impl CoarseSettings {
     /// `fitted` as it runs: with the scene's Newton iteration cap, whatever the fits' was.
     fn running(&self, fitted: &FittedModel) -> FittedModel {
         let mut model = fitted.clone();
@@ -661,16 +759,16 @@ struct WeightFit {
 }
 
 /// What every per-element fit shares.
-struct PerElement<'d, 's> {
+struct PerElement<'d> {
     train: &'d [&'d Trajectory],
     validation: &'d [&'d Trajectory],
     homogeneous: &'d FittedModel,
     neighbours: Vec<[usize; 2]>,
     labels: &'d [u32],
-    settings: &'d Settings<'s>,
+    settings: &'d CoarseSettings,
 }
 
-impl PerElement<'_, '_> {
+impl PerElement<'_> {
     /// The fit at weight `w` from the homogeneous model, left in `sim`.
     fn fit(
         &self,
@@ -761,7 +859,7 @@ fn fit(
     sim: &mut Integrator,
     train: &[&Trajectory],
     field: &Field,
-    settings: &Settings<'_>,
+    settings: &CoarseSettings,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<(Vec<f64>, FitSummary), LearnError> {
     observer.start(Stage::Fit, settings.options.max_evaluations as u64);
@@ -898,52 +996,72 @@ fn term_names(terms: usize) -> Vec<String> {
     }
 }
 
-/// Saves the per-element model as a scene (`coarse_Kx_dt.ron`, its field beside it) and
-/// the field as cell data for ParaView (`coarse_Kx_dt_field.vtu`); returns the files,
-/// relative to `out`.
 fn save_case(
     scene: &Scene,
     case: &CoarsenCase,
-    fitted: &Fitted,
+    fits: &CoarseFits,
     out: &Path,
 ) -> Result<Vec<PathBuf>, LearnError> {
-    let name = format!("coarse_{}x_dt", case.dt_factor);
-    let model = Scene {
-        name: name.clone(),
-        integrator: fitted.options.clone(),
-        ..scene.clone()
-    };
-    let written = save_model(
-        &model,
-        &fitted.coefficients,
-        fitted.mass_scale.as_deref(),
-        out,
-    )?;
-    let mesh = &fitted.mesh;
-    let terms = fitted.coefficients.len() / mesh.num_tets().max(1);
-    let column = |j: usize| -> Vec<f64> {
-        let c = fitted.coefficients.iter().skip(j).step_by(terms.max(1));
-        c.copied().collect()
-    };
-    let columns: Vec<(String, Vec<f64>)> = term_names(terms)
-        .into_iter()
-        .enumerate()
-        .map(|(j, n)| (n, column(j)))
-        .collect();
-    let mut vtu = Vtu::new(mesh);
-    for (n, values) in &columns {
-        vtu = vtu.cell_scalars(n, values);
+    fits.save(scene, &format!("coarse_{}x_dt", case.dt_factor), out)
+}
+
+impl CoarseFits {
+    /// Saves the per-element model as the scene `NAME.ron` over `scene` (the coarse model's
+    /// mesh, material family and constraints), with its field beside it, and the field as
+    /// cell data for ParaView (`NAME_field.vtu`); returns the files, relative to `out`.
+    ///
+    /// # Errors
+    /// [`LearnError`] naming the file that could not be written.
+    pub fn save(&self, scene: &Scene, name: &str, out: &Path) -> Result<Vec<PathBuf>, LearnError> {
+        let per_element = self.models.last().expect("the per-element model is last");
+        let model = Scene {
+            name: name.to_owned(),
+            integrator: per_element.options.clone(),
+            ..scene.clone()
+        };
+        let written = save_model(
+            &model,
+            &self.coefficients,
+            per_element.mass_scale.as_deref(),
+            out,
+        )?;
+        self.write_field(name, out, written)
     }
-    let vtu_name = format!("{name}_field.vtu");
-    let path = out.join(&vtu_name);
-    vtu.write(&path).map_err(|e| LearnError::Io {
-        path: path.clone(),
-        source: std::io::Error::other(e.to_string()),
-    })?;
-    let relative = |p: &PathBuf| p.strip_prefix(out).unwrap_or(p).to_path_buf();
-    let mut files: Vec<PathBuf> = written.iter().map(relative).collect();
-    files.push(vtu_name.into());
-    Ok(files)
+
+    /// Writes the per-element field as `NAME_field.vtu` and lists it after `written`,
+    /// every file relative to `out`.
+    fn write_field(
+        &self,
+        name: &str,
+        out: &Path,
+        written: Vec<PathBuf>,
+    ) -> Result<Vec<PathBuf>, LearnError> {
+        let mesh = &self.mesh;
+        let terms = self.coefficients.len() / mesh.num_tets().max(1);
+        let column = |j: usize| -> Vec<f64> {
+            let c = self.coefficients.iter().skip(j).step_by(terms.max(1));
+            c.copied().collect()
+        };
+        let columns: Vec<(String, Vec<f64>)> = term_names(terms)
+            .into_iter()
+            .enumerate()
+            .map(|(j, n)| (n, column(j)))
+            .collect();
+        let mut vtu = Vtu::new(mesh);
+        for (n, values) in &columns {
+            vtu = vtu.cell_scalars(n, values);
+        }
+        let vtu_name = format!("{name}_field.vtu");
+        let path = out.join(&vtu_name);
+        vtu.write(&path).map_err(|e| LearnError::Io {
+            path: path.clone(),
+            source: std::io::Error::other(e.to_string()),
+        })?;
+        let relative = |p: &PathBuf| p.strip_prefix(out).unwrap_or(p).to_path_buf();
+        let mut files: Vec<PathBuf> = written.iter().map(relative).collect();
+        files.push(vtu_name.into());
+        Ok(files)
+    }
 }
 
 #[cfg(test)]
@@ -974,18 +1092,9 @@ mod tests {
             good.1.clone(),
             None,
         );
-        let settings = Settings {
-            regions: 1,
-            tags: None,
-            regularisation: &[0.0],
+        let settings = CoarseSettings {
             damping: false,
-            mass_scale: false,
-            smooth: None,
-            material: None,
-            newton_rel: &[],
-            fit_newton_iterations: None,
-            scene_newton_iterations: good.1.newton.max_iterations,
-            options: OutputErrorOptions::default(),
+            ..CoarseSettings::new(good.1.newton.max_iterations, OutputErrorOptions::default())
         };
         let mut summary = FitSummary {
             coefficients: 2,
