@@ -170,7 +170,7 @@ def barycentric_embedding(fine, points):
     return np.array(elements), np.array(weights)
 
 
-def test_coarsening_outside_data_of_mixed_conditions_with_a_given_embedding():
+def test_coarsening_outside_data_of_mixed_conditions_with_a_given_embedding(tmp_path):
     # Motions made elsewhere: two under gravity, two without, each kicked.
     rng = np.random.default_rng(5)
     trajectories = []
@@ -201,6 +201,15 @@ def test_coarsening_outside_data_of_mixed_conditions_with_a_given_embedding():
     # The coarse model's material fitted to the carried data of all four motions at once.
     fit = deform.fit_material(coarse_scene, coarse.trajectories, rollout=3, max_iterations=10)
     assert np.isfinite(fit["E"]) and fit["stage2"]["loss"] < fit["stage2"]["initial_loss"]
+    # The coarsening study's fits on them: homogeneous, per region, per element, saved.
+    fits = coarse.fit_coarse(regions=2, regularisation=[0.0], rollout=6, max_iterations=3,
+                             save=str(tmp_path), name="learned")
+    names = [m["name"] for m in fits["models"]]
+    assert names == ["untuned coarse", "homogeneous fit", "per-region fit", "per-element fit"]
+    per_element = fits["models"][-1]["fit"]
+    assert per_element["losses"][1] < per_element["losses"][0]
+    learned = deform.Scene.load(str(tmp_path / "learned.ron"))
+    deform.Simulation(learned).run(2)
     # Conditions that do not fit the scene are refused when the dataset is made.
     bad = deform.Trajectory(trajectories[0].x, 0.01, velocities=trajectories[0].v,
                             conditions={"motions": []})

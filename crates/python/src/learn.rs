@@ -378,6 +378,77 @@ impl Dataset {
         Ok((Self { dataset }, to_python(py, &mapping)?))
     }
 
+    /// Fits coarse models to this dataset of a coarse model (e.g. from
+    /// [`Dataset.coarsen`]) on its training trajectories, choosing on its validation ones:
+    /// the untuned scene, a homogeneous fit, a fit per region (`tags`, one per coarse
+    /// element, or `regions` slabs), and a fit per element at each of `regularisation`
+    /// (the least validation error kept), each with Rayleigh damping when `damping`; every
+    /// fitted model must run freely over every training and validation trajectory, or it
+    /// is replaced by the model its fit started from. With `save` (a folder), the
+    /// per-element model is written there as the scene `name.ron` with its field. Returns
+    /// a dict: `models` (name, fit, alpha, gamma, unstable), `regularisation`, `chosen`,
+    /// `files`.
+    #[pyo3(signature = (*, regions = 8, tags = None, regularisation = vec![0.0, 1e-3, 1e-2], damping = true, rollout = 10, max_iterations = 50, save = None, name = "coarse".to_owned()))]
+    #[allow(clippy::too_many_arguments)]
+    fn fit_coarse<'py>(
+        &self,
+        py: Python<'py>,
+        regions: u32,
+        tags: Option<Vec<u32>>,
+        regularisation: Vec<f64>,
+        damping: bool,
+        rollout: usize,
+        max_iterations: u64,
+        save: Option<PathBuf>,
+        name: String,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        use deform_learn::experiment::coarsen::{CoarseSettings, fit_coarse_models};
+        let scene = &self.dataset.meta.scene;
+        let options = OutputErrorOptions {
+            rollout,
+            max_iterations,
+            ..Default::default()
+        };
+        let settings = CoarseSettings {
+            regions,
+            tags,
+            regularisation,
+            damping,
+            ..CoarseSettings::new(scene.integrator.newton.max_iterations, options)
+        };
+        let origin = save.clone().unwrap_or_default().join(format!("{name}.ron"));
+        let (fits, files) = py
+            .detach(|| {
+                let fits = fit_coarse_models(&self.dataset, &origin, &settings, &mut NoProgress)?;
+                let files = match &save {
+                    Some(dir) => fits.save(scene, &name, dir)?,
+                    None => Vec::new(),
+                };
+                Ok::<_, deform_learn::LearnError>((fits, files))
+            })
+            .map_err(errors::learn)?;
+        let out = PyDict::new(py);
+        let models = pyo3::types::PyList::empty(py);
+        for m in &fits.models {
+            let row = PyDict::new(py);
+            row.set_item("name", m.model.name())?;
+            match &m.fit {
+                Some(f) => row.set_item("fit", to_python(py, f)?)?,
+                None => row.set_item("fit", py.None())?,
+            }
+            row.set_item("alpha", m.options.alpha)?;
+            row.set_item("gamma", m.options.gamma)?;
+            let unstable = m.fit.as_ref().and_then(|f| f.unstable.clone());
+            row.set_item("unstable", unstable)?;
+            models.append(row)?;
+        }
+        out.set_item("models", models)?;
+        out.set_item("regularisation", fits.regularisation.clone())?;
+        out.set_item("chosen", fits.chosen)?;
+        out.set_item("files", files)?;
+        Ok(out.into_any())
+    }
+
     /// Loads a saved dataset folder.
     #[staticmethod]
     fn load(py: Python<'_>, dir: PathBuf) -> PyResult<Self> {

@@ -154,6 +154,18 @@ class Dataset:
         elements: Optional[npt.ArrayLike] = None,
         weights: Optional[_Floats] = None,
     ) -> tuple[Dataset, dict[str, Any]]: ...
+    def fit_coarse(
+        self,
+        *,
+        regions: int = 8,
+        tags: Optional[list[int]] = None,
+        regularisation: list[float] = [0.0, 1e-3, 1e-2],
+        damping: bool = True,
+        rollout: int = 10,
+        max_iterations: int = 50,
+        save: Optional[str] = None,
+        name: str = "coarse",
+    ) -> dict[str, Any]: ...
     @staticmethod
     def generate(
         scene: Scene,
