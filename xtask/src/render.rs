@@ -70,6 +70,12 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
             "Stage 2 starts from the prior (loss {prior:.3e}) rather than the stage-1 estimate (loss {stage1:.3e}).\n"
         )?;
     }
+    if let Some(why) = &r.unstable {
+        writeln!(
+            md,
+            "Stage 2's model failed a free rollout of a training trajectory ({why}): rejected, the output-error row holds its start.\n"
+        )?;
+    }
     if let Some(fit) = &r.output_error {
         let (its, n, l0, loss, t) = summary(fit);
         writeln!(

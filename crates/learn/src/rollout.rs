@@ -128,3 +128,19 @@ pub fn mean_rollout_errors(
     }
     Ok(mean)
 }
+
+/// The first failure of `sim`'s free rollouts of the trajectories of `sets` (training,
+/// then validation), naming the trajectory and step; `None` when every one completes: the
+/// check every fitted model passes before a report shows it.
+pub fn free_rollout_failure(sim: &mut Integrator, sets: &[&[&Trajectory]]) -> Option<String> {
+    for (set, name) in sets.iter().zip(["training", "validation"]) {
+        for (k, t) in set.iter().enumerate() {
+            let what = format!("{name} trajectory {k}");
+            let weights = WorkWeights::default();
+            if let Err(e) = rollout(sim, t, 1, weights, &what, &mut |_, _| {}) {
+                return Some(e.to_string());
+            }
+        }
+    }
+    None
+}

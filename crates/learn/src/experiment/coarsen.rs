@@ -25,7 +25,7 @@ use crate::error::LearnError;
 use crate::output::{
     Field, OutputErrorOptions, Regularisation, Termination, face_neighbours, fit_output_error_field,
 };
-use crate::rollout::{mean_error, mean_rollout_errors};
+use crate::rollout::{free_rollout_failure, mean_error, mean_rollout_errors};
 
 /// Which model a row of the table is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -685,21 +685,6 @@ impl CoarseSettings {
         restore(sim, &kept)?;
         Ok(kept)
     }
-}
-
-/// The first failure of `sim`'s free rollouts of the trajectories of `sets` (training,
-/// then validation), naming the trajectory and step; `None` when every one completes.
-fn free_rollout_failure(sim: &mut Integrator, sets: &[&[&Trajectory]]) -> Option<String> {
-    for (set, name) in sets.iter().zip(["training", "validation"]) {
-        for (k, t) in set.iter().enumerate() {
-            let what = format!("{name} trajectory {k}");
-            let weights = deform_solvers::WorkWeights::default();
-            if let Err(e) = crate::rollout::rollout(sim, t, 1, weights, &what, &mut |_, _| {}) {
-                return Some(e.to_string());
-            }
-        }
-    }
-    None
 }
 
 /// How much more mean validation error a looser Newton tolerance may cost than the

@@ -67,6 +67,11 @@ pub struct FitMaterialReport {
     /// task's `start`, or else from the scene's own moduli.
     #[serde(default)]
     pub stage1_unusable: Option<crate::fit::Unusable>,
+    /// Why stage 2's model was rejected, when it was: its free rollout of a training
+    /// trajectory failed. The rows then end with stage 2's start (its fit is still in
+    /// `output_error`), and the fitted rollouts are the start's.
+    #[serde(default)]
+    pub unstable: Option<String>,
     /// Mean test rollout error per recorded state with the true, stage-1 and fitted
     /// parameters.
     pub rollouts: Vec<Series>,
@@ -165,6 +170,7 @@ pub fn run(
         output_error: None,
         started_from_prior: None,
         stage1_unusable: stage1.unusable(),
+        unstable: None,
         rollouts: Vec::new(),
     };
     if let Some(options) = output_error {
@@ -212,14 +218,21 @@ pub fn run(
             observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
         })?;
         observer.finish();
-        let (e2, nu2) = young(fit.coefficients[0], fit.coefficients[1]);
+        // The fitted model must run freely over the data it was fitted to, or its start
+        // stands instead.
+        report.unstable = crate::rollout::free_rollout_failure(&mut sim, &[&train]);
+        let c = match report.unstable {
+            None => &fit.coefficients,
+            Some(_) => &initial,
+        };
+        let (e2, nu2) = young(c[0], c[1]);
         rows.push(ModuliRow {
             estimate: Estimate::OutputError,
             young: e2,
             poisson: nu2,
             seconds: Some(t2.elapsed().as_secs_f64()),
         });
-        fitted = (fit.coefficients[0], fit.coefficients[1]);
+        fitted = (c[0], c[1]);
         report.output_error = Some(fit);
     }
     // Rollouts on the test trajectories with each parameter set.
