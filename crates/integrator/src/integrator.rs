@@ -307,7 +307,7 @@ impl IntegratorBuilder<'_> {
         self
     }
 
-    /// External loads (total forces on vertex sets, see [`LoadForce`]).
+    /// External loads (total forces on vertex sets, see [`crate::LoadForce`]).
     pub fn loads(mut self, loads: Vec<Load>) -> Self {
         self.loads = loads;
         self
