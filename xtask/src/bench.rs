@@ -27,6 +27,32 @@ pub enum BenchTask {
     Solvers(SolversArgs),
     /// One implicit step from rest (clamped beam under gravity) per solver policy.
     Step(StepArgs),
+    /// The coarsening study's fits: a fine beam's trajectories carried onto a coarser beam,
+    /// then the homogeneous, per-region and per-element fits (fit time per model).
+    Coarsen(CoarsenArgs),
+}
+
+/// `bench coarsen`.
+#[derive(Debug, Args)]
+pub struct CoarsenArgs {
+    /// The fine beam (n = 8: 12,288 tets).
+    #[arg(long, default_value_t = 8)]
+    pub fine: usize,
+    /// The coarse beam (n = 4: 1,536 tets).
+    #[arg(long, default_value_t = 4)]
+    pub coarse: usize,
+    /// Training trajectories (one more is made for validation).
+    #[arg(long, default_value_t = 3)]
+    pub trajectories: usize,
+    /// Steps per trajectory.
+    #[arg(long, default_value_t = 100)]
+    pub steps: usize,
+    /// Steps per rollout of the fits.
+    #[arg(long, default_value_t = 25)]
+    pub rollout: usize,
+    /// The per-element regularisation weights (comma-separated; fitted concurrently).
+    #[arg(long, value_delimiter = ',', default_value = "0")]
+    pub weights: Vec<f64>,
 }
 
 /// `bench assembly`.
@@ -97,7 +123,77 @@ pub fn run(task: BenchTask) -> Result<()> {
         BenchTask::Assembly(a) => assembly(a),
         BenchTask::Solvers(s) => solvers(s),
         BenchTask::Step(s) => step(s),
+        BenchTask::Coarsen(c) => coarsen(c),
     }
+}
+
+/// The fine beam's data (clamped at x = 0, released from stretched, spun and swung starts:
+/// the dataset's default variations), carried onto the coarse beam, and the coarse fits
+/// timed by [`deform_learn::experiment::coarsen::fit_coarse_models`].
+fn coarsen(args: CoarsenArgs) -> Result<()> {
+    use deform_learn::experiment::coarsen::{CoarseSettings, fit_coarse_models};
+    let text = format!(
+        r#"Scene(name: "fine", mesh: Beam({}), material: NeoHookean(Young(e: 1e6, nu: 0.4)),
+            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+            integrator: (dt: 0.01, newton: (rel: 1e-6)), steps: 1)"#,
+        args.fine
+    );
+    let origin = std::path::Path::new("bench_coarsen.ron");
+    let fine = deform_integrator::Scene::parse(&text, origin)?;
+    let count = args.trajectories + 1;
+    let spec = deform_learn::DatasetSpec {
+        split: (args.trajectories as f64 / count as f64, 1.0 / count as f64),
+        ..deform_learn::DatasetSpec::new(count, args.steps, 1)
+    };
+    let started = Instant::now();
+    let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
+    let generate = started.elapsed().as_secs_f64();
+    let coarse = deform_integrator::Scene {
+        mesh: deform_integrator::scene::MeshSource::Beam(args.coarse),
+        ..fine.clone()
+    };
+    let constraints = deform_learn::coarsen::Constraints::FromFine;
+    let (data, mapping) = deform_learn::coarsen::coarsen(&data, &coarse, origin, constraints)?;
+    let options = deform_learn::OutputErrorOptions {
+        rollout: args.rollout,
+        ..Default::default()
+    };
+    let settings = CoarseSettings {
+        regularisation: args.weights.clone(),
+        ..CoarseSettings::new(fine.integrator.newton.max_iterations, options)
+    };
+    let started = Instant::now();
+    let fits = fit_coarse_models(
+        &data,
+        origin,
+        &settings,
+        &mut deform_learn::experiment::NoProgress,
+    )?;
+    let total = started.elapsed().as_secs_f64();
+    for m in fits
+        .models
+        .iter()
+        .filter_map(|m| Some((m.model, m.fit.as_ref()?)))
+    {
+        let (model, fit) = m;
+        println!(
+            r#"{{"what": "coarsen", "model": "{}", "fine_tets": {}, "coarse_tets": {}, "trajectories": {}, "steps": {}, "rollout": {}, "coefficients": {}, "evaluations": {}, "fit_seconds": {:.1}, "termination": "{}"}}"#,
+            model.name(),
+            deform_mesh::generate::BoxGrid::beam(args.fine).num_tets(),
+            mapping.tets,
+            args.trajectories,
+            args.steps,
+            args.rollout,
+            fit.coefficients,
+            fit.evaluations,
+            fit.seconds,
+            fit.termination.describe()
+        );
+    }
+    println!(
+        r#"{{"what": "coarsen", "model": "all", "generate_seconds": {generate:.1}, "fit_seconds": {total:.1}}}"#
+    );
+    Ok(())
 }
 
 fn assembly(args: AssemblyArgs) -> Result<()> {
