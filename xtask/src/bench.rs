@@ -127,15 +127,16 @@ pub fn run(task: BenchTask) -> Result<()> {
     }
 }
 
-/// The fine beam's data (clamped at x = 0, released from stretched, spun and swung starts:
-/// the dataset's default variations), carried onto the coarse beam, and the coarse fits
-/// timed by [`deform_learn::experiment::coarsen::fit_coarse_models`].
+/// The fine beam's data (the default scene's material, damping and Newton options, clamped
+/// at x = 0, released with the demo's coarsening variations), carried onto the coarse
+/// beam, and the coarse fits timed by
+/// [`deform_learn::experiment::coarsen::fit_coarse_models`].
 fn coarsen(args: CoarsenArgs) -> Result<()> {
     use deform_learn::experiment::coarsen::{CoarseSettings, fit_coarse_models};
     let text = format!(
         r#"Scene(name: "fine", mesh: Beam({}), material: NeoHookean(Young(e: 1e6, nu: 0.4)),
             density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
-            integrator: (dt: 0.01, newton: (rel: 1e-6)), steps: 1)"#,
+            integrator: (dt: 0.01, alpha: 0.5, newton: (rel: 1e-6, max_iterations: 20)), steps: 1)"#,
         args.fine
     );
     let origin = std::path::Path::new("bench_coarsen.ron");
@@ -143,7 +144,13 @@ fn coarsen(args: CoarsenArgs) -> Result<()> {
     let count = args.trajectories + 1;
     let spec = deform_learn::DatasetSpec {
         split: (args.trajectories as f64 / count as f64, 1.0 / count as f64),
-        ..deform_learn::DatasetSpec::new(count, args.steps, 1)
+        variations: deform_learn::Variations {
+            speed: 0.5,
+            spin: 1.0,
+            stretch: 0.05,
+            rest: false,
+        },
+        ..deform_learn::DatasetSpec::new(count, args.steps, 3)
     };
     let started = Instant::now();
     let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
