@@ -663,7 +663,7 @@ fn fit_row(
 }
 
 impl CoarseSettings {
-    /// `fitted` when it runs freely (as it runs: [`Settings::running`]) over every
+    /// `fitted` when it runs freely (as it runs: [`CoarseSettings::running`]) over every
     /// trajectory of `sets`, else `fallback` with the failure in `summary.unstable`; the
     /// model kept is left in `sim`.
     fn keep_stable(
@@ -700,7 +700,7 @@ impl CoarseSettings {
     }
 
     /// `fitted` with the scene's Newton iteration cap and the loosest of
-    /// [`Settings::newton_rel`] whose mean validation rollout error is within
+    /// [`CoarseSettings::newton_rel`] whose mean validation rollout error is within
     /// [`NEWTON_SLACK`] of the model's own tolerance's (a tolerance under which a step fails
     /// is passed over). `sim` is left with `fitted`, so later fits start from what they
     /// would without the choice.
