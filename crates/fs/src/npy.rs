@@ -302,6 +302,15 @@ fn c_order(shape: &[usize], values: &[f64]) -> Vec<f64> {
     out
 }
 
+/// The relative rounding of values stored as numpy's `dtype` ([`Array::rounding`]).
+pub fn rounding_of(dtype: &str) -> f64 {
+    match dtype {
+        "float64" => f64::EPSILON,
+        d if d.starts_with("float") => f32::EPSILON as f64,
+        _ => 0.0,
+    }
+}
+
 impl Array {
     /// Float64 values of `shape`.
     ///
@@ -325,11 +334,7 @@ impl Array {
     /// (1.2e-7) for `float32` (and `float16`, which deform does not read), float64's for
     /// floats of 64 bits, 0 for integers (exact).
     pub fn rounding(&self) -> f64 {
-        match self.dtype.as_str() {
-            "float64" => f64::EPSILON,
-            d if d.starts_with("float") => f32::EPSILON as f64,
-            _ => 0.0,
-        }
+        rounding_of(&self.dtype)
     }
 
     /// The values as indices (vertex ids, tet corners): each must be a non-negative integer.

@@ -355,6 +355,7 @@ fn equation_error(
                 reason: format!("states must have {n} values (3 per vertex)"),
             });
         }
+        let mut external = external_at(sim, t, ti, dt)?;
         for step in 0..t.steps() {
             let (x1, v0, v1) = (&t.x[step + 1], &t.v[step], &t.v[step + 1]);
             let fail = |source| FitError::Assembly {
@@ -369,13 +370,10 @@ fn equation_error(
             let mut b = vec![0.0; n];
             let dv: Vec<f64> = v1.iter().zip(v0).map(|(a, b)| a - b).collect();
             asm.mass_apply(mass, &dv, &mut b).map_err(fail)?;
-            let t1 = (step + 1) as f64 * dt;
-            let external =
-                sim.external_forces_under(&t.conditions, t1)
-                    .map_err(|e| FitError::Data {
-                        index: ti,
-                        reason: e.to_string(),
-                    })?;
+            // Gravity is the same at every step; loads may stop.
+            if step > 0 && sim.num_loads() > 0 {
+                external = external_at(sim, t, ti, (step + 1) as f64 * dt)?;
+            }
             for (bi, gi) in b.iter_mut().zip(&external) {
                 *bi -= dt * gi;
             }
@@ -458,6 +456,20 @@ fn equation_error(
 }
 
 /// Solves the SPD system `G y = h` (Cholesky, or `None` if singular).
+/// The external forces on trajectory `ti` at time `time`: its conditions' gravity and loads.
+fn external_at(
+    sim: &Integrator,
+    t: &Trajectory,
+    ti: usize,
+    time: f64,
+) -> Result<Vec<f64>, FitError> {
+    sim.external_forces_under(&t.conditions, time)
+        .map_err(|e| FitError::Data {
+            index: ti,
+            reason: e.to_string(),
+        })
+}
+
 fn solve_spd(g: &DMatrix<f64>, h: &DVector<f64>) -> Option<DVector<f64>> {
     let chol = g.clone().cholesky()?;
     let y = chol.solve(h);

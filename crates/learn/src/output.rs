@@ -510,16 +510,10 @@ impl<'a> OutputError<'a> {
             .filter(|&v| !sim.dofs().is_constrained(v))
             .collect();
         self.check_observed(n / 3)?;
-        // Each rollout runs under its trajectory's conditions; the model's are put back.
-        let own = sim.conditions().clone();
-        let mut pass = || -> Result<(), FitError> {
-            for (r, &(ti, start, len)) in self.rollouts().iter().enumerate() {
-                let t = self.trajectories[ti];
-                sim.set_conditions(&t.conditions)
-                    .map_err(|e| FitError::Data {
-                        index: ti,
-                        reason: e.to_string(),
-                    })?;
+        // Each rollout runs under its trajectory's conditions (the model's put back after).
+        for (r, &(ti, start, len)) in self.rollouts().iter().enumerate() {
+            let t = self.trajectories[ti];
+            let ran = t.under(&mut sim, |sim| -> Result<(), FitError> {
                 // An exactly known first state stays as it is.
                 let offset = starts
                     .filter(|_| !(start == 0 && t.exact_start))
@@ -534,12 +528,7 @@ impl<'a> OutputError<'a> {
                         }
                     }
                 }
-                let states = forward(
-                    &mut sim,
-                    first,
-                    (ti, start, len),
-                    self.options.allow_retries,
-                )?;
+                let states = forward(sim, first, (ti, start, len), self.options.allow_retries)?;
                 let (dl_dx, dl_dv) = loss_terms(t, start, &states, wv, (&mut num, &mut den));
                 let rollout = Rollout {
                     trajectory: ti,
@@ -548,7 +537,7 @@ impl<'a> OutputError<'a> {
                     dl_dx: &dl_dx,
                     dl_dv: &dl_dv,
                 };
-                let adjoint = work.backward(&mut sim, &mut solver, &rollout, &mut grad)?;
+                let adjoint = work.backward(sim, &mut solver, &rollout, &mut grad)?;
                 if let Some(o) = offset {
                     let g = &mut start_grad[2 * n * r..2 * n * (r + 1)];
                     for &v in &free {
@@ -558,13 +547,13 @@ impl<'a> OutputError<'a> {
                         }
                     }
                 }
-            }
-            Ok(())
-        };
-        let outcome = pass();
-        sim.set_conditions(&own)
-            .expect("the model's own conditions were valid");
-        outcome?;
+                Ok(())
+            });
+            ran.map_err(|e| FitError::Data {
+                index: ti,
+                reason: e.to_string(),
+            })??;
+        }
         if den <= 0.0 {
             return Err(FitError::NoData);
         }

@@ -306,15 +306,11 @@ impl Dataset {
             .iter()
             .enumerate()
             .map(|(k, t)| {
-                let mut source = Source::float64(format!("trajectory {k}"));
-                if t.dtype != "float64" {
-                    let a = Array {
-                        shape: vec![],
-                        data: vec![],
-                        dtype: t.dtype.clone(),
-                    };
-                    (source.dtype, source.rounding) = (t.dtype.clone(), a.rounding());
-                }
+                let source = Source {
+                    name: format!("trajectory {k}").into(),
+                    dtype: t.dtype.clone(),
+                    rounding: deform_learn::npy::rounding_of(&t.dtype),
+                };
                 (t.trajectory.clone(), source)
             })
             .collect();

@@ -581,12 +581,9 @@ pub fn fit_coarse_models(
         // No weight gave a model that runs: the homogeneous fit, as a field, instead.
         let why = summary.unstable.take().unwrap_or_default();
         summary.unstable = Some(format!("at every weight; the chosen one's: {why}"));
-        let uniform = homogeneous.0.max_terms();
-        c = match &homogeneous.0 {
-            MaterialField::Uniform(m) => m.term_coefficients().repeat(labels.len()),
-            _ => c,
-        };
-        c.truncate(labels.len() * uniform);
+        if let MaterialField::Uniform(m) = &homogeneous.0 {
+            c = m.term_coefficients().repeat(labels.len());
+        }
         model = homogeneous.clone();
     }
     let tuned = settings.loosest_newton(&mut sim, &validation, &model)?;
