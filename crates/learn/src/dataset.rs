@@ -7,6 +7,8 @@
 //! meta.ron                  DatasetMeta: the base scene, seed, versions, splits, noise
 //! traj_000/x.npy            positions,  shape (steps + 1, vertices, 3), float64
 //! traj_000/v.npy            velocities, same shape
+//! traj_000/markers.npy      observed marker positions, shape (steps + 1, markers, 3), when
+//!                           only markers were observed (meta.ron lists the markers)
 //! traj_001/...
 //! ```
 
@@ -22,6 +24,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::observe::{Marker, Observed};
 use crate::rng::Rng;
 use deform_fs::npy::{self, NpyError};
 
@@ -49,11 +52,11 @@ pub struct Trajectory {
     /// The conditions it was made under where they differ from the model's (gravity,
     /// constraint motions, loads): every fit, rollout and solver log steps it under them.
     pub conditions: Conditions,
-    /// The vertices whose positions were observed, when not all were (what a capture of
-    /// markers gives): the output error and the rollout error compare only these, and the
-    /// other vertices' entries of the frames after the first are not read. The first frame
-    /// must be complete (e.g. a release from a known shape).
-    pub observed: Option<Vec<usize>>,
+    /// What was observed, when not the whole state ([`crate::observe`]: markers at vertices
+    /// or inside elements, what a capture gives): the output error and the rollout error
+    /// compare only the markers, and the frames after the first are not read. The first
+    /// frame holds the first state, known or estimated ([`crate::observe::estimate_start`]).
+    pub observed: Option<Observed>,
 }
 
 impl Trajectory {
@@ -106,9 +109,10 @@ pub struct TrajectoryMeta {
     /// ([`Trajectory::conditions`]).
     #[serde(default, skip_serializing_if = "Conditions::is_default")]
     pub conditions: Conditions,
-    /// The observed vertices, when not all were ([`Trajectory::observed`]).
+    /// The markers, when only they were observed ([`Trajectory::observed`]); their positions
+    /// are in `markers.npy`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub observed: Option<Vec<usize>>,
+    pub observed: Option<Vec<Marker>>,
 }
 
 /// Gaussian noise added after generation.
@@ -521,6 +525,9 @@ impl Dataset {
         for (t, m) in out.trajectories.iter_mut().zip(&mut out.meta.trajectories) {
             t.x = t.x.iter().step_by(k).cloned().collect();
             t.v = t.v.iter().step_by(k).cloned().collect();
+            if let Some(o) = &mut t.observed {
+                o.positions = o.positions.iter().step_by(k).cloned().collect();
+            }
             m.steps = t.steps();
         }
         out.meta.dt *= k as f64;
@@ -590,11 +597,22 @@ impl Dataset {
             let shape = [t.x.len(), self.meta.vertices, 3];
             npy::write(&sub.join("x.npy"), &shape, &t.x.concat())?;
             npy::write(&sub.join("v.npy"), &shape, &t.v.concat())?;
+            if let Some(o) = &t.observed {
+                let shape = [o.positions.len(), o.markers.len(), 3];
+                npy::write(&sub.join("markers.npy"), &shape, &o.positions.concat())?;
+            }
         }
-        let text = ron::ser::to_string_pretty(&self.meta, ron::ser::PrettyConfig::default())
-            .map_err(|e| DatasetError::Meta {
-                path: meta_path.clone(),
-                reason: e.to_string(),
+        // The markers are the trajectories' own (set on them, not on the meta).
+        let mut meta = self.meta.clone();
+        for (m, t) in meta.trajectories.iter_mut().zip(&self.trajectories) {
+            m.observed = t.observed.as_ref().map(|o| o.markers.clone());
+        }
+        let text =
+            ron::ser::to_string_pretty(&meta, ron::ser::PrettyConfig::default()).map_err(|e| {
+                DatasetError::Meta {
+                    path: meta_path.clone(),
+                    reason: e.to_string(),
+                }
             })?;
         write_atomic(&meta_path, |w| w.write_all(text.as_bytes())).map_err(|e| DatasetError::Meta {
             path: meta_path.clone(),
@@ -662,11 +680,49 @@ impl Dataset {
                 v: read("v.npy")?,
                 exact_start: m.exact_start,
                 conditions: m.conditions.clone(),
-                observed: m.observed.clone(),
+                observed: read_observed(&dir.join(&m.name), m, meta.vertices)?,
             });
         }
         Ok(Self { meta, trajectories })
     }
+}
+
+/// The observations of trajectory `m` in folder `sub`: its markers and `markers.npy`.
+fn read_observed(
+    sub: &Path,
+    m: &TrajectoryMeta,
+    vertices: usize,
+) -> Result<Option<Observed>, DatasetError> {
+    let Some(markers) = &m.observed else {
+        return Ok(None);
+    };
+    let path = sub.join("markers.npy");
+    if markers.is_empty() {
+        let reason = "lists no observed marker".to_owned();
+        return Err(DatasetError::Inconsistent(format!("{}: {reason}", m.name)));
+    }
+    let a = npy::read(&path)?;
+    if a.shape != [m.steps + 1, markers.len(), 3] {
+        return Err(DatasetError::Inconsistent(format!(
+            "{}: shape {:?}, meta.ron says ({}, {}, 3)",
+            path.display(),
+            a.shape,
+            m.steps + 1,
+            markers.len()
+        )));
+    }
+    let observed = Observed {
+        markers: markers.clone(),
+        positions: a
+            .data
+            .chunks(3 * markers.len())
+            .map(<[f64]>::to_vec)
+            .collect(),
+    };
+    observed
+        .check(vertices, m.steps + 1)
+        .map_err(|e| DatasetError::Inconsistent(format!("{}: {e}", path.display())))?;
+    Ok(Some(observed))
 }
 
 /// The state at step `n` of a trajectory.

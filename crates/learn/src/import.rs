@@ -200,7 +200,16 @@ pub fn from_trajectories(
                 "{name}: {found} vertices, the scene's mesh has {vertices}"
             )));
         }
-        for (n, x) in trajectory.x.iter().enumerate() {
+        // Of a partially observed trajectory only the first frame is a whole state.
+        let whole = match &trajectory.observed {
+            Some(o) => {
+                o.check(vertices, trajectory.x.len())
+                    .map_err(|e| DatasetError::Inconsistent(format!("{name}: {e}")))?;
+                1
+            }
+            None => trajectory.x.len(),
+        };
+        for (n, x) in trajectory.x.iter().take(whole).enumerate() {
             let targets = built.integrator.constrained_targets(n as f64 * dt);
             for (i, target) in targets {
                 let off = (0..3)
@@ -223,7 +232,7 @@ pub fn from_trajectories(
             source: Some(source.name.clone()),
             exact_start: trajectory.exact_start,
             conditions: trajectory.conditions.clone(),
-            observed: trajectory.observed.clone(),
+            observed: trajectory.observed.as_ref().map(|o| o.markers.clone()),
         });
         kept.push(trajectory);
     }

@@ -15,17 +15,14 @@ pub fn rms_distance(x: &[f64], y: &[f64]) -> f64 {
     (sq / (x.len() / 3).max(1) as f64).sqrt()
 }
 
-/// [`rms_distance`] over the `observed` vertices only (all with `None`).
-pub fn rms_distance_of(x: &[f64], y: &[f64], observed: Option<&[usize]>) -> f64 {
-    let Some(vertices) = observed else {
-        return rms_distance(x, y);
-    };
-    let sq: f64 = vertices
-        .iter()
-        .flat_map(|&v| 3 * v..3 * v + 3)
-        .map(|i| (x[i] - y[i]).powi(2))
-        .sum();
-    (sq / vertices.len().max(1) as f64).sqrt()
+/// The rollout error's distance at frame `n` of `t` for positions `x`: [`rms_distance`] to
+/// the recorded state, or over the observed markers only
+/// ([`crate::observe::Observed::rms_distance`]).
+pub fn distance_to(t: &Trajectory, n: usize, x: &[f64]) -> f64 {
+    match &t.observed {
+        Some(o) => o.rms_distance(x, n),
+        None => rms_distance(x, &t.x[n]),
+    }
 }
 
 /// Mean of a rollout's errors over its predicted states (entry 0, the start, excluded).
@@ -85,7 +82,7 @@ fn rollout_in(
             taken += 1;
             if taken.is_multiple_of(refine) {
                 let n = taken / refine;
-                errors.push(rms_distance_of(&s.x, &t.x[n], t.observed.as_deref()));
+                errors.push(distance_to(t, n, &s.x));
                 on_sample(n, s);
             }
         }),

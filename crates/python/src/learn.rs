@@ -507,13 +507,18 @@ impl Dataset {
 }
 
 /// The metadata's RON (its length first, 8 bytes) and every frame's positions, then
-/// velocities, as little-endian f64.
+/// velocities (then observed markers' positions), as little-endian f64.
 fn to_bytes(d: &deform_learn::Dataset) -> PyResult<Vec<u8>> {
-    let meta = ron::to_string(&d.meta).map_err(errors::learn)?;
+    let mut meta = d.meta.clone();
+    for (m, t) in meta.trajectories.iter_mut().zip(&d.trajectories) {
+        m.observed = t.observed.as_ref().map(|o| o.markers.clone());
+    }
+    let meta = ron::to_string(&meta).map_err(errors::learn)?;
     let mut out = (meta.len() as u64).to_le_bytes().to_vec();
     out.extend_from_slice(meta.as_bytes());
     for t in &d.trajectories {
-        for frame in t.x.iter().chain(&t.v) {
+        let markers = t.observed.iter().flat_map(|o| &o.positions);
+        for frame in t.x.iter().chain(&t.v).chain(markers) {
             out.extend(frame.iter().flat_map(|v| v.to_le_bytes()));
         }
     }
@@ -530,8 +535,7 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
     let mut values = bytes[8 + len as usize..]
         .chunks_exact(8)
         .map(|b| f64::from_le_bytes(b.try_into().expect("8")));
-    let n = 3 * meta.vertices;
-    let mut frames = |count: usize| -> Result<Vec<Vec<f64>>, String> {
+    let mut frames = |count: usize, n: usize| -> Result<Vec<Vec<f64>>, String> {
         (0..count)
             .map(|_| {
                 let f: Vec<f64> = values.by_ref().take(n).collect();
@@ -541,14 +545,21 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
     };
     let mut trajectories = Vec::new();
     for m in &meta.trajectories {
-        let x = frames(m.steps + 1)?;
-        let v = frames(m.steps + 1)?;
+        let x = frames(m.steps + 1, 3 * meta.vertices)?;
+        let v = frames(m.steps + 1, 3 * meta.vertices)?;
+        let observed = match &m.observed {
+            Some(markers) => Some(deform_learn::observe::Observed {
+                markers: markers.clone(),
+                positions: frames(m.steps + 1, 3 * markers.len())?,
+            }),
+            None => None,
+        };
         trajectories.push(deform_learn::Trajectory {
             x,
             v,
             exact_start: m.exact_start,
             conditions: m.conditions.clone(),
-            observed: m.observed.clone(),
+            observed,
         });
     }
     Ok(deform_learn::Dataset { meta, trajectories })
