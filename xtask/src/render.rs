@@ -134,6 +134,16 @@ fn summary(fit: &OutputErrorFit) -> (usize, usize, f64, f64, &Termination) {
 }
 
 fn select_model(r: &SelectModelReport, md: &mut String) -> Result<()> {
+    for m in r.models.iter().filter(|m| m.unstable.is_some()) {
+        let name = m
+            .member
+            .map_or("The ensemble".to_owned(), |n| n.to_string());
+        let why = m.unstable.as_deref().unwrap_or_default();
+        writeln!(
+            md,
+            "{name}'s stage-2 fit failed a free rollout ({why}): rejected, its stage-1 fit stands.\n"
+        )?;
+    }
     for e in &r.ensemble.excluded {
         writeln!(
             md,
@@ -305,8 +315,15 @@ fn story(r: &StoryReport, md: &mut String) -> Result<()> {
         let shares: Vec<String> = s.members.iter().map(|m| format!("{} {:.1} %", m.model, 100.0 * m.energy_share)).collect();
         let names: Vec<String> = s.members.iter().map(|m| m.model.to_string()).collect();
         let kept = if s.ensemble_kept { "the ensemble" } else { "the single model" };
-        format!(" Model selection: an ensemble of {} fitted by both stages (energy shares {}) has validation rollout error {:.3e} m against {:.3e} m for the single model: {kept} is kept.", names.join(", "), shares.join(", "), s.ensemble_error, s.single_error)
+        let unstable = s.ensemble_unstable.as_ref().map_or(String::new(), |why| format!(" (the ensemble failed a free rollout: {why})"));
+        format!(" Model selection: an ensemble of {} fitted by both stages (energy shares {}) has validation rollout error {:.3e} m against {:.3e} m for the single model: {kept} is kept{unstable}.", names.join(", "), shares.join(", "), s.ensemble_error, s.single_error)
     });
+    if let Some(why) = &r.unstable {
+        writeln!(
+            md,
+            "Stage 2's Lame pair failed a free rollout ({why}): rejected, stage 1's pair stands.\n"
+        )?;
+    }
     let ((a0, g0), (a1, g1), fit, tuning) =
         (r.damping_before, r.damping_after, &r.fit, &r.tuning.best);
     let (k, logged, n, accuracy) = (r.subsample, r.logged, r.tuning.samples.len(), r.accuracy);

@@ -126,6 +126,21 @@ pub fn mean_rollout_errors(
     Ok(mean)
 }
 
+/// `fitted` when `sim`, holding the model fitted, runs freely over the trajectories of `sets`
+/// ([`free_rollout_failure`]), else `fallback` and why not: how every fit's result is kept
+/// or rejected before a report shows it.
+pub fn stable_or<T>(
+    sim: &mut Integrator,
+    sets: &[&[&Trajectory]],
+    fitted: T,
+    fallback: T,
+) -> (T, Option<String>) {
+    match free_rollout_failure(sim, sets) {
+        None => (fitted, None),
+        Some(why) => (fallback, Some(why)),
+    }
+}
+
 /// The first failure of `sim`'s free rollouts of the trajectories of `sets` (training,
 /// then validation), naming the trajectory and step; `None` when every one completes: the
 /// check every fitted model passes before a report shows it.
@@ -140,4 +155,57 @@ pub fn free_rollout_failure(sim: &mut Integrator, sets: &[&[&Trajectory]]) -> Op
         }
     }
     None
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use deform_integrator::Scene;
+
+    use super::*;
+    use crate::dataset::{DatasetSpec, generate};
+
+    fn beam(e: f64) -> Scene {
+        let text = format!(
+            r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: {e:e}, nu: 0.4)),
+            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+            integrator: (dt: 0.01, max_retries: 2), steps: 3)"#
+        );
+        Scene::parse(&text, Path::new("t.ron")).unwrap()
+    }
+
+    /// The keep-or-reject rule of every fit (FitMaterial, SelectModel, the demo's story): a
+    /// model far too soft (its elements invert under gravity) fails its free rollout and the
+    /// fallback is kept, naming the set, trajectory and step; a model that runs is kept.
+    #[test]
+    fn a_model_that_fails_its_free_rollout_gives_way_to_the_fallback() {
+        let origin = Path::new("t.ron");
+        let data = generate(&beam(1e5), origin, &DatasetSpec::new(2, 60, 5), |_, _| ()).unwrap();
+        let (train, validation) = (vec![&data.trajectories[0]], vec![&data.trajectories[1]]);
+        let sets = [train.as_slice(), validation.as_slice()];
+        let mut soft = beam(1e-4).build(origin).unwrap().integrator;
+        let (kept, why) = stable_or(&mut soft, &sets, "fitted", "start");
+        let why = why.expect("rejected");
+        assert_eq!(kept, "start");
+        assert!(
+            why.contains("training trajectory 0") && why.contains("step"),
+            "{why}"
+        );
+        let mut good = beam(1e5).build(origin).unwrap().integrator;
+        assert_eq!(
+            stable_or(&mut good, &sets, "fitted", "start"),
+            ("fitted", None)
+        );
+        // The validation set is checked too.
+        let mut fine_on_train = beam(1e5).build(origin).unwrap().integrator;
+        let wild = Trajectory {
+            v: vec![vec![1e4; data.trajectories[1].v[0].len()]; data.trajectories[1].v.len()],
+            ..data.trajectories[1].clone()
+        };
+        let sets = [train.as_slice(), &[&wild][..]];
+        let (kept, why) = stable_or(&mut fine_on_train, &sets, "fitted", "start");
+        assert_eq!(kept, "start");
+        assert!(why.expect("rejected").contains("validation trajectory 0"));
+    }
 }

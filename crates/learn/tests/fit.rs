@@ -584,6 +584,7 @@ fn an_ensemble_that_stage_1_emptied_is_refined_from_the_scene_guess() {
                 member: Some(m),
                 validation: f64::INFINITY,
                 test: f64::INFINITY,
+                unstable: None,
             })
             .collect(),
         rollouts: Vec::new(),

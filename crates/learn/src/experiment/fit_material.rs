@@ -12,7 +12,7 @@ use crate::dataset::Split;
 use crate::error::LearnError;
 use crate::fit::fit_equation_error;
 use crate::output::{OutputError, OutputErrorFit, fit_output_error};
-use crate::rollout::mean_error;
+use crate::rollout::{mean_error, stable_or};
 
 /// Which parameters a row of the fit table holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -218,13 +218,12 @@ pub fn run(
             observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
         })?;
         observer.finish();
-        // The fitted model must run freely over the data it was fitted to, or its start
-        // stands instead.
-        report.unstable = crate::rollout::free_rollout_failure(&mut sim, &[&train]);
-        let c = match report.unstable {
-            None => &fit.coefficients,
-            Some(_) => &initial,
-        };
+        // The fitted model must run freely over the data it was fitted and validated on, or
+        // its start stands instead.
+        let validation = cx.data.split(Split::Validation);
+        let sets = [train.as_slice(), validation.as_slice()];
+        let (c, unstable) = stable_or(&mut sim, &sets, &fit.coefficients, &initial);
+        report.unstable = unstable;
         let (e2, nu2) = young(c[0], c[1]);
         rows.push(ModuliRow {
             estimate: Estimate::OutputError,

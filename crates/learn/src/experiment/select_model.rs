@@ -12,7 +12,7 @@ use crate::dataset::{Split, Trajectory};
 use crate::ensemble::{EnsembleFit, Member, fit_ensemble, refine_ensemble};
 use crate::error::LearnError;
 use crate::output::OutputErrorFit;
-use crate::rollout::mean_error;
+use crate::rollout::{mean_error, stable_or};
 
 /// A model (one member alone, or the ensemble) and its mean rollout errors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -23,6 +23,10 @@ pub struct ModelErrors {
     pub validation: f64,
     /// The same on the test trajectories.
     pub test: f64,
+    /// Why its stage-2 fit was rejected, when it was: the refined model's free rollout of a
+    /// training or validation trajectory failed (naming it), and its stage-1 fit stands.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unstable: Option<String>,
 }
 
 /// What model selection found.
@@ -89,7 +93,7 @@ pub fn run(
     let mut fit_models = |names: &[Member], evaluate: &[&Trajectory]| {
         let fit = fit_ensemble(&cx.scene, origin, names, &train, evaluate)?;
         let Some(options) = output_error else {
-            return Ok::<_, LearnError>((fit, None));
+            return Ok::<_, LearnError>((fit, None, None));
         };
         observer.start(Stage::Ensemble, options.max_evaluations as u64);
         let (refined, stage2) = refine_ensemble(
@@ -105,9 +109,22 @@ pub fn run(
             },
         )?;
         observer.finish();
-        Ok((refined, Some(stage2)))
+        // The refined model must run freely on the data it was fitted and chosen on, or
+        // stage 1's stands.
+        let Some(spec) = refined.spec() else {
+            return Ok((refined, Some(stage2), None));
+        };
+        let scene = Scene {
+            material: spec,
+            ..cx.scene.clone()
+        };
+        let mut sim = scene.build(origin)?.integrator;
+        let validation = cx.data.split(Split::Validation);
+        let sets = [train.as_slice(), validation.as_slice()];
+        let (kept, unstable) = stable_or(&mut sim, &sets, refined, fit);
+        Ok((kept, Some(stage2), unstable))
     };
-    let (ensemble, stage2) = fit_models(members, &cx.data.split(Split::Test))?;
+    let (ensemble, stage2, unstable) = fit_models(members, &cx.data.split(Split::Test))?;
     // Each model alone against the ensemble, by rollout error on validation (to select)
     // and test (to report), averaged over the rollouts.
     let evaluate = |spec: Option<MaterialSpec>| -> (f64, f64) {
@@ -126,16 +143,18 @@ pub fn run(
     for &member in members {
         // A model the data leave undefined cannot have made them.
         let outside = ensemble.excluded.iter().any(|e| e.model == member);
-        let (validation, test) = if outside {
-            (f64::INFINITY, f64::INFINITY)
+        let (validation, test, why) = if outside {
+            (f64::INFINITY, f64::INFINITY, None)
         } else {
-            let (single, _) = fit_models(&[member], &cx.data.split(Split::Validation))?;
-            evaluate(single.spec())
+            let (single, _, why) = fit_models(&[member], &cx.data.split(Split::Validation))?;
+            let (validation, test) = evaluate(single.spec());
+            (validation, test, why)
         };
         models.push(ModelErrors {
             member: Some(member),
             validation,
             test,
+            unstable: why,
         });
     }
     let (validation, test) = evaluate(ensemble.spec());
@@ -143,6 +162,7 @@ pub fn run(
         member: None,
         validation,
         test,
+        unstable,
     });
     // Test rollouts of the base scene and of the ensemble.
     let tests = cx.data.split(Split::Test);

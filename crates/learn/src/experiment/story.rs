@@ -26,7 +26,7 @@ use crate::output::{OutputErrorFit, fit_output_error};
 use crate::policy::{
     DEFAULT_FORCING, DEFAULT_MIN_SUCCESS, DEFAULT_NEIGHBOURS, LearnedPolicy, PolicyOptions,
 };
-use crate::rollout::{mean_error, mean_rollout_errors, rollout};
+use crate::rollout::{free_rollout_failure, mean_error, mean_rollout_errors, rollout, stable_or};
 use crate::solver_data::{Run, collect_runs};
 use crate::tuning::{Tuning, TuningResult, tune_policy};
 
@@ -95,6 +95,10 @@ pub struct Selection {
     pub single_error: f64,
     /// The ensemble replaced the single model.
     pub ensemble_kept: bool,
+    /// Why the ensemble was not kept although its validation error was lower: its free
+    /// rollout of a training trajectory failed (naming it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ensemble_unstable: Option<String>,
 }
 
 /// What the story found.
@@ -108,6 +112,10 @@ pub struct StoryReport {
     pub damping_after: (f64, f64),
     /// Stage 2 of the material fit.
     pub fit: OutputErrorFit,
+    /// Why stage 2's Lame pair was rejected, when it was: its free rollout of a training
+    /// or validation trajectory failed (naming it), and stage 1's pair stands instead.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unstable: Option<String>,
     /// Model selection, when members were given.
     pub selection: Option<Selection>,
     /// Logged Newton systems of the tuned model.
@@ -209,7 +217,12 @@ pub fn run(
         },
     )?;
     observer.finish();
-    let fitted = Lame::try_new(fit.coefficients[0], fit.coefficients[1])?;
+    // The fitted pair must run freely over the data it was fitted and validated on, or stage
+    // 1's stands.
+    let validation = cx.data.split(Split::Validation);
+    let sets = [train.as_slice(), validation.as_slice()];
+    let (c, unstable) = stable_or(sim, &sets, &fit.coefficients, &stage1.coefficients);
+    let fitted = Lame::try_new(c[0], c[1])?;
     let mut tuned_scene = with_lame(&cx.scene, fitted.mu, fitted.lambda)?;
     tuned_scene.integrator.alpha = stage1.alpha;
     tuned_scene.integrator.gamma = stage1.gamma;
@@ -218,7 +231,6 @@ pub fn run(
     let selection = if members.is_empty() {
         None
     } else {
-        let validation = cx.data.split(Split::Validation);
         let (selection, scene) = select(
             &tuned_scene,
             origin,
@@ -283,6 +295,7 @@ pub fn run(
         damping_before: (cx.scene.integrator.alpha, cx.scene.integrator.gamma),
         damping_after: (stage1.alpha, stage1.gamma),
         fit,
+        unstable,
         selection,
         logged: logged.len(),
         candidates: candidates.len(),
@@ -479,12 +492,20 @@ fn select(
         }
         None => f64::INFINITY,
     };
-    let ensemble_kept = ensemble_error < single_error;
+    // The validation rollouts ran above; the ensemble must run freely on its training
+    // trajectories too before it replaces the single model.
+    let mut ensemble_unstable = None;
+    if ensemble_error < single_error {
+        let mut sim = ensemble_scene.build(origin)?.integrator;
+        ensemble_unstable = free_rollout_failure(&mut sim, &[train]);
+    }
+    let ensemble_kept = ensemble_error < single_error && ensemble_unstable.is_none();
     let selection = Selection {
         members: ensemble.members,
         ensemble_error,
         single_error,
         ensemble_kept,
+        ensemble_unstable,
     };
     Ok((
         selection,
