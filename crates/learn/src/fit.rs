@@ -74,6 +74,12 @@ pub enum Unusable {
         /// The relative residual.
         relative_residual: f64,
     },
+    /// Not run: a training trajectory observes only markers, and the equation error needs
+    /// whole states.
+    MarkersOnly {
+        /// The trajectory (its index among the training ones).
+        trajectory: usize,
+    },
 }
 
 impl std::fmt::Display for Unusable {
@@ -86,6 +92,10 @@ impl std::fmt::Display for Unusable {
             Unusable::NoFit { relative_residual } => write!(
                 f,
                 "relative residual {relative_residual:.3}: the equation error explains nothing of the data"
+            ),
+            Unusable::MarkersOnly { trajectory } => write!(
+                f,
+                "not run: training trajectory {trajectory} observes only markers, and the equation error needs whole states"
             ),
         }
     }

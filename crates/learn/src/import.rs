@@ -29,6 +29,31 @@ pub enum VelocitySource {
     Derived,
 }
 
+/// The markers a capture followed ([`crate::observe::Marker`]), as `.npy` files.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub enum MarkerFiles {
+    /// Vertices: their ids, an integer `.npy` of shape (markers,).
+    Vertices(PathBuf),
+    /// Points inside elements: the element ids, shape (markers,), and the barycentric weights
+    /// of their corners, shape (markers, 4), used as given.
+    Inside {
+        /// The element ids.
+        elements: PathBuf,
+        /// The weights.
+        weights: PathBuf,
+    },
+}
+
+impl MarkerFiles {
+    fn paths(&mut self) -> Vec<&mut PathBuf> {
+        match self {
+            Self::Vertices(p) => vec![p],
+            Self::Inside { elements, weights } => vec![elements, weights],
+        }
+    }
+}
+
 /// One imported trajectory.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -47,6 +72,12 @@ pub struct ImportedTrajectory {
     /// its loads (e.g. `(gravity: Some((0.0, 0.0, 0.0)))` for a motion made without gravity).
     #[serde(default, skip_serializing_if = "Conditions::is_default")]
     pub conditions: Conditions,
+    /// Only these markers were observed (what a capture gives): `positions` then holds their
+    /// positions, shape (steps + 1, markers, 3), `velocities` must be `Derived` and the first
+    /// state is estimated from the first frames with the scene's material
+    /// ([`Trajectory::from_markers`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub markers: Option<MarkerFiles>,
 }
 
 /// A dataset made elsewhere. Nothing about how the data were made is assumed: `dt`,
@@ -92,7 +123,15 @@ impl ImportSpec {
                 VelocitySource::File(p) | VelocitySource::Initial(p) => Some(p),
                 VelocitySource::Derived => None,
             };
-            for p in std::iter::once(&mut t.positions).chain(velocities) {
+            let markers = t
+                .markers
+                .as_mut()
+                .map(MarkerFiles::paths)
+                .unwrap_or_default();
+            for p in std::iter::once(&mut t.positions)
+                .chain(velocities)
+                .chain(markers)
+            {
                 if p.is_relative() {
                     *p = dir.join(&*p);
                 }
@@ -112,6 +151,10 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
     let scene = spec.scene(scene);
     let mut read = Vec::with_capacity(spec.trajectories.len());
     for t in &spec.trajectories {
+        if let Some(files) = &t.markers {
+            read.push(read_markers(t, files, &scene, origin)?);
+            continue;
+        }
         let velocities = match &t.velocities {
             VelocitySource::File(p) => Velocities::File(p),
             VelocitySource::Initial(p) => Velocities::Initial(p),
@@ -134,6 +177,84 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
         read.push((trajectory, source));
     }
     from_trajectories(&scene, origin, read, spec.split)
+}
+
+/// A trajectory of markers only: their positions and the first state estimated with the
+/// model `scene`.
+fn read_markers(
+    t: &ImportedTrajectory,
+    files: &MarkerFiles,
+    scene: &Scene,
+    origin: &Path,
+) -> Result<(Trajectory, Source), DatasetError> {
+    let name = t.positions.display();
+    let bad = |reason: String| DatasetError::Inconsistent(format!("{name}: {reason}"));
+    if t.velocities != VelocitySource::Derived || t.exact_start {
+        return Err(bad(
+            "markers only: velocities must be Derived and exact_start false (the first state is estimated)".into(),
+        ));
+    }
+    let mut built = scene.build(origin)?;
+    let a = npy::read(&t.positions)?;
+    let [frames, count, 3] = a.shape[..] else {
+        return Err(bad(format!(
+            "shape {:?}, expected (steps + 1, markers, 3)",
+            a.shape
+        )));
+    };
+    let in_file = |path: &Path, reason: String| {
+        DatasetError::Inconsistent(format!("{}: {reason}", path.display()))
+    };
+    let markers = match files {
+        MarkerFiles::Vertices(path) => {
+            let ids = npy::read(path)?;
+            if ids.shape != [count] {
+                let reason = format!("shape {:?}, expected [{count}] (markers)", ids.shape);
+                return Err(in_file(path, reason));
+            }
+            let ids = ids.indices().map_err(|r| in_file(path, r))?;
+            ids.into_iter()
+                .map(crate::observe::Marker::Vertex)
+                .collect()
+        }
+        MarkerFiles::Inside { elements, weights } => {
+            let (e, w) = (npy::read(elements)?, npy::read(weights)?);
+            if e.shape != [count] || w.shape != [count, 4] {
+                let reason = format!(
+                    "shapes {:?} and {:?}, expected [{count}] and [{count}, 4] (markers)",
+                    e.shape, w.shape
+                );
+                return Err(in_file(elements, reason));
+            }
+            let ids = e.indices().map_err(|r| in_file(elements, r))?;
+            let rows = ids.into_iter().zip(w.data.chunks(4)).enumerate();
+            rows.map(|(m, (e, w))| {
+                crate::observe::Marker::in_element(&built.mesh, e, [w[0], w[1], w[2], w[3]])
+                    .map_err(|err| in_file(weights, format!("marker {m}: {err}")))
+            })
+            .collect::<Result<Vec<_>, _>>()?
+        }
+    };
+    let observed = crate::observe::Observed {
+        markers,
+        positions: a
+            .data
+            .chunks(3 * count.max(1))
+            .map(<[f64]>::to_vec)
+            .collect(),
+    };
+    observed
+        .check(built.mesh.num_vertices(), frames)
+        .map_err(|e| bad(e.to_string()))?;
+    let trajectory =
+        Trajectory::from_markers(&mut built.integrator, observed, t.conditions.clone())
+            .map_err(|e| bad(format!("the first state: {e}")))?;
+    let source = Source {
+        name: t.positions.clone(),
+        dtype: a.dtype.clone(),
+        rounding: a.rounding(),
+    };
+    Ok((trajectory, source))
 }
 
 /// Where a trajectory of [`from_trajectories`] came from: what names it in errors and

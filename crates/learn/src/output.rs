@@ -105,7 +105,7 @@ pub struct StartPrior {
     /// The factor of both weights on a vertex a partially observed trajectory did not observe
     /// ([`crate::Trajectory::observed`]): its first state there is an estimate
     /// ([`crate::observe::estimate_start`]), not a measurement. On the beam seen through 10
-    /// markers (tests/observed.rs, 150 evaluations), 0.01 fitted E to 0.016 % and 1 to 0.81 %.
+    /// markers (tests/observed.rs, 150 evaluations), 0.01 fitted E to 0.12 % and 1 to 0.81 %.
     pub unobserved: f64,
 }
 

@@ -271,6 +271,7 @@ fn generated_and_imported(name: &str) -> (TaskReport, TaskReport) {
             velocities: VelocitySource::File(folder(k).join("v.npy")),
             exact_start: false,
             conditions: Default::default(),
+            markers: None,
         })
         .collect();
     let scene = Scene::load(&generated.scene).unwrap();
@@ -505,4 +506,99 @@ fn noisy_data_fit_with_default_options_or_say_which_step_failed() {
         "{err}"
     );
     assert!(!err.contains("mu = 0"), "{err}");
+}
+
+/// A capture through the runner: each motion seen twice, through 4 free vertices and
+/// through 2 points inside elements (`markers`), the scene's moduli a guess 30 % off. The first
+/// state is estimated with the guess, stage 1 is skipped (it needs whole states) and stage 2
+/// refines the starts with the material: E and nu within 1 % of the model that made the data.
+#[test]
+fn a_capture_of_markers_fits_the_moduli_from_the_runner() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = data("tiny_beam.ron");
+    let scene = Scene::load(&scene_path).unwrap();
+    let spec = deform_learn::DatasetSpec::new(4, 20, 3);
+    let made = deform_learn::dataset::generate(&scene, &scene_path, &spec, |_, _| {}).unwrap();
+    let built = scene.build(&scene_path).unwrap();
+    let free: Vec<usize> = (0..built.mesh.num_vertices())
+        .filter(|&v| !built.integrator.dofs().is_constrained(v))
+        .collect();
+    let vertices: Vec<usize> = free.iter().copied().step_by(3).take(4).collect();
+    let (elements, weights) = ([7.0, 19.0], [0.1, 0.2, 0.3, 0.4, 0.25, 0.25, 0.25, 0.25]);
+    let mut markers: Vec<deform_learn::observe::Marker> = vertices
+        .iter()
+        .map(|&v| deform_learn::observe::Marker::Vertex(v))
+        .collect();
+    for (e, w) in elements.iter().zip(weights.chunks(4)) {
+        let w = [w[0], w[1], w[2], w[3]];
+        markers
+            .push(deform_learn::observe::Marker::in_element(&built.mesh, *e as usize, w).unwrap());
+    }
+    let ids: Vec<f64> = vertices.iter().map(|&v| v as f64).collect();
+    npy::write(&dir.path().join("ids.npy"), &[4], &ids).unwrap();
+    npy::write(&dir.path().join("elements.npy"), &[2], &elements).unwrap();
+    npy::write(&dir.path().join("weights.npy"), &[2, 4], &weights).unwrap();
+    let mut list = Vec::new();
+    for (k, t) in made.trajectories.iter().enumerate() {
+        // Each motion twice: seen through the vertices, and through the inside points.
+        let (a, b) = (format!("v{k}.npy"), format!("i{k}.npy"));
+        let (seen, inside): (Vec<f64>, Vec<f64>) = (
+            t.x.iter()
+                .flat_map(|x| {
+                    markers[..4]
+                        .iter()
+                        .flat_map(|m| m.position(x))
+                        .collect::<Vec<_>>()
+                })
+                .collect(),
+            t.x.iter()
+                .flat_map(|x| {
+                    markers[4..]
+                        .iter()
+                        .flat_map(|m| m.position(x))
+                        .collect::<Vec<_>>()
+                })
+                .collect(),
+        );
+        npy::write(&dir.path().join(&a), &[t.x.len(), 4, 3], &seen).unwrap();
+        npy::write(&dir.path().join(&b), &[t.x.len(), 2, 3], &inside).unwrap();
+        list.push(format!(
+            "(positions: \"{a}\", velocities: Derived, markers: Some(Vertices(\"ids.npy\")))"
+        ));
+        list.push(format!("(positions: \"{b}\", velocities: Derived, markers: Some(Inside(elements: \"elements.npy\", weights: \"weights.npy\")))"));
+    }
+    let guess = std::fs::read_to_string(&scene_path)
+        .unwrap()
+        .replace("Young(e: 1e5, nu: 0.4)", "Young(e: 1.3e5, nu: 0.35)");
+    std::fs::write(dir.path().join("guess.ron"), guess).unwrap();
+    let text = format!(
+        "Experiment(name: \"capture\", scene: \"guess.ron\", import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.5, 0.25)), task: FitMaterial(output_error: Some((rollout: 20, max_iterations: 150, max_evaluations: 150, starts: Some(())))))",
+        list.join(", ")
+    );
+    let e = load(dir.path(), &text).unwrap();
+    let report = run(&e, None, &mut NoProgress).unwrap();
+    let TaskReport::FitMaterial(r) = report.task else {
+        panic!("task")
+    };
+    assert!(
+        matches!(
+            r.stage1_unusable,
+            Some(deform_learn::Unusable::MarkersOnly { .. })
+        ),
+        "{:?}",
+        r.stage1_unusable
+    );
+    assert!(r.unstable.is_none(), "{:?}", r.unstable);
+    let fitted = r.rows.last().unwrap();
+    let (de, dnu) = (
+        (fitted.young - 1e5).abs() / 1e5,
+        (fitted.poisson - 0.4).abs() / 0.4,
+    );
+    eprintln!("E {:.3} %, nu {:.3} %", 100.0 * de, 100.0 * dnu);
+    assert!(
+        de < 0.01 && dnu < 0.01,
+        "E {}, nu {}",
+        fitted.young,
+        fitted.poisson
+    );
 }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout, with_lame};
 use crate::dataset::Split;
 use crate::error::LearnError;
-use crate::fit::fit_equation_error;
+use crate::fit::{Unusable, fit_equation_error};
 use crate::output::{OutputError, OutputErrorFit, fit_output_error};
 use crate::rollout::{mean_error, stable_or};
 
@@ -136,9 +136,21 @@ pub fn run(
     let origin = cx.experiment.scene.as_path();
     let train = cx.data.split(Split::Train);
     let t1 = Instant::now();
-    let stage1 = fit_equation_error(&cx.built.integrator, &train, *equation_error)?;
+    // Stage 1 needs whole states; data of markers only go straight to stage 2.
+    let markers_only = train.iter().position(|t| t.observed.is_some());
+    let (stage1, stage1_unusable) = match markers_only {
+        None => {
+            let fit = fit_equation_error(&cx.built.integrator, &train, *equation_error)?;
+            let unusable = fit.unusable();
+            (Some(fit), unusable)
+        }
+        Some(trajectory) => (None, Some(Unusable::MarkersOnly { trajectory })),
+    };
     let stage1_seconds = t1.elapsed().as_secs_f64();
-    let (mu1, lambda1) = (stage1.coefficients[0], stage1.coefficients[1]);
+    let stage1_coefficients = stage1
+        .as_ref()
+        .map_or(vec![f64::NAN; 2], |s| s.coefficients.clone());
+    let (mu1, lambda1) = (stage1_coefficients[0], stage1_coefficients[1]);
     let truth = cx.scene.material.build()?.lame().ok_or_else(|| {
         LearnError::Unsupported("the scene's model has no single Lame pair".into())
     })?;
@@ -161,7 +173,7 @@ pub fn run(
             estimate: Estimate::EquationError,
             young: e1,
             poisson: nu1,
-            seconds: Some(stage1_seconds),
+            seconds: stage1.is_some().then_some(stage1_seconds),
         },
     ];
     let mut fitted = (mu1, lambda1);
@@ -169,7 +181,7 @@ pub fn run(
         rows: Vec::new(),
         output_error: None,
         started_from_prior: None,
-        stage1_unusable: stage1.unusable(),
+        stage1_unusable,
         unstable: None,
         rollouts: Vec::new(),
     };
@@ -179,7 +191,7 @@ pub fn run(
         let t2 = Instant::now();
         // Start from the stage-1 estimate, or from the prior when it fits better (or the
         // estimate is no material: then the prior is the task's, or else the scene's own).
-        let mut initial = stage1.coefficients.clone();
+        let mut initial = stage1_coefficients.clone();
         let prior = match (start, &report.stage1_unusable) {
             (Some(p), _) => Some(p.to_lame()?),
             (None, Some(_)) => Some(truth),
