@@ -51,6 +51,35 @@ def test_a_material_fit_on_data_made_in_python():
     assert alone["stage2"] is None and abs(alone["E"] / 1e5 - 1) < 1e-3
 
 
+def test_a_capture_of_markers_gives_the_material():
+    """Only markers seen (4 vertices, 2 points inside elements): the first state estimated,
+    stage 1 skipped, stage 2 over whole trajectories refining their starts."""
+    truth = deform.Simulation(deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4)))
+    free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
+    vertices = free[::3][:4]
+    elements, weights = np.array([7, 19]), np.array([[0.1, 0.2, 0.3, 0.4], [0.25] * 4])
+    tets = truth.mesh.tets
+    rng = np.random.default_rng(4)
+    guess = deform.Scene.from_ron(SCENE.format(e=1.3e5, nu=0.35))
+    captures = []
+    for _ in range(3):
+        kick = np.zeros_like(truth.v)
+        kick[free] = rng.normal(0, 0.5, (len(free), 3))
+        truth.x = truth.mesh.vertices
+        x, _ = record(truth, 15, kick)
+        inside = np.einsum("mk,fmkd->fmd", weights, x[:, tets[elements]])
+        captures.append(deform.Trajectory.from_markers(guess, x[:, vertices], 0.01, vertices=vertices))
+        captures.append(
+            deform.Trajectory.from_markers(guess, inside, 0.01, elements=elements, weights=weights)
+        )
+    assert captures[1].markers.shape == (16, 2, 3) and captures[1].x.shape == x.shape
+    fit = deform.fit_material(guess, captures, max_iterations=150)
+    assert fit["stage1"] is None
+    assert abs(fit["E"] / 1e5 - 1) < 0.01 and abs(fit["nu"] / 0.4 - 1) < 0.01, fit["E"]
+    with pytest.raises(deform.LearnError, match="marker 0"):
+        deform.Trajectory.from_markers(guess, inside, 0.01, elements=elements, weights=2 * weights)
+
+
 def test_model_selection_finds_the_model_that_made_the_data():
     stvk = SCENE.format(e=1e5, nu=0.4).replace("NeoHookean(Young", "StVenantKirchhoff(Young")
     scene = deform.Scene.from_ron(stvk)

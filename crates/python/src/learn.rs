@@ -87,6 +87,105 @@ impl Trajectory {
         })
     }
 
+    /// What a capture gives: `positions` (steps + 1, M, 3) of M markers only, each a vertex
+    /// (`vertices`, M ids) or a point inside an element (`elements`, M ids, and barycentric
+    /// `weights`, (M, 4), used as given). The first state is estimated from the first frames
+    /// with the scene's material: the least-strain shape through the markers, moving with the
+    /// least-stiffness velocities through theirs. `fit_material` fits such trajectories by
+    /// output error only (stage 1 needs whole states), refining their first states.
+    #[staticmethod]
+    #[pyo3(signature = (scene, positions, dt, *, vertices = None, elements = None, weights = None, conditions = None))]
+    #[allow(clippy::too_many_arguments)]
+    fn from_markers(
+        py: Python<'_>,
+        scene: &Scene,
+        positions: &Bound<'_, PyAny>,
+        dt: f64,
+        vertices: Option<&Bound<'_, PyAny>>,
+        elements: Option<&Bound<'_, PyAny>>,
+        weights: Option<&Bound<'_, PyAny>>,
+        conditions: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        use deform_learn::observe::{Marker, Observed};
+        let conditions: deform_integrator::Conditions = match conditions {
+            Some(c) => {
+                pythonize::depythonize(c).map_err(|e| errors::learn(format!("conditions: {e}")))?
+            }
+            None => Default::default(),
+        };
+        let x = as_array("positions", positions)?;
+        let [frames, count, 3] = x.shape[..] else {
+            return Err(errors::learn(format!(
+                "positions: shape {:?}, expected (steps + 1, markers, 3)",
+                x.shape
+            )));
+        };
+        let ids = |name: &str, a: &Bound<'_, PyAny>| -> PyResult<Vec<usize>> {
+            let a = as_array(name, a)?;
+            if a.shape != [count] {
+                let reason = format!("{name}: shape {:?}, expected [{count}] (markers)", a.shape);
+                return Err(errors::learn(reason));
+            }
+            a.indices()
+                .map_err(|r| errors::learn(format!("{name}: {r}")))
+        };
+        let mut scene_copy = scene.scene.clone();
+        scene_copy.integrator.dt = dt;
+        let mut built = scene_copy.build(&scene.origin).map_err(errors::scene)?;
+        let markers: Vec<Marker> = match (vertices, elements, weights) {
+            (Some(v), None, None) => ids("vertices", v)?
+                .into_iter()
+                .map(Marker::Vertex)
+                .collect(),
+            (None, Some(e), Some(w)) => {
+                let e = ids("elements", e)?;
+                let w = as_array("weights", w)?;
+                if w.shape != [count, 4] {
+                    let reason = format!("weights: shape {:?}, expected [{count}, 4]", w.shape);
+                    return Err(errors::learn(reason));
+                }
+                let rows = e.into_iter().zip(w.data.chunks(4)).enumerate();
+                rows.map(|(m, (e, w))| {
+                    Marker::in_element(&built.mesh, e, [w[0], w[1], w[2], w[3]])
+                        .map_err(|err| errors::learn(format!("marker {m}: {err}")))
+                })
+                .collect::<PyResult<_>>()?
+            }
+            _ => return Err(errors::learn("give vertices, or elements and weights")),
+        };
+        let observed = Observed {
+            markers,
+            positions: x
+                .data
+                .chunks(3 * count.max(1))
+                .map(<[f64]>::to_vec)
+                .collect(),
+        };
+        observed
+            .check(built.mesh.num_vertices(), frames)
+            .map_err(errors::learn)?;
+        let trajectory = py
+            .detach(|| {
+                deform_learn::Trajectory::from_markers(&mut built.integrator, observed, conditions)
+            })
+            .map_err(errors::learn)?;
+        Ok(Self {
+            trajectory,
+            dtype: x.dtype,
+        })
+    }
+
+    /// The markers' positions (steps + 1, M, 3) of a trajectory made by `from_markers`, else
+    /// None.
+    #[getter]
+    fn markers<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArrayDyn<f64>>>> {
+        self.trajectory
+            .observed
+            .as_ref()
+            .map(|o| stack(py, &o.positions))
+            .transpose()
+    }
+
     /// The conditions it was made under where they differ from the scene's (a dict).
     #[getter]
     fn conditions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
@@ -142,21 +241,34 @@ fn fit_material<'py>(
                 damping,
                 ..Default::default()
             };
-            let stage1 = fit_equation_error(&sim, &data, options)?;
+            // Markers only: no stage 1 (it needs whole states); stage 2 over whole
+            // trajectories, refining their estimated first states.
+            let markers = data.iter().any(|t| t.observed.is_some());
+            let stage1 = match markers {
+                false => Some(fit_equation_error(&sim, &data, options)?),
+                true => None,
+            };
             if rollout == 0 {
                 return Ok((stage1, None));
             }
-            let start = match stage1.unusable() {
-                None => stage1.coefficients.clone(),
+            let start = match stage1.as_ref().filter(|s| s.unusable().is_none()) {
+                Some(s) => s.coefficients.clone(),
                 // The scene's own moduli (stage 2 refuses a scene with a coefficient field).
-                Some(_) => {
+                None => {
                     let model = scene.scene.material.build();
                     term_coefficients(&model.map_err(|e| FitError::Invalid(e.to_string()))?)
                 }
             };
+            let whole = data.iter().map(|t| t.steps()).max().unwrap_or(0);
             let options = OutputErrorOptions {
-                rollout,
+                rollout: if markers { rollout.max(whole) } else { rollout },
                 max_iterations,
+                max_evaluations: if markers {
+                    200.max(max_iterations as usize)
+                } else {
+                    200
+                },
+                starts: markers.then(Default::default),
                 ..Default::default()
             };
             let fit = fit_output_error(&mut sim, &data, &start, options, |_, _| {})?;
@@ -164,9 +276,11 @@ fn fit_material<'py>(
         })
         .map_err(|e: FitError| errors::learn(e))?;
     let out = PyDict::new(py);
-    let c = stage2
-        .as_ref()
-        .map_or(&stage1.coefficients, |f| &f.coefficients);
+    let c = match (&stage2, &stage1) {
+        (Some(f), _) => f.coefficients.clone(),
+        (None, Some(s)) => s.coefficients.clone(),
+        (None, None) => Vec::new(),
+    };
     if let [mu, lam] = c[..] {
         out.set_item("mu", mu)?;
         out.set_item("lam", lam)?;
@@ -176,7 +290,10 @@ fn fit_material<'py>(
             out.set_item("nu", nu)?;
         }
     }
-    out.set_item("stage1", to_python(py, &stage1)?)?;
+    match &stage1 {
+        Some(s) => out.set_item("stage1", to_python(py, s)?)?,
+        None => out.set_item("stage1", py.None())?,
+    }
     match &stage2 {
         Some(f) => out.set_item("stage2", to_python(py, f)?)?,
         None => out.set_item("stage2", py.None())?,

@@ -121,6 +121,19 @@ class Trajectory:
         v0: Optional[_Floats] = None,
         conditions: Optional[dict[str, Any]] = None,
     ) -> None: ...
+    @staticmethod
+    def from_markers(
+        scene: Scene,
+        positions: _Floats,
+        dt: float,
+        *,
+        vertices: Optional[npt.ArrayLike] = None,
+        elements: Optional[npt.ArrayLike] = None,
+        weights: Optional[_Floats] = None,
+        conditions: Optional[dict[str, Any]] = None,
+    ) -> Trajectory: ...
+    @property
+    def markers(self) -> Optional[npt.NDArray[np.float64]]: ...
     @property
     def conditions(self) -> dict[str, Any]: ...
     @property
