@@ -111,6 +111,22 @@ impl FitMaterialReport {
     }
 }
 
+/// Stage 1 on `train`, why its estimate is no model (when it is not) and the seconds it
+/// took. Stage 1 needs whole states: on data of markers only it does not run.
+fn stage1(
+    sim: &deform_integrator::Integrator,
+    train: &[&crate::Trajectory],
+    options: crate::EquationErrorOptions,
+) -> Result<(Option<crate::EquationErrorFit>, Option<Unusable>, f64), LearnError> {
+    let started = Instant::now();
+    if let Some(trajectory) = train.iter().position(|t| t.observed.is_some()) {
+        return Ok((None, Some(Unusable::MarkersOnly { trajectory }), 0.0));
+    }
+    let fit = fit_equation_error(sim, train, options)?;
+    let unusable = fit.unusable();
+    Ok((Some(fit), unusable, started.elapsed().as_secs_f64()))
+}
+
 fn young(mu: f64, lambda: f64) -> (f64, f64) {
     Lame::try_new(mu, lambda)
         .map(|l| l.to_young())
@@ -135,18 +151,8 @@ pub fn run(
     };
     let origin = cx.experiment.scene.as_path();
     let train = cx.data.split(Split::Train);
-    let t1 = Instant::now();
-    // Stage 1 needs whole states; data of markers only go straight to stage 2.
-    let markers_only = train.iter().position(|t| t.observed.is_some());
-    let (stage1, stage1_unusable) = match markers_only {
-        None => {
-            let fit = fit_equation_error(&cx.built.integrator, &train, *equation_error)?;
-            let unusable = fit.unusable();
-            (Some(fit), unusable)
-        }
-        Some(trajectory) => (None, Some(Unusable::MarkersOnly { trajectory })),
-    };
-    let stage1_seconds = t1.elapsed().as_secs_f64();
+    let (stage1, stage1_unusable, stage1_seconds) =
+        stage1(&cx.built.integrator, &train, *equation_error)?;
     let stage1_coefficients = stage1
         .as_ref()
         .map_or(vec![f64::NAN; 2], |s| s.coefficients.clone());
