@@ -163,6 +163,7 @@ pub fn coarsen_embedded(
         .map(|t| Trajectory {
             x: map(&t.x),
             v: map(&t.v),
+            start_time: t.start_time,
             exact_start: t.exact_start,
             conditions: t.conditions.clone(),
             observed: None,

@@ -39,9 +39,13 @@ pub enum Split {
     Test,
 }
 
-/// One trajectory: states at `t_0 + n dt`, `n = 0..=steps`.
+/// One trajectory: states at `start_time + n dt`, `n = 0..=steps`.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Trajectory {
+    /// The time of its first frame (s): 0, or `dt` for positions whose first frame was
+    /// dropped for want of a velocity ([`crate::import::Velocities::Derived`]). Moving
+    /// constraints and loads are evaluated at `start_time + n dt`.
+    pub start_time: f64,
     /// Positions per step, flat `3N` each.
     pub x: Vec<Vec<f64>>,
     /// Velocities per step.
@@ -109,6 +113,9 @@ pub struct TrajectoryMeta {
     /// ([`Trajectory::conditions`]).
     #[serde(default, skip_serializing_if = "Conditions::is_default")]
     pub conditions: Conditions,
+    /// The time of its first frame ([`Trajectory::start_time`]).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub start_time: f64,
     /// The markers, when only they were observed ([`Trajectory::observed`]); their positions
     /// are in `markers.npy`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -351,6 +358,7 @@ pub fn generate(
         let mut traj = Trajectory {
             x: vec![state.x.clone()],
             v: vec![state.v.clone()],
+            start_time: 0.0,
             exact_start: false,
             conditions: conditions.clone(),
             observed: None,
@@ -377,6 +385,7 @@ pub fn generate(
             steps,
             initial,
             source: None,
+            start_time: 0.0,
             exact_start: false,
             conditions,
             observed: None,
@@ -606,6 +615,7 @@ impl Dataset {
         let mut meta = self.meta.clone();
         for (m, t) in meta.trajectories.iter_mut().zip(&self.trajectories) {
             m.observed = t.observed.as_ref().map(|o| o.markers.clone());
+            m.start_time = t.start_time;
         }
         let text =
             ron::ser::to_string_pretty(&meta, ron::ser::PrettyConfig::default()).map_err(|e| {
@@ -678,6 +688,7 @@ impl Dataset {
             trajectories.push(Trajectory {
                 x: read("x.npy")?,
                 v: read("v.npy")?,
+                start_time: m.start_time,
                 exact_start: m.exact_start,
                 conditions: m.conditions.clone(),
                 observed: read_observed(&dir.join(&m.name), m, meta.vertices)?,
@@ -725,11 +736,15 @@ fn read_observed(
     Ok(Some(observed))
 }
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 /// The state at step `n` of a trajectory.
 pub fn state_at(t: &Trajectory, n: usize, dt: f64) -> State {
     State {
         x: t.x[n].clone(),
         v: t.v[n].clone(),
-        t: n as f64 * dt,
+        t: t.start_time + n as f64 * dt,
     }
 }

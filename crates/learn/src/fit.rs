@@ -365,7 +365,7 @@ fn equation_error(
                 reason: format!("states must have {n} values (3 per vertex)"),
             });
         }
-        let mut external = external_at(sim, t, ti, dt)?;
+        let mut external = external_at(sim, t, ti, t.start_time + dt)?;
         for step in 0..t.steps() {
             let (x1, v0, v1) = (&t.x[step + 1], &t.v[step], &t.v[step + 1]);
             let fail = |source| FitError::Assembly {
@@ -382,7 +382,8 @@ fn equation_error(
             asm.mass_apply(mass, &dv, &mut b).map_err(fail)?;
             // Gravity is the same at every step; loads may stop.
             if step > 0 && sim.num_loads() > 0 {
-                external = external_at(sim, t, ti, (step + 1) as f64 * dt)?;
+                let time = t.start_time + (step + 1) as f64 * dt;
+                external = external_at(sim, t, ti, time)?;
             }
             for (bi, gi) in b.iter_mut().zip(&external) {
                 *bi -= dt * gi;

@@ -331,7 +331,8 @@ pub fn from_trajectories(
             None => trajectory.x.len(),
         };
         for (n, x) in trajectory.x.iter().take(whole).enumerate() {
-            let targets = built.integrator.constrained_targets(n as f64 * dt);
+            let time = trajectory.start_time + n as f64 * dt;
+            let targets = built.integrator.constrained_targets(time);
             for (i, target) in targets {
                 let off = (0..3)
                     .map(|d| (x[3 * i + d] - target[d]).powi(2))
@@ -351,6 +352,7 @@ pub fn from_trajectories(
             steps: trajectory.steps(),
             initial: scene.initial.clone(),
             source: Some(source.name.clone()),
+            start_time: trajectory.start_time,
             exact_start: trajectory.exact_start,
             conditions: trajectory.conditions.clone(),
             observed: trajectory.observed.as_ref().map(|o| o.markers.clone()),
@@ -517,7 +519,9 @@ pub fn trajectory_from_arrays(
         }
         ArrayVelocities::Derived => {
             let v = (1..x.len()).map(derived).collect();
+            // Its first frame is the data's second.
             return Ok(Trajectory {
+                start_time: dt,
                 x: x[1..].to_vec(),
                 v,
                 ..Trajectory::default()

@@ -223,10 +223,14 @@ pub fn estimate_start(sim: &mut Integrator, t: &Trajectory) -> Result<State, Obs
     observed.check(sim.assembly().num_vertices(), frames.max(1))?;
     t.under(sim, |sim| {
         let dt = sim.options().dt;
-        let mut shape = Penalised::new(sim, &observed.markers)?;
+        let mut shape = Penalised::new(sim, &observed.markers, t.start_time)?;
         let x = shape.least_strain(sim, &observed.positions[0])?;
         let v = shape.least_stiffness(sim, &x, &observed.first_velocities(dt))?;
-        Ok(State { x, v, t: 0.0 })
+        Ok(State {
+            x,
+            v,
+            t: t.start_time,
+        })
     })?
 }
 
@@ -265,7 +269,7 @@ struct Penalised<'m> {
     /// `K + kappa P^T P`, whole, at the last factorised point.
     a: Option<sprs::CsMat<f64>>,
     solver: Cholesky,
-    /// The rest shape with the constrained vertices at their targets at `t = 0`.
+    /// The rest shape with the constrained vertices at their targets at the first frame.
     start: State,
     /// The rest shape's bounding-box diagonal: the scale of positions.
     scale: f64,
@@ -277,8 +281,12 @@ const ROUNDS: usize = 12;
 const NEWTON_ITERATIONS: usize = 100;
 
 impl<'m> Penalised<'m> {
-    fn new(sim: &mut Integrator, markers: &'m [Marker]) -> Result<Self, ObserveError> {
-        let start = sim.rest_state();
+    fn new(sim: &mut Integrator, markers: &'m [Marker], time: f64) -> Result<Self, ObserveError> {
+        let mut start = sim.rest_state();
+        for (v, p) in sim.constrained_targets(time) {
+            start.x[3 * v..3 * v + 3].copy_from_slice(&p);
+        }
+        start.t = time;
         let mut k = sim.assembly().stiffness_matrix();
         sim.assembly_mut()
             .stiffness(&start.x, Tangent::Projected, &mut k)?;
@@ -490,10 +498,11 @@ impl<'m> Penalised<'m> {
         // The constrained vertices' velocities: their targets' over the model's step.
         let dt = sim.options().dt;
         let mut fixed = vec![0.0; x.len()];
+        let time = self.start.t;
         for ((v, p0), (_, p1)) in sim
-            .constrained_targets(0.0)
+            .constrained_targets(time)
             .into_iter()
-            .zip(sim.constrained_targets(dt))
+            .zip(sim.constrained_targets(time + dt))
         {
             for d in 0..3 {
                 fixed[3 * v + d] = (p1[d] - p0[d]) / dt;

@@ -629,6 +629,7 @@ fn to_bytes(d: &deform_learn::Dataset) -> PyResult<Vec<u8>> {
     let mut meta = d.meta.clone();
     for (m, t) in meta.trajectories.iter_mut().zip(&d.trajectories) {
         m.observed = t.observed.as_ref().map(|o| o.markers.clone());
+        m.start_time = t.start_time;
     }
     let meta = ron::to_string(&meta).map_err(errors::learn)?;
     let mut out = (meta.len() as u64).to_le_bytes().to_vec();
@@ -674,6 +675,7 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
         trajectories.push(deform_learn::Trajectory {
             x,
             v,
+            start_time: m.start_time,
             exact_start: m.exact_start,
             conditions: m.conditions.clone(),
             observed,
