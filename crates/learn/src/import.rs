@@ -227,22 +227,11 @@ fn read_markers(
                 return Err(in_file(elements, reason));
             }
             let ids = e.indices().map_err(|r| in_file(elements, r))?;
-            let rows = ids.into_iter().zip(w.data.chunks(4)).enumerate();
-            rows.map(|(m, (e, w))| {
-                crate::observe::Marker::in_element(&built.mesh, e, [w[0], w[1], w[2], w[3]])
-                    .map_err(|err| in_file(weights, format!("marker {m}: {err}")))
-            })
-            .collect::<Result<Vec<_>, _>>()?
+            crate::observe::Marker::in_elements(&built.mesh, &ids, &w.data)
+                .map_err(|err| in_file(weights, err.to_string()))?
         }
     };
-    let observed = crate::observe::Observed {
-        markers,
-        positions: a
-            .data
-            .chunks(3 * count.max(1))
-            .map(<[f64]>::to_vec)
-            .collect(),
-    };
+    let observed = crate::observe::Observed::from_flat(markers, &a.data);
     observed
         .check(built.mesh.num_vertices(), frames)
         .map_err(|e| bad(e.to_string()))?;

@@ -61,6 +61,26 @@ impl Marker {
         Ok(Self::Inside { vertices, weights })
     }
 
+    /// Points inside `elements` with `weights` (four per point, flat), as
+    /// [`Marker::in_element`]; an error names the marker.
+    ///
+    /// # Errors
+    /// [`ObserveError::Marker`] naming the first bad one.
+    pub fn in_elements(
+        mesh: &TetMesh,
+        elements: &[usize],
+        weights: &[f64],
+    ) -> Result<Vec<Self>, ObserveError> {
+        let rows = elements.iter().zip(weights.chunks(4)).enumerate();
+        rows.map(|(marker, (&e, w))| {
+            Self::in_element(mesh, e, [w[0], w[1], w[2], w[3]]).map_err(|err| match err {
+                ObserveError::Marker { reason, .. } => ObserveError::Marker { marker, reason },
+                other => other,
+            })
+        })
+        .collect()
+    }
+
     /// The vertices and weights whose sum is the marker.
     pub fn terms(&self) -> impl Iterator<Item = (usize, f64)> + '_ {
         let (vertices, weights): (&[usize], &[f64]) = match self {
@@ -92,6 +112,13 @@ pub struct Observed {
 }
 
 impl Observed {
+    /// `markers` seen at the flat positions `positions` (frame-major, `3M` per frame).
+    pub fn from_flat(markers: Vec<Marker>, positions: &[f64]) -> Self {
+        let width = 3 * markers.len().max(1);
+        let positions = positions.chunks(width).map(<[f64]>::to_vec).collect();
+        Self { markers, positions }
+    }
+
     /// The given `vertices` of whole `frames` (flat `3N` each): a capture of those vertices.
     pub fn vertices(frames: &[Vec<f64>], vertices: &[usize]) -> Self {
         let markers: Vec<Marker> = vertices.iter().map(|&v| Marker::Vertex(v)).collect();

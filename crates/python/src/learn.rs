@@ -144,23 +144,11 @@ impl Trajectory {
                     let reason = format!("weights: shape {:?}, expected [{count}, 4]", w.shape);
                     return Err(errors::learn(reason));
                 }
-                let rows = e.into_iter().zip(w.data.chunks(4)).enumerate();
-                rows.map(|(m, (e, w))| {
-                    Marker::in_element(&built.mesh, e, [w[0], w[1], w[2], w[3]])
-                        .map_err(|err| errors::learn(format!("marker {m}: {err}")))
-                })
-                .collect::<PyResult<_>>()?
+                Marker::in_elements(&built.mesh, &e, &w.data).map_err(errors::learn)?
             }
             _ => return Err(errors::learn("give vertices, or elements and weights")),
         };
-        let observed = Observed {
-            markers,
-            positions: x
-                .data
-                .chunks(3 * count.max(1))
-                .map(<[f64]>::to_vec)
-                .collect(),
-        };
+        let observed = Observed::from_flat(markers, &x.data);
         observed
             .check(built.mesh.num_vertices(), frames)
             .map_err(errors::learn)?;
