@@ -656,6 +656,62 @@ impl Integrator {
         self.policy.as_ref()
     }
 
+    /// A copy for an independent run beside this one (rollouts of a fit on other threads):
+    /// the same mesh, materials, masses, constraints, loads, conditions and options, the
+    /// policy's fork and no kept solver instances, as after [`Integrator::restart`]. A run
+    /// on the copy gives the bits a run on this integrator gives after `restart`. `None` when
+    /// the policy cannot be forked ([`SolverPolicy::fork`]).
+    pub fn fork(&self) -> Option<Integrator> {
+        let policy = self.policy.fork()?;
+        let candidates: Vec<SolverSpec> = self.candidates.iter().map(|(s, _)| s.clone()).collect();
+        let mut copy = Integrator {
+            asm: self.asm.clone(),
+            mass: self.mass.clone(),
+            rest: self.rest.clone(),
+            constraints: self.constraints.clone(),
+            dofs: self.dofs.clone(),
+            options: self.options.clone(),
+            gravity_forces: self.gravity_forces.clone(),
+            loads: self.loads.clone(),
+            conditions: self.conditions.clone(),
+            external: self.external.clone(),
+            mass_scale: self.mass_scale.clone(),
+            k: self.k.clone(),
+            difference_step: self.difference_step,
+            a_free: self.a_free.clone(),
+            solvers: Vec::new(),
+            candidates: Vec::new(),
+            policy,
+            steps_taken: 0,
+            work: Work::default(),
+        };
+        copy.set_candidates(&candidates).ok()?;
+        Some(copy)
+    }
+
+    /// Forgets earlier runs, so that the next run's results depend on its start alone (not
+    /// on which runs this integrator made before): the step count restarts at 0, the policy
+    /// is replaced by its fork, and every kept solver instance but the direct ones (which
+    /// keep only their symbolic analysis: the factor is recomputed at every solve) is
+    /// dropped, with their stale preconditioners and tolerances. Returns `false`, changing
+    /// nothing, when the policy cannot be forked.
+    pub fn restart(&mut self) -> bool {
+        let Some(policy) = self.policy.fork() else {
+            return false;
+        };
+        self.policy = policy;
+        self.steps_taken = 0;
+        let direct = |s: &SolverSpec| matches!(s, SolverSpec::Direct { .. });
+        self.solvers.retain(|(s, _)| direct(s));
+        for (spec, solver) in &mut self.candidates {
+            // A configuration that built once builds again.
+            if let Some(fresh) = spec.build().ok().filter(|_| !direct(spec)) {
+                *solver = fresh;
+            }
+        }
+        true
+    }
+
     /// Solver configurations to run, besides the policy's choice, on the same linear system
     /// at every Newton iteration (counterfactual logging for learning solver policies). Each
     /// keeps its own instance, so stale factors age as if it were in use; their outcomes go

@@ -63,6 +63,13 @@ pub trait SolverPolicy: Send {
 
     /// Called after each Newton iteration with its outcome (for policies that adapt or learn).
     fn observe(&mut self, _context: &PolicyContext<'_>, _outcome: &IterationReport) {}
+
+    /// A copy for a new, independent run, with what it adapted to in earlier runs forgotten
+    /// (see [`crate::Integrator::fork`]); `None`, the default, for a policy that cannot be
+    /// copied: its integrator then runs its rollouts one after another.
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        None
+    }
 }
 
 /// The same solver at every iteration.
@@ -76,6 +83,10 @@ impl SolverPolicy for Fixed {
 
     fn choose(&mut self, _: &PolicyContext<'_>) -> Decision {
         Decision::solver(self.0.clone())
+    }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(self.clone()))
     }
 }
 
@@ -134,6 +145,10 @@ impl SolverPolicy for BySize {
             self.large.clone()
         })
     }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(self.clone()))
+    }
 }
 
 /// `iterations[k]` at Newton iteration `k`, `otherwise` after the list.
@@ -162,6 +177,10 @@ impl SolverPolicy for Schedule {
                 .unwrap_or(&self.otherwise)
                 .clone(),
         )
+    }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(self.clone()))
     }
 }
 
@@ -237,6 +256,13 @@ impl SolverPolicy for EisenstatWalker {
             refresh: false,
         }
     }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(Self {
+            last_eta: self.eta_max,
+            ..self.clone()
+        }))
+    }
 }
 
 /// The hand schedule of stale-factor reuse: PCG preconditioned by a kept Cholesky factor
@@ -285,6 +311,13 @@ impl SolverPolicy for StaleFactor {
 
     fn observe(&mut self, _: &PolicyContext<'_>, outcome: &IterationReport) {
         self.refresh = outcome.fallback || outcome.solve.iterations > self.refactor_above;
+    }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(Self::new(
+            self.solver.clone(),
+            self.refactor_above,
+        )))
     }
 }
 

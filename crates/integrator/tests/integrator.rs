@@ -1327,3 +1327,54 @@ fn conditions_step_like_a_model_built_with_them() {
     );
     assert_eq!(s.conditions(), &deform_integrator::Conditions::default());
 }
+
+/// A run after `restart`, or on a fork, gives the bits of a new integrator's run, whatever
+/// ran before: with a stale factor, adaptive tolerances and a schedule by iteration (all
+/// history the policy or the kept solvers carry), so that a fit's rollouts can run on any
+/// copy, in any order, on any thread.
+#[test]
+fn a_restarted_or_forked_integrator_runs_as_a_new_one() {
+    let mesh = beam();
+    let options = IntegratorOptions {
+        max_retries: 0,
+        ..IntegratorOptions::default()
+    };
+    let run = |s: &mut Integrator, from: &State| {
+        let mut state = from.clone();
+        let its: Vec<usize> = (0..3)
+            .map(|_| s.step(&mut state).unwrap().linear_iterations())
+            .collect();
+        (state, its)
+    };
+    let mut history_mattered = Vec::new();
+    for p in [
+        "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-6)), refactor_above: 1000)",
+        "EisenstatWalker(solver: Pcg(preconditioner: Jacobi, tolerance: (rel: 1e-8)))",
+        "Schedule(iterations: [Direct()], otherwise: Pcg(preconditioner: StaleCholesky(max_age: 10), tolerance: (rel: 1e-6)))",
+    ] {
+        let new = || sim(&mesh, clamp(&mesh), options.clone(), p);
+        let rest = new().rest_state();
+        let mut bent = rest.clone();
+        for (i, v) in bent.v.iter_mut().enumerate() {
+            *v = if i % 3 == 2 { 0.3 } else { 0.0 };
+        }
+        for v in &clamp(&mesh)[0].vertices {
+            bent.v[3 * v..3 * v + 3].fill(0.0);
+        }
+        let fresh = run(&mut new(), &rest);
+        // A run from the bent state first leaves its history behind (a stale factor of a
+        // bent state, the step count, the last forcing term).
+        let mut s = new();
+        run(&mut s, &bent);
+        let mut fork = s.fork().expect("built-in policies fork");
+        let without = run(&mut s, &rest);
+        assert_eq!(run(&mut fork, &rest), fresh, "{p}: the fork");
+        assert!(s.restart());
+        assert_eq!(run(&mut s, &rest), fresh, "{p}: after restart");
+        if without != fresh {
+            history_mattered.push(p);
+        }
+    }
+    // Without a restart the same run differs (the stale factor of the bent state).
+    assert!(history_mattered.len() >= 2, "{history_mattered:?}");
+}

@@ -230,6 +230,8 @@ pub struct OutputError<'a> {
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
+    /// Forks of the integrator for rollouts side by side (made at the first evaluation).
+    lanes: RefCell<Vec<Lane>>,
     cache: RefCell<Option<Evaluation>>,
     evaluations: RefCell<usize>,
     /// Trial points of the optimiser that could not be simulated.
@@ -270,6 +272,7 @@ impl<'a> OutputError<'a> {
             trajectories: trajectories.to_vec(),
             options,
             solver: RefCell::new(Cholesky::new(Ordering::Auto, Indefinite::Ldlt)),
+            lanes: RefCell::new(Vec::new()),
             cache: RefCell::new(None),
             evaluations: RefCell::new(0),
             failed_trials: RefCell::new(0),
@@ -490,9 +493,10 @@ impl<'a> OutputError<'a> {
         // The integrator is about to change: a failure below leaves it at `c`, so the cached
         // point would no longer be what it holds.
         *self.cache.borrow_mut() = None;
-        let m = self.num_material();
         let mut sim = self.sim.borrow_mut();
         self.set_coefficients(&mut sim, c)?;
+        let n = sim.assembly().num_dofs();
+        self.check_observed(n / 3)?;
         let grouping = match (&self.basis, &self.field) {
             (Some(_), _) => Grouping::per_element(sim.assembly()),
             (None, Some(g)) => g.clone(),
@@ -501,69 +505,43 @@ impl<'a> OutputError<'a> {
         // The adjoint's gradient is per group (per element for a basis, contracted below).
         let terms = term_coefficients(&self.base).len();
         let per_group = terms * grouping.num_groups();
-        let raw_len = c.len() - m + per_group;
-        let unscaled = self.mass.then(|| sim.unscaled_vertex_masses());
-        let mut work = Adjoint::new(&sim, grouping, unscaled, self.damping)?;
-        let mut solver = self.solver.borrow_mut();
-        let (mut num, mut den) = (0.0, 0.0);
-        let mut grad = vec![0.0; raw_len];
         let dt = sim.options().dt;
-        let wv = self.options.velocity_weight * dt * dt;
-        let n = sim.assembly().num_dofs();
-        let mut start_grad = vec![0.0; starts.map_or(0, <[f64]>::len)];
         let prior = self.options.starts.unwrap_or_default();
-        let (wpx, wpv) = (prior.position, prior.velocity * dt * dt);
-        let free: Vec<usize> = (0..n / 3)
-            .filter(|&v| !sim.dofs().is_constrained(v))
-            .collect();
-        self.check_observed(n / 3)?;
-        // Each rollout runs under its trajectory's conditions (the model's put back after).
-        for (r, &(ti, start, len)) in self.rollouts().iter().enumerate() {
-            let t = self.trajectories[ti];
-            let ran = t.under(&mut sim, |sim| -> Result<(), FitError> {
-                // An exactly known first state stays as it is.
-                let offset = starts
-                    .filter(|_| !(start == 0 && t.exact_start))
-                    .map(|o| &o[2 * n * r..2 * n * (r + 1)]);
-                let mut first = state_at(t, start, dt);
-                let seen = seen_vertices(t, n / 3);
-                let weight = |v: usize| if seen[v] { 1.0 } else { prior.unobserved };
-                if let Some(o) = offset {
-                    for &v in &free {
-                        let (wx, wv) = (weight(v) * wpx, weight(v) * wpv);
-                        for i in 3 * v..3 * v + 3 {
-                            first.x[i] += o[i];
-                            first.v[i] += o[n + i];
-                            num += wx * o[i] * o[i] + wv * o[n + i] * o[n + i];
-                        }
-                    }
-                }
-                let states = forward(sim, first, (ti, start, len), self.options.allow_retries)?;
-                let (dl_dx, dl_dv) = loss_terms(t, start, &states, wv, (&mut num, &mut den));
-                let rollout = Rollout {
-                    trajectory: ti,
-                    start,
-                    states: &states,
-                    dl_dx: &dl_dx,
-                    dl_dv: &dl_dv,
-                };
-                let adjoint = work.backward(sim, &mut solver, &rollout, &mut grad)?;
-                if let Some(o) = offset {
-                    let g = &mut start_grad[2 * n * r..2 * n * (r + 1)];
-                    for &v in &free {
-                        let (wx, wv) = (weight(v) * wpx, weight(v) * wpv);
-                        for i in 3 * v..3 * v + 3 {
-                            g[i] = adjoint.0[i] + 2.0 * wx * o[i];
-                            g[n + i] = adjoint.1[i] + 2.0 * wv * o[n + i];
-                        }
-                    }
-                }
-                Ok(())
-            });
-            ran.map_err(|e| FitError::Data {
-                index: ti,
-                reason: e.to_string(),
-            })??;
+        let pass = Pass {
+            starts,
+            n,
+            free: (0..n / 3)
+                .filter(|&v| !sim.dofs().is_constrained(v))
+                .collect(),
+            wv: self.options.velocity_weight * dt * dt,
+            prior: (prior.position, prior.velocity * dt * dt, prior.unobserved),
+            allow_retries: self.options.allow_retries,
+            gradient_len: c.len() - self.num_material() + per_group,
+            grouping,
+            mass: self.mass,
+            damping: self.damping,
+        };
+        let jobs = self.rollouts();
+        let shares = if self.ready_lanes(&sim, c, jobs.len())? {
+            let mut lanes = self.lanes.borrow_mut();
+            pass.side_by_side(&self.trajectories, &jobs, &mut lanes)
+        } else {
+            let mut solver = self.solver.borrow_mut();
+            pass.one_by_one(&self.trajectories, &jobs, &mut sim, &mut solver)
+        }?;
+        // Summed in rollout order, whichever thread ran each: the same bits for any count.
+        let (mut num, mut den) = (0.0, 0.0);
+        let mut grad = vec![0.0; pass.gradient_len];
+        let mut start_grad = vec![0.0; starts.map_or(0, <[f64]>::len)];
+        for (r, t) in shares.iter().enumerate() {
+            num += t.num;
+            den += t.den;
+            for (g, tg) in grad.iter_mut().zip(&t.grad) {
+                *g += tg;
+            }
+            if let Some(sg) = &t.start_grad {
+                start_grad[2 * n * r..2 * n * (r + 1)].copy_from_slice(sg);
+            }
         }
         if den <= 0.0 {
             return Err(FitError::NoData);
@@ -583,6 +561,30 @@ impl<'a> OutputError<'a> {
         let all: Vec<f64> = grad.iter().chain(&start_grad).copied().collect();
         *self.cache.borrow_mut() = Some((key, loss, all));
         Ok((loss, grad, start_grad))
+    }
+
+    /// Whether `jobs` rollouts run side by side: with more than one thread and one rollout,
+    /// a problem below [`SIDE_BY_SIDE_MAX_DOFS`] and a policy that forks. The lanes (one
+    /// per thread, forks of `sim`) then hold coefficients `c`.
+    fn ready_lanes(&self, sim: &Integrator, c: &[f64], jobs: usize) -> Result<bool, FitError> {
+        let threads = rayon::current_num_threads().min(jobs);
+        if threads < 2 || sim.dofs().num_free() > SIDE_BY_SIDE_MAX_DOFS {
+            return Ok(false);
+        }
+        let mut lanes = self.lanes.borrow_mut();
+        while lanes.len() < threads {
+            let Some(fork) = sim.fork() else {
+                return Ok(false);
+            };
+            lanes.push(Lane {
+                sim: fork,
+                solver: Cholesky::new(Ordering::Auto, Indefinite::Ldlt),
+            });
+        }
+        for lane in lanes.iter_mut() {
+            self.set_coefficients(&mut lane.sim, c)?;
+        }
+        Ok(true)
     }
 
     /// Refuses partially observed trajectories the fit cannot use: their rollouts must run
@@ -738,6 +740,174 @@ fn seen_vertices(t: &Trajectory, vertices: usize) -> Vec<bool> {
         }
     }
     seen
+}
+
+/// Free DOFs below which a loss evaluation runs its rollouts side by side, one per thread
+/// (each on its own copy of the integrator); larger problems run them one by one and use
+/// the threads inside each step (assembly, factorisation), where they pay off.
+const SIDE_BY_SIDE_MAX_DOFS: usize = 20_000;
+
+/// One thread's integrator (a fork of the objective's) and adjoint solver, kept between
+/// evaluations.
+struct Lane {
+    sim: Integrator,
+    solver: Cholesky,
+}
+
+/// What one evaluation's rollouts share.
+struct Pass<'p> {
+    starts: Option<&'p [f64]>,
+    /// DOFs, and the vertices that are not constrained.
+    n: usize,
+    free: Vec<usize>,
+    /// The velocity term's weight.
+    wv: f64,
+    /// The start prior's position and velocity weights, and the unobserved vertices' factor.
+    prior: (f64, f64, f64),
+    allow_retries: bool,
+    /// The adjoint's gradient: per group, then mass scales and damping.
+    gradient_len: usize,
+    grouping: Grouping,
+    mass: bool,
+    damping: bool,
+}
+
+/// One rollout's share of the loss's sums and gradients.
+struct RolloutTerms {
+    num: f64,
+    den: f64,
+    grad: Vec<f64>,
+    /// The start offsets' gradient (positions then velocities), when they are fitted.
+    start_grad: Option<Vec<f64>>,
+}
+
+/// A rollout: `(trajectory, start step, steps)`.
+type Job = (usize, usize, usize);
+
+impl Pass<'_> {
+    /// The rollouts in order on the objective's own integrator.
+    fn one_by_one(
+        &self,
+        trajectories: &[&Trajectory],
+        jobs: &[Job],
+        sim: &mut Integrator,
+        solver: &mut Cholesky,
+    ) -> Result<Vec<RolloutTerms>, FitError> {
+        let mut adjoint = None;
+        (jobs.iter().enumerate())
+            .map(|(r, &job)| self.rollout(trajectories, (r, job), sim, solver, &mut adjoint))
+            .collect()
+    }
+
+    /// The rollouts side by side, one lane per thread taking the next rollout not yet
+    /// taken. Every rollout starts from a restarted integrator, so which lane runs it does
+    /// not change its bits; after a failure no new rollout starts, and every earlier one
+    /// has started, so the error returned is the first in rollout order, as one by one.
+    fn side_by_side(
+        &self,
+        trajectories: &[&Trajectory],
+        jobs: &[Job],
+        lanes: &mut [Lane],
+    ) -> Result<Vec<RolloutTerms>, FitError> {
+        use rayon::iter::{IntoParallelRefMutIterator, ParallelIterator};
+        use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering as Atomic};
+        let (next, failed) = (AtomicUsize::new(0), AtomicBool::new(false));
+        let mut done: Vec<(usize, Result<RolloutTerms, FitError>)> = lanes
+            .par_iter_mut()
+            .flat_map_iter(|lane| {
+                let mut adjoint = None;
+                let mut out = Vec::new();
+                while !failed.load(Atomic::SeqCst) {
+                    let r = next.fetch_add(1, Atomic::SeqCst);
+                    let Some(&job) = jobs.get(r) else { break };
+                    let (sim, solver) = (&mut lane.sim, &mut lane.solver);
+                    let ran = self.rollout(trajectories, (r, job), sim, solver, &mut adjoint);
+                    failed.fetch_or(ran.is_err(), Atomic::SeqCst);
+                    out.push((r, ran));
+                }
+                out
+            })
+            .collect();
+        done.sort_by_key(|(r, _)| *r);
+        done.into_iter().map(|(_, terms)| terms).collect()
+    }
+
+    /// Rollout `r` of `job` from a restarted integrator (so that its bits do not depend on
+    /// the rollouts run before it): the forward steps, their loss terms and the adjoint pass.
+    /// `adjoint` holds the adjoint's matrices, made at the evaluation's first rollout.
+    fn rollout(
+        &self,
+        trajectories: &[&Trajectory],
+        (r, (ti, start, len)): (usize, Job),
+        sim: &mut Integrator,
+        solver: &mut Cholesky,
+        adjoint: &mut Option<Adjoint>,
+    ) -> Result<RolloutTerms, FitError> {
+        sim.restart();
+        let work = match adjoint {
+            Some(work) => work,
+            None => {
+                let unscaled = self.mass.then(|| sim.unscaled_vertex_masses());
+                let grouping = self.grouping.clone();
+                adjoint.insert(Adjoint::new(sim, grouping, unscaled, self.damping)?)
+            }
+        };
+        let (t, n) = (trajectories[ti], self.n);
+        let (wpx, wpv, unobserved) = self.prior;
+        // Each rollout runs under its trajectory's conditions (the model's put back after).
+        let ran = t.under(sim, |sim| -> Result<RolloutTerms, FitError> {
+            // An exactly known first state stays as it is.
+            let offset = (self.starts)
+                .filter(|_| !(start == 0 && t.exact_start))
+                .map(|o| &o[2 * n * r..2 * n * (r + 1)]);
+            let mut first = state_at(t, start, sim.options().dt);
+            let seen = seen_vertices(t, n / 3);
+            let weight = |v: usize| if seen[v] { 1.0 } else { unobserved };
+            let mut terms = RolloutTerms {
+                num: 0.0,
+                den: 0.0,
+                grad: vec![0.0; self.gradient_len],
+                start_grad: None,
+            };
+            if let Some(o) = offset {
+                for &v in &self.free {
+                    let (wx, wv) = (weight(v) * wpx, weight(v) * wpv);
+                    for i in 3 * v..3 * v + 3 {
+                        first.x[i] += o[i];
+                        first.v[i] += o[n + i];
+                        terms.num += wx * o[i] * o[i] + wv * o[n + i] * o[n + i];
+                    }
+                }
+            }
+            let states = forward(sim, first, (ti, start, len), self.allow_retries)?;
+            let sums = (&mut terms.num, &mut terms.den);
+            let (dl_dx, dl_dv) = loss_terms(t, start, &states, self.wv, sums);
+            let rollout = Rollout {
+                trajectory: ti,
+                start,
+                states: &states,
+                dl_dx: &dl_dx,
+                dl_dv: &dl_dv,
+            };
+            let adjoint = work.backward(sim, solver, &rollout, &mut terms.grad)?;
+            if let Some(o) = offset {
+                let mut g = vec![0.0; 2 * n];
+                for &v in &self.free {
+                    let (wx, wv) = (weight(v) * wpx, weight(v) * wpv);
+                    for i in 3 * v..3 * v + 3 {
+                        g[i] = adjoint.0[i] + 2.0 * wx * o[i];
+                        g[n + i] = adjoint.1[i] + 2.0 * wv * o[n + i];
+                    }
+                }
+                terms.start_grad = Some(g);
+            }
+            Ok(terms)
+        });
+        ran.map_err(|e| FitError::Data {
+            index: ti,
+            reason: e.to_string(),
+        })?
+    }
 }
 
 /// The loss terms of a rollout's predicted `states` (from data step `start` of `t`), added
@@ -1538,6 +1708,50 @@ mod tests {
         let scene = deform_integrator::Scene::parse(text, origin).unwrap();
         let data = generate(&scene, origin, &DatasetSpec::new(3, 3, 5), |_, _| ()).unwrap();
         (scene, data, origin)
+    }
+
+    /// The loss and its gradients have the same bits on 1, 2 or 3 threads (rollouts one by
+    /// one on the objective's integrator, or side by side on its forks), with a trajectory
+    /// under other conditions, start offsets, fitted damping and a policy that carries a
+    /// stale factor from solve to solve (so that a rollout would depend on the one before
+    /// it without the restart).
+    #[test]
+    fn rollouts_give_the_same_bits_on_any_number_of_threads() {
+        let (scene, mut data, origin) = tiny_beam();
+        data.trajectories[1].conditions.gravity = Some([0.0, 4.0, -2.0]);
+        let all: Vec<&Trajectory> = data.trajectories.iter().collect();
+        let policy = "StaleFactor(solver: Pcg(preconditioner: StaleCholesky(max_age: 1000), tolerance: (rel: 1e-6)), refactor_above: 1000)";
+        let evaluate = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut sim = scene.build(origin).unwrap().integrator;
+                let spec: deform_integrator::PolicySpec = ron::from_str(policy).unwrap();
+                sim.set_policy(spec.build().unwrap());
+                let options = OutputErrorOptions {
+                    rollout: 2,
+                    starts: Some(StartPrior::default()),
+                    ..Default::default()
+                };
+                let objective = OutputError::new(&mut sim, &all, options, |_, _| {})
+                    .unwrap()
+                    .with_damping();
+                let c: Vec<f64> = objective.uniform_start().iter().map(|v| v * 1.2).collect();
+                let o: Vec<f64> = (0..objective.num_start_parameters())
+                    .map(|i| 1e-4 * ((i % 7) as f64 - 3.0))
+                    .collect();
+                // A second evaluation reuses the lanes of the first.
+                let first = objective.evaluate_with_starts(&c, Some(&o)).unwrap();
+                let c: Vec<f64> = c.iter().map(|v| v * 0.9).collect();
+                (first, objective.evaluate_with_starts(&c, Some(&o)).unwrap())
+            })
+        };
+        let one = evaluate(1);
+        assert!(one.0.0 > 0.0 && one.0.2.iter().any(|g| *g != 0.0));
+        assert_eq!(evaluate(2), one);
+        assert_eq!(evaluate(3), one);
     }
 
     /// A fit stops once `patience` simulated evaluations in a row have not lowered the best

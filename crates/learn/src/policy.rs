@@ -550,4 +550,8 @@ impl SolverPolicy for LearnedPolicy {
             cy.last_iterations = Some(iterations);
         }
     }
+
+    fn fork(&self) -> Option<Box<dyn SolverPolicy>> {
+        Some(Box::new(self.with_forcing(self.options.forcing)))
+    }
 }
