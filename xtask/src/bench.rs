@@ -30,6 +30,30 @@ pub enum BenchTask {
     /// The coarsening study's fits: a fine beam's trajectories carried onto a coarser beam,
     /// then the homogeneous, per-region and per-element fits (fit time per model).
     Coarsen(CoarsenArgs),
+    /// Each stage of the assembly, the solvers and a Backward-Euler step at 1, 2, ...
+    /// threads: times, speed-ups and the serial fraction they imply (Amdahl).
+    Scaling(ScalingArgs),
+}
+
+/// `bench scaling`.
+#[derive(Debug, Args)]
+pub struct ScalingArgs {
+    /// Beam size parameter (n = 16: 98,304 tets; n = 32: 786,432).
+    #[arg(long, default_value_t = 16)]
+    pub n: usize,
+    /// Thread counts (comma-separated; 1 up to the machine's threads by default).
+    #[arg(long, value_delimiter = ',')]
+    pub threads: Vec<usize>,
+    /// Repetitions (medians are reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeats: usize,
+    /// Only these stages (comma-separated names, e.g. `assembly_all,factorize`); all by
+    /// default.
+    #[arg(long, value_delimiter = ',')]
+    pub stages: Vec<String>,
+    /// The thread count the serial fractions predict the speed-up for.
+    #[arg(long, default_value_t = 16)]
+    pub predict: usize,
 }
 
 /// `bench coarsen`.
@@ -124,6 +148,7 @@ pub fn run(task: BenchTask) -> Result<()> {
         BenchTask::Solvers(s) => solvers(s),
         BenchTask::Step(s) => step(s),
         BenchTask::Coarsen(c) => coarsen(c),
+        BenchTask::Scaling(s) => scaling(s),
     }
 }
 
@@ -376,6 +401,79 @@ fn step(args: StepArgs) -> Result<()> {
             }),
         );
         run.into_result()?;
+    }
+    Ok(())
+}
+
+/// Times every stage in a pool of each thread count (JSON lines as they come), then a table
+/// of speed-ups against one thread and the serial fraction fitted to them.
+fn scaling(args: ScalingArgs) -> Result<()> {
+    use deform_integrator::benchmark::{
+        ScalingStage, amdahl_speedup, serial_fraction, time_stages,
+    };
+    let stages: Vec<ScalingStage> = if args.stages.is_empty() {
+        ScalingStage::ALL.to_vec()
+    } else {
+        let known: Vec<&str> = ScalingStage::ALL.iter().map(|s| s.name()).collect();
+        (args.stages.iter())
+            .map(|name| {
+                ScalingStage::from_name(name).with_context(|| {
+                    format!(
+                        "--stages: unknown stage {name:?}; expected some of {}",
+                        known.join(", ")
+                    )
+                })
+            })
+            .collect::<Result<_>>()?
+    };
+    let available = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut threads = if args.threads.is_empty() {
+        (1..=available).collect()
+    } else {
+        args.threads.clone()
+    };
+    threads.sort_unstable();
+    threads.dedup();
+    if threads.first() != Some(&1) {
+        bail!("--threads must include 1: speed-ups are against one thread");
+    }
+    let tets = beam(args.n).0.num_tets();
+    // times[stage][k]: seconds at threads[k].
+    let mut times = vec![Vec::new(); stages.len()];
+    for &p in &threads {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(p).build()?;
+        let measured = pool.install(|| time_stages(args.n, &stages, args.repeats))?;
+        for (k, (stage, seconds)) in measured.into_iter().enumerate() {
+            println!(
+                r#"{{"what": "scaling", "stage": "{}", "n": {}, "tets": {tets}, "threads": {p}, "seconds": {seconds:.6}, "speedup": {:.3}}}"#,
+                stage.name(),
+                args.n,
+                times[k].first().map_or(1.0, |t1: &f64| t1 / seconds),
+            );
+            times[k].push(seconds);
+        }
+    }
+    let last = *threads.last().expect("at least one count");
+    println!(
+        "\n| stage | 1 thread (s) | {last} threads (s) | speed-up | serial fraction | predicted on {} |",
+        args.predict
+    );
+    println!("|---|---|---|---|---|---|");
+    for (stage, t) in stages.iter().zip(&times) {
+        let pairs: Vec<(usize, f64)> = threads.iter().copied().zip(t.iter().copied()).collect();
+        let f = serial_fraction(&pairs);
+        println!(
+            "| {} | {:.4} | {:.4} | {:.2}x | {} | {} |",
+            stage.name(),
+            t[0],
+            t[t.len() - 1],
+            t[0] / t[t.len() - 1],
+            f.map_or("-".into(), |f| format!("{f:.3}")),
+            f.map_or("-".into(), |f| format!(
+                "{:.1}x",
+                amdahl_speedup(f, args.predict)
+            )),
+        );
     }
     Ok(())
 }

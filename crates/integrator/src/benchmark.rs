@@ -426,3 +426,306 @@ pub fn beam_integrator(
     let state = sim.rest_state();
     Ok((sim, state))
 }
+
+/// A stage whose speed-up with threads `cargo xtask bench scaling` measures: the assembly's
+/// outputs, the solvers' kernels and set-ups, and one Backward-Euler step with its parts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScalingStage {
+    /// One assembly of these outputs at the beam's deformed state.
+    Assembly(AssemblyOutputs),
+    /// `y = A x` with the Backward-Euler system.
+    Spmv,
+    /// Smoothed-aggregation AMG's set-up (with the rest positions' rigid-body modes).
+    AmgSetup,
+    /// One PCG iteration preconditioned by an AMG V-cycle.
+    AmgIteration,
+    /// IC(0)'s factorisation.
+    Ic0Setup,
+    /// One PCG iteration preconditioned by IC(0) (two triangular sweeps).
+    Ic0Iteration,
+    /// The sparse Cholesky factorisation (nested dissection by the rest positions), its
+    /// symbolic analysis excluded.
+    Factorize,
+    /// The first step from rest of the clamped beam under gravity with PCG-AMG (a new
+    /// hierarchy per Newton iteration), all of it.
+    Step,
+    /// That step's residuals (assembly of energy, forces and K included).
+    StepResidual,
+    /// That step's Newton matrices on the free DOFs.
+    StepMatrix,
+    /// That step's linear solves.
+    StepDirection,
+    /// That step's line searches.
+    StepLineSearch,
+}
+
+impl ScalingStage {
+    /// Every stage, in report order.
+    pub const ALL: [ScalingStage; 15] = [
+        ScalingStage::Assembly(AssemblyOutputs::Energy),
+        ScalingStage::Assembly(AssemblyOutputs::EnergyForces),
+        ScalingStage::Assembly(AssemblyOutputs::Stiffness),
+        ScalingStage::Assembly(AssemblyOutputs::All),
+        ScalingStage::Spmv,
+        ScalingStage::AmgSetup,
+        ScalingStage::AmgIteration,
+        ScalingStage::Ic0Setup,
+        ScalingStage::Ic0Iteration,
+        ScalingStage::Factorize,
+        ScalingStage::Step,
+        ScalingStage::StepResidual,
+        ScalingStage::StepMatrix,
+        ScalingStage::StepDirection,
+        ScalingStage::StepLineSearch,
+    ];
+
+    /// Its name in reports and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            ScalingStage::Assembly(AssemblyOutputs::Energy) => "assembly_energy",
+            ScalingStage::Assembly(AssemblyOutputs::EnergyForces) => "assembly_forces",
+            ScalingStage::Assembly(AssemblyOutputs::Stiffness) => "assembly_k",
+            ScalingStage::Assembly(AssemblyOutputs::All) => "assembly_all",
+            ScalingStage::Spmv => "spmv",
+            ScalingStage::AmgSetup => "amg_setup",
+            ScalingStage::AmgIteration => "amg_iteration",
+            ScalingStage::Ic0Setup => "ic0_setup",
+            ScalingStage::Ic0Iteration => "ic0_iteration",
+            ScalingStage::Factorize => "factorize",
+            ScalingStage::Step => "step",
+            ScalingStage::StepResidual => "step_residual",
+            ScalingStage::StepMatrix => "step_matrix",
+            ScalingStage::StepDirection => "step_direction",
+            ScalingStage::StepLineSearch => "step_line_search",
+        }
+    }
+
+    /// Whether it is the step or one of its parts.
+    pub fn is_step(self) -> bool {
+        matches!(
+            self,
+            ScalingStage::Step
+                | ScalingStage::StepResidual
+                | ScalingStage::StepMatrix
+                | ScalingStage::StepDirection
+                | ScalingStage::StepLineSearch
+        )
+    }
+
+    /// The stage of this name.
+    pub fn from_name(name: &str) -> Option<ScalingStage> {
+        Self::ALL.into_iter().find(|s| s.name() == name)
+    }
+}
+
+/// Why a scaling measurement failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum BenchError {
+    /// The assembly failed.
+    #[error("assembly: {0}")]
+    Assembly(#[from] deform_assembly::AssemblyError),
+    /// A solver failed.
+    #[error("solver: {0}")]
+    Solver(#[from] deform_solvers::SolverError),
+    /// The step failed.
+    #[error("step: {0}")]
+    Step(#[from] crate::StepError),
+    /// The step's policy did not build.
+    #[error("policy: {0}")]
+    Policy(#[from] crate::PolicyError),
+}
+
+/// The beam's system, its free vertices' rest positions and a right-hand side.
+type BeamSystem = (CsMat<f64>, Vec<[f64; 3]>, Vec<f64>);
+
+/// Median wall times (s) of `stages` on the beam of size `n` over `repeats`, in the current
+/// rayon pool (run it inside `ThreadPool::install` to choose the thread count). Each set-up
+/// (system, integrator) is made once, outside the timings.
+///
+/// # Errors
+/// The first stage that fails.
+pub fn time_stages(
+    n: usize,
+    stages: &[ScalingStage],
+    repeats: usize,
+) -> Result<Vec<(ScalingStage, f64)>, BenchError> {
+    let mut out = Vec::new();
+    let mut system: Option<BeamSystem> = None;
+    let mut step: Option<Vec<(crate::StageSeconds, f64)>> = None;
+    for &stage in stages {
+        let solver_stage = !matches!(stage, ScalingStage::Assembly(_)) && !stage.is_step();
+        if solver_stage && system.is_none() {
+            let a = beam_system(n);
+            let b = (0..a.rows())
+                .map(|i| ((i % 7) as f64 - 3.0) * 1e-3)
+                .collect();
+            system = Some((a, beam_free_coordinates(n), b));
+        }
+        let system = || system.as_ref().expect("made above");
+        let seconds = match stage {
+            ScalingStage::Assembly(outputs) => {
+                let (_, material, _) = beam(n);
+                time_assembly(n, material, outputs, None, repeats)?
+            }
+            ScalingStage::Spmv => {
+                let (a, _, b) = system();
+                let mut y = vec![0.0; b.len()];
+                median_time(repeats, || {
+                    deform_solvers::LinearOperator::apply(a, b, &mut y)
+                })
+                .1
+            }
+            ScalingStage::AmgSetup | ScalingStage::AmgIteration => {
+                let (a, coordinates, b) = system();
+                let t = time_iterative(
+                    a,
+                    b,
+                    coordinates,
+                    named(&ITERATIVE_SOLVERS, "pcg_amg_1e-6"),
+                    repeats,
+                )?;
+                per_iteration(&t[0], stage == ScalingStage::AmgSetup)
+            }
+            ScalingStage::Ic0Setup | ScalingStage::Ic0Iteration => {
+                let (a, coordinates, b) = system();
+                let t = time_iterative(
+                    a,
+                    b,
+                    coordinates,
+                    named(&ITERATIVE_SOLVERS, "pcg_ic0_1e-6"),
+                    repeats,
+                )?;
+                per_iteration(&t[0], stage == ScalingStage::Ic0Setup)
+            }
+            ScalingStage::Factorize => {
+                let (a, coordinates, _) = system();
+                let spec = deform_solvers::SolverSpec::Direct {
+                    ordering: Default::default(),
+                    indefinite: Default::default(),
+                    parallel: true,
+                    precision: Default::default(),
+                };
+                let mut s = spec.build()?;
+                s.set_coordinates(Some(coordinates));
+                s.analyze(a)?;
+                let (result, seconds) = median_time(repeats, || s.factorize(a));
+                result?;
+                seconds
+            }
+            _ => {
+                if step.is_none() {
+                    step = Some(time_steps(n, repeats)?);
+                }
+                let runs = step.as_ref().expect("just measured");
+                let part = |f: fn(&(crate::StageSeconds, f64)) -> f64| {
+                    median(runs.iter().map(f).collect())
+                };
+                match stage {
+                    ScalingStage::StepResidual => part(|(s, _)| s.residual),
+                    ScalingStage::StepMatrix => part(|(s, _)| s.matrix),
+                    ScalingStage::StepDirection => part(|(s, _)| s.direction),
+                    ScalingStage::StepLineSearch => part(|(s, _)| s.line_search),
+                    _ => part(|(_, whole)| *whole),
+                }
+            }
+        };
+        out.push((stage, seconds));
+    }
+    Ok(out)
+}
+
+/// The entry of `all` called `name`, as a one-entry slice.
+fn named<'a>(
+    all: &'a [(&'static str, &'static str)],
+    name: &str,
+) -> &'a [(&'static str, &'static str)] {
+    let i = all
+        .iter()
+        .position(|(n, _)| *n == name)
+        .expect("a listed name");
+    &all[i..=i]
+}
+
+/// The set-up's median seconds, or the solve's per iteration.
+fn per_iteration(t: &IterativeTiming, setup: bool) -> f64 {
+    if setup {
+        t.setup
+    } else {
+        (t.seconds - t.setup) / t.iterations.max(1) as f64
+    }
+}
+
+/// `repeats` first steps of the beam from rest with PCG-AMG, each on a restarted integrator
+/// (so each builds its hierarchies anew): their stages' seconds summed over the Newton
+/// iterations, and the whole step's.
+fn time_steps(n: usize, repeats: usize) -> Result<Vec<(crate::StageSeconds, f64)>, BenchError> {
+    let (mut sim, rest) = beam_integrator(n, named(&STEP_POLICIES, "pcg_amg")[0].1)?;
+    let mut out = Vec::new();
+    for _ in 0..repeats.max(1) {
+        sim.restart();
+        let mut state = rest.clone();
+        let report = sim.step(&mut state)?;
+        let mut sum = crate::StageSeconds::default();
+        for i in &report.iterations {
+            sum.residual += i.stages.residual;
+            sum.matrix += i.stages.matrix;
+            sum.direction += i.stages.direction;
+            sum.line_search += i.stages.line_search;
+        }
+        out.push((sum, report.seconds));
+    }
+    Ok(out)
+}
+
+/// The serial fraction `f` of Amdahl's law, `T(p) = T(1) (f + (1 - f) / p)`, fitted by least
+/// squares in `T(p) / T(1)` to `(threads, seconds)` pairs that include one thread; `None`
+/// without a one-thread time or another count to compare it with. Clamped to `[0, 1]`.
+pub fn serial_fraction(times: &[(usize, f64)]) -> Option<f64> {
+    let t1 = times.iter().find(|(p, _)| *p == 1)?.1;
+    let (mut num, mut den) = (0.0, 0.0);
+    for &(p, t) in times.iter().filter(|(p, _)| *p > 1) {
+        let inv = 1.0 / p as f64;
+        num += (t / t1 - inv) * (1.0 - inv);
+        den += (1.0 - inv).powi(2);
+    }
+    (den > 0.0).then(|| (num / den).clamp(0.0, 1.0))
+}
+
+/// The speed-up on `threads` that Amdahl's law predicts for serial fraction `f`.
+pub fn amdahl_speedup(f: f64, threads: usize) -> f64 {
+    1.0 / (f + (1.0 - f) / threads as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn amdahl_fits_recover_the_serial_fraction_they_were_made_with() {
+        for f in [0.0, 0.05, 0.2, 1.0] {
+            let times: Vec<(usize, f64)> = [1, 2, 4, 16]
+                .iter()
+                .map(|&p| (p, 3.0 / amdahl_speedup(f, p)))
+                .collect();
+            let fitted = serial_fraction(&times).unwrap();
+            assert!((fitted - f).abs() < 1e-12, "{f}: {fitted}");
+        }
+        // Two threads: f from the one speed-up (1.85x gives f = 0.081).
+        let f = serial_fraction(&[(1, 1.0), (2, 1.0 / 1.85)]).unwrap();
+        assert!((amdahl_speedup(f, 2) - 1.85).abs() < 1e-12);
+        assert!((f - (2.0 / 1.85 - 1.0)).abs() < 1e-12);
+        assert_eq!(serial_fraction(&[(2, 1.0), (4, 0.5)]), None);
+        assert_eq!(serial_fraction(&[(1, 1.0)]), None);
+    }
+
+    #[test]
+    fn every_stage_is_timed_on_the_smallest_beam() {
+        let times = time_stages(1, &ScalingStage::ALL, 1).unwrap();
+        assert_eq!(times.len(), ScalingStage::ALL.len());
+        for (stage, t) in times {
+            assert!(t.is_finite() && t >= 0.0, "{}: {t}", stage.name());
+            assert_eq!(ScalingStage::from_name(stage.name()), Some(stage));
+        }
+    }
+}
