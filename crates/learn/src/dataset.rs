@@ -317,69 +317,21 @@ pub fn generate(
 ) -> Result<Dataset, DatasetError> {
     let (count, steps, seed) = (spec.trajectories, spec.steps, spec.seed);
     let (variations, fractions) = (&spec.variations, spec.split);
+    // Every draw first, in trajectory order: the data do not depend on how they are run.
     let mut rng = Rng::new(seed);
-    let mut trajectories = Vec::with_capacity(count);
-    let mut metas = Vec::with_capacity(count);
-    for k in 0..count {
-        let initial = if variations.rest {
-            scene.initial.clone()
-        } else {
-            let dir = |rng: &mut Rng| {
-                let v = Vector3::new(rng.normal(), rng.normal(), rng.normal());
-                v / v.norm().max(1e-12)
+    let starts: Vec<(Initial, Conditions)> = (0..count)
+        .map(|k| {
+            let initial = draw_initial(scene, variations, &mut rng);
+            let conditions = match spec.conditions.as_slice() {
+                [] => Conditions::default(),
+                all => all[k % all.len()].clone(),
             };
-            let speed = rng.range(0.0, variations.speed);
-            let spin = rng.range(0.0, variations.spin);
-            let (d1, d2) = (dir(&mut rng), dir(&mut rng));
-            let s = variations.stretch;
-            Initial {
-                velocity: (d1 * speed).into(),
-                angular_velocity: (d2 * spin).into(),
-                equilibrium: false,
-                scale: Some([
-                    rng.range(1.0 - s, 1.0 + s),
-                    rng.range(1.0 - s, 1.0 + s),
-                    rng.range(1.0 - s, 1.0 + s),
-                ]),
-                state: None,
-            }
-        };
-        let conditions = match spec.conditions.as_slice() {
-            [] => Conditions::default(),
-            all => all[k % all.len()].clone(),
-        };
-        let mut variant = scene.with_conditions(&conditions, origin)?;
-        variant.initial = initial.clone();
-        let Built {
-            mut integrator,
-            mut state,
-            ..
-        } = variant.build(origin)?;
-        let mut traj = Trajectory {
-            x: vec![state.x.clone()],
-            v: vec![state.v.clone()],
-            start_time: 0.0,
-            exact_start: false,
-            conditions: conditions.clone(),
-            observed: None,
-        };
-        let summary = integrator.run(
-            &mut state,
-            &RunOptions::steps(steps),
-            &mut OnStep(|report: &StepReport, state: &State| {
-                traj.x.push(state.x.clone());
-                traj.v.push(state.v.clone());
-                progress(k, report.step);
-            }),
-        );
-        if let Termination::Failed { step, error } = summary.termination {
-            return Err(DatasetError::Step {
-                trajectory: k,
-                step,
-                source: error,
-            });
-        }
-        metas.push(TrajectoryMeta {
+            (initial, conditions)
+        })
+        .collect();
+    let trajectories = simulate_all(scene, origin, &starts, steps, &mut progress)?;
+    let metas = (starts.into_iter().enumerate())
+        .map(|(k, (initial, conditions))| TrajectoryMeta {
             name: format!("traj_{k:03}"),
             split: split_of(k, count, fractions),
             steps,
@@ -389,9 +341,8 @@ pub fn generate(
             exact_start: false,
             conditions,
             observed: None,
-        });
-        trajectories.push(traj);
-    }
+        })
+        .collect();
     let vertices = trajectories
         .first()
         .map_or(0, |t: &Trajectory| t.x[0].len() / 3);
@@ -408,6 +359,133 @@ pub fn generate(
         },
         trajectories,
     })
+}
+
+/// A random initial state of `scene` (the scene's own when `variations.rest`).
+fn draw_initial(scene: &Scene, variations: &Variations, rng: &mut Rng) -> Initial {
+    if variations.rest {
+        return scene.initial.clone();
+    }
+    let dir = |rng: &mut Rng| {
+        let v = Vector3::new(rng.normal(), rng.normal(), rng.normal());
+        v / v.norm().max(1e-12)
+    };
+    let speed = rng.range(0.0, variations.speed);
+    let spin = rng.range(0.0, variations.spin);
+    let (d1, d2) = (dir(rng), dir(rng));
+    let s = variations.stretch;
+    Initial {
+        velocity: (d1 * speed).into(),
+        angular_velocity: (d2 * spin).into(),
+        equilibrium: false,
+        scale: Some([
+            rng.range(1.0 - s, 1.0 + s),
+            rng.range(1.0 - s, 1.0 + s),
+            rng.range(1.0 - s, 1.0 + s),
+        ]),
+        state: None,
+    }
+}
+
+/// Trajectory `k`: `steps` steps of `scene` from `initial` under `conditions`, by an
+/// integrator of its own; `progress(step)` after each step.
+fn simulate_one(
+    scene: &Scene,
+    origin: &Path,
+    (k, (initial, conditions)): (usize, &(Initial, Conditions)),
+    steps: usize,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Trajectory, DatasetError> {
+    let mut variant = scene.with_conditions(conditions, origin)?;
+    variant.initial = initial.clone();
+    let Built {
+        mut integrator,
+        mut state,
+        ..
+    } = variant.build(origin)?;
+    let mut traj = Trajectory {
+        x: vec![state.x.clone()],
+        v: vec![state.v.clone()],
+        start_time: 0.0,
+        exact_start: false,
+        conditions: conditions.clone(),
+        observed: None,
+    };
+    let summary = integrator.run(
+        &mut state,
+        &RunOptions::steps(steps),
+        &mut OnStep(|report: &StepReport, state: &State| {
+            traj.x.push(state.x.clone());
+            traj.v.push(state.v.clone());
+            progress(report.step);
+        }),
+    );
+    if let Termination::Failed { step, error } = summary.termination {
+        return Err(DatasetError::Step {
+            trajectory: k,
+            step,
+            source: error,
+        });
+    }
+    Ok(traj)
+}
+
+/// Every trajectory of `starts`, in order. Below
+/// [`crate::output::SIDE_BY_SIDE_MAX_DOFS`] free DOFs they run side by side, one thread
+/// each taking the next trajectory not yet taken (each has its own integrator, so the bits
+/// do not depend on the thread count); `progress` is called on this thread. After a failure
+/// no new trajectory starts, and every earlier one has: the error is the first in order.
+fn simulate_all(
+    scene: &Scene,
+    origin: &Path,
+    starts: &[(Initial, Conditions)],
+    steps: usize,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<Vec<Trajectory>, DatasetError> {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    let threads = rayon::current_num_threads().min(starts.len());
+    let small = || -> Result<bool, DatasetError> {
+        let free = scene.build(origin)?.integrator.dofs().num_free();
+        Ok(free <= crate::output::SIDE_BY_SIDE_MAX_DOFS)
+    };
+    if threads < 2 || !small()? {
+        return (starts.iter().enumerate())
+            .map(|job| simulate_one(scene, origin, job, steps, &mut |s| progress(job.0, s)))
+            .collect();
+    }
+    enum Message {
+        Step(usize, usize),
+        Done(usize, Box<Result<Trajectory, DatasetError>>),
+    }
+    let (next, failed) = (AtomicUsize::new(0), AtomicBool::new(false));
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let mut done: Vec<Option<Result<Trajectory, DatasetError>>> =
+        (0..starts.len()).map(|_| None).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..threads {
+            let sender = sender.clone();
+            let (next, failed) = (&next, &failed);
+            scope.spawn(move || {
+                while !failed.load(Ordering::SeqCst) {
+                    let k = next.fetch_add(1, Ordering::SeqCst);
+                    let Some(start) = starts.get(k) else { break };
+                    let mut step = |s| drop(sender.send(Message::Step(k, s)));
+                    let made = simulate_one(scene, origin, (k, start), steps, &mut step);
+                    failed.fetch_or(made.is_err(), Ordering::SeqCst);
+                    drop(sender.send(Message::Done(k, Box::new(made))));
+                }
+            });
+        }
+        drop(sender);
+        for message in receiver {
+            match message {
+                Message::Step(k, s) => progress(k, s),
+                Message::Done(k, made) => done[k] = Some(*made),
+            }
+        }
+    });
+    // The trajectories that ran, up to the first failure.
+    done.into_iter().map_while(|d| d).collect()
 }
 
 impl Dataset {

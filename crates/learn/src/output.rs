@@ -745,7 +745,7 @@ fn seen_vertices(t: &Trajectory, vertices: usize) -> Vec<bool> {
 /// Free DOFs below which a loss evaluation runs its rollouts side by side, one per thread
 /// (each on its own copy of the integrator); larger problems run them one by one and use
 /// the threads inside each step (assembly, factorisation), where they pay off.
-const SIDE_BY_SIDE_MAX_DOFS: usize = 20_000;
+pub(crate) const SIDE_BY_SIDE_MAX_DOFS: usize = 20_000;
 
 /// One thread's integrator (a fork of the objective's) and adjoint solver, kept between
 /// evaluations.
