@@ -145,9 +145,10 @@ impl DofMap {
         let data = gather.iter().map(|&p| full.data()[p as usize]).collect();
         let n = self.num_free();
         Ok(ReducedMatrix {
-            matrix: CsMat::new((n, n), rptr, ridx, data),
+            matrix: CsMat::new((n, n), rptr.clone(), ridx, data),
             gather,
             full_nnz: full.nnz(),
+            row_ptr: rptr,
         })
     }
 
@@ -164,8 +165,21 @@ impl DofMap {
             return Err(AssemblyError::PatternMismatch);
         }
         let data = full.data();
-        for (r, &p) in reduced.matrix.data_mut().iter_mut().zip(&reduced.gather) {
-            *r = data[p as usize];
+        let fill = |(r, p): (&mut [f64], &[u32])| {
+            for (r, &p) in r.iter_mut().zip(p) {
+                *r = data[p as usize];
+            }
+        };
+        let values = reduced.matrix.data_mut();
+        const VALUES: usize = 16_384;
+        if crate::assembly::inline(values.len() / VALUES) {
+            fill((values, &reduced.gather));
+        } else {
+            use rayon::iter::{IndexedParallelIterator, ParallelIterator};
+            use rayon::slice::{ParallelSlice, ParallelSliceMut};
+            (values.par_chunks_mut(VALUES))
+                .zip(reduced.gather.par_chunks(VALUES))
+                .for_each(fill);
         }
         Ok(())
     }
@@ -180,4 +194,26 @@ pub struct ReducedMatrix {
     /// memory of the indices at 6.3 M tets, where a full matrix has 147 M values).
     pub(crate) gather: Vec<u32>,
     pub(crate) full_nnz: usize,
+    /// The matrix's row pointers, kept beside it so that rows can be refilled in parallel
+    /// while its values are borrowed mutably.
+    pub(crate) row_ptr: Vec<usize>,
+}
+
+/// Values of a CSR matrix with row pointers `ptr` split by rows into chunks of `rows` rows:
+/// `(first row, last row + 1, values)` each, for filling rows in parallel.
+pub(crate) fn row_chunks<'v>(
+    ptr: &[usize],
+    values: &'v mut [f64],
+    rows: usize,
+) -> Vec<(usize, usize, &'v mut [f64])> {
+    let n = ptr.len() - 1;
+    let mut rest = values;
+    let mut chunks = Vec::with_capacity(n.div_ceil(rows.max(1)));
+    for r0 in (0..n).step_by(rows.max(1)) {
+        let r1 = (r0 + rows).min(n);
+        let (head, tail) = rest.split_at_mut(ptr[r1] - ptr[r0]);
+        chunks.push((r0, r1, head));
+        rest = tail;
+    }
+    chunks
 }

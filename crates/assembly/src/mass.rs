@@ -3,7 +3,12 @@
 use deform_mesh::topology::BlockPattern;
 use deform_mesh::{ConsistentMass, TetMesh};
 
+use rayon::iter::{IntoParallelIterator, ParallelIterator};
+
 use crate::assembly::check_len;
+
+/// Rows of a reduced matrix per parallel task of [`Assembly::combine_reduced`].
+const REDUCED_ROWS: usize = 1024;
 use crate::{Assembly, AssemblyError, DofMap, ReducedMatrix, StiffnessMatrix};
 
 /// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
@@ -148,23 +153,36 @@ impl Assembly {
         self.check_mass(mass)?;
         let p = &self.geometry.pattern;
         let (offsets, columns, indptr) = (p.offsets(), p.columns(), &self.geometry.indptr);
-        let (k, gather, free) = (k.data(), &out.gather, dofs.free_dofs());
-        let mut q = 0;
-        for (row, mut values) in out.matrix.outer_iterator_mut().enumerate() {
-            let i = free[row];
-            let (v, r) = (i / 3, i % 3);
-            for (_, value) in values.iter_mut() {
-                let at = gather[q] as usize;
-                q += 1;
-                *value = c_k * k[at];
-                // Row i's entries are its blocks' columns, three per block (see `combine`).
-                let local = at - indptr[i];
-                if local % 3 == r
-                    && let Some(m) = mass.block(columns, v, offsets[v] + local / 3)
-                {
-                    *value += c_m * m;
+        let (k, free) = (k.data(), dofs.free_dofs());
+        let ReducedMatrix {
+            matrix,
+            gather,
+            row_ptr: ptr,
+            ..
+        } = out;
+        let fill = |(r0, r1, values): (usize, usize, &mut [f64])| {
+            for row in r0..r1 {
+                let i = free[row];
+                let (v, r) = (i / 3, i % 3);
+                for q in ptr[row]..ptr[row + 1] {
+                    let (at, value) = (gather[q] as usize, &mut values[q - ptr[r0]]);
+                    *value = c_k * k[at];
+                    // Row i's entries are its blocks' columns, three per block (see `combine`).
+                    let local = at - indptr[i];
+                    if local % 3 == r
+                        && let Some(m) = mass.block(columns, v, offsets[v] + local / 3)
+                    {
+                        *value += c_m * m;
+                    }
                 }
             }
+        };
+        // Rows are independent: the same values on any number of threads.
+        let chunks = crate::dof::row_chunks(ptr, matrix.data_mut(), REDUCED_ROWS);
+        if crate::assembly::inline(chunks.len()) {
+            chunks.into_iter().for_each(fill);
+        } else {
+            chunks.into_par_iter().for_each(fill);
         }
         Ok(())
     }
