@@ -553,6 +553,7 @@ pub fn time_stages(
     let mut out = Vec::new();
     let mut system: Option<BeamSystem> = None;
     let mut step: Option<Vec<(crate::StageSeconds, f64)>> = None;
+    let mut iterative: Vec<IterativeTiming> = Vec::new();
     for &stage in stages {
         let solver_stage = !matches!(stage, ScalingStage::Assembly(_)) && !stage.is_step();
         if solver_stage && system.is_none() {
@@ -576,27 +577,24 @@ pub fn time_stages(
                 })
                 .1
             }
-            ScalingStage::AmgSetup | ScalingStage::AmgIteration => {
-                let (a, coordinates, b) = system();
-                let t = time_iterative(
-                    a,
-                    b,
-                    coordinates,
-                    named(&ITERATIVE_SOLVERS, "pcg_amg_1e-6"),
-                    repeats,
-                )?;
-                per_iteration(&t[0], stage == ScalingStage::AmgSetup)
-            }
-            ScalingStage::Ic0Setup | ScalingStage::Ic0Iteration => {
-                let (a, coordinates, b) = system();
-                let t = time_iterative(
-                    a,
-                    b,
-                    coordinates,
-                    named(&ITERATIVE_SOLVERS, "pcg_ic0_1e-6"),
-                    repeats,
-                )?;
-                per_iteration(&t[0], stage == ScalingStage::Ic0Setup)
+            ScalingStage::AmgSetup
+            | ScalingStage::AmgIteration
+            | ScalingStage::Ic0Setup
+            | ScalingStage::Ic0Iteration => {
+                let amg = matches!(stage, ScalingStage::AmgSetup | ScalingStage::AmgIteration);
+                let name = if amg { "pcg_amg_1e-6" } else { "pcg_ic0_1e-6" };
+                // Set-up and iteration come from one measurement of the solver.
+                let index = match iterative.iter().position(|t| t.name == name) {
+                    Some(i) => i,
+                    None => {
+                        let (a, coordinates, b) = system();
+                        let solver = named(&ITERATIVE_SOLVERS, name);
+                        iterative.extend(time_iterative(a, b, coordinates, solver, repeats)?);
+                        iterative.len() - 1
+                    }
+                };
+                let setup = matches!(stage, ScalingStage::AmgSetup | ScalingStage::Ic0Setup);
+                per_iteration(&iterative[index], setup)
             }
             ScalingStage::Factorize => {
                 let (a, coordinates, _) = system();
