@@ -199,6 +199,53 @@ pub struct ReducedMatrix {
     pub(crate) row_ptr: Vec<usize>,
 }
 
+impl ReducedMatrix {
+    /// Adds `scale` times each 3x3 block `(v, B)` to the diagonal block of vertex `v`
+    /// (blocks of constrained vertices are skipped): the Hessian of a potential on single
+    /// vertices, such as contact against an obstacle. Every vertex's diagonal block is in
+    /// the pattern of a stiffness matrix.
+    ///
+    /// # Errors
+    /// [`AssemblyError::VertexOutOfRange`] for a vertex beyond `dofs`,
+    /// [`AssemblyError::PatternMismatch`] when a diagonal entry is missing.
+    pub fn add_vertex_blocks(
+        &mut self,
+        dofs: &DofMap,
+        blocks: &[(usize, nalgebra::Matrix3<f64>)],
+        scale: f64,
+    ) -> Result<(), AssemblyError> {
+        // Positions first (the pattern is borrowed), values after.
+        let (ptr, indices) = (&self.row_ptr, self.matrix.indices());
+        let mut updates = Vec::with_capacity(9 * blocks.len());
+        for (v, b) in blocks {
+            if *v >= dofs.num_vertices {
+                return Err(AssemblyError::VertexOutOfRange {
+                    vertex: *v,
+                    num_vertices: dofs.num_vertices,
+                });
+            }
+            if dofs.is_constrained(*v) {
+                continue;
+            }
+            for r in 0..3 {
+                let row = dofs.reduced[3 * v + r];
+                let cols = &indices[ptr[row]..ptr[row + 1]];
+                for c in 0..3 {
+                    let at = cols
+                        .binary_search(&dofs.reduced[3 * v + c])
+                        .map_err(|_| AssemblyError::PatternMismatch)?;
+                    updates.push((ptr[row] + at, scale * b[(r, c)]));
+                }
+            }
+        }
+        let values = self.matrix.data_mut();
+        for (at, value) in updates {
+            values[at] += value;
+        }
+        Ok(())
+    }
+}
+
 /// Values of a CSR matrix with row pointers `ptr` split by rows into chunks of `rows` rows:
 /// `(first row, last row + 1, values)` each, for filling rows in parallel.
 pub(crate) fn row_chunks<'v>(

@@ -17,11 +17,13 @@ use sprs::CsMat;
 use thiserror::Error;
 
 use crate::conditions::{Conditions, Load};
+use crate::contact::Contact;
 use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{Decision, PolicyContext, SolverPolicy};
 use crate::report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
 use crate::state::{Constraint, Motion, State};
+use deform_contact::{ContactError, ContactModel, ContactSpec, ContactSummary};
 
 /// Lumped or consistent mass.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -248,6 +250,8 @@ pub struct Integrator {
     /// Counterfactual candidates, each with its own kept instance.
     candidates: KeptSolvers,
     policy: Box<dyn SolverPolicy>,
+    /// Barrier contact against obstacles, when the body has any.
+    contact: Option<Contact>,
     steps_taken: usize,
     work: Work,
 }
@@ -292,9 +296,16 @@ pub struct IntegratorBuilder<'a> {
     loads: Vec<Load>,
     options: IntegratorOptions,
     policy: Option<Box<dyn SolverPolicy>>,
+    contact: Option<ContactSpec>,
 }
 
 impl IntegratorBuilder<'_> {
+    /// Barrier contact of the body's surface against obstacles (none by default).
+    pub fn contact(mut self, contact: ContactSpec) -> Self {
+        self.contact = Some(contact);
+        self
+    }
+
     /// Mass density (kg/m^3).
     pub fn density(mut self, density: f64) -> Self {
         self.density = density;
@@ -361,6 +372,7 @@ impl Integrator {
             loads: Vec::new(),
             options: IntegratorOptions::default(),
             policy: None,
+            contact: None,
         }
     }
 
@@ -373,6 +385,7 @@ impl Integrator {
             loads,
             options,
             policy,
+            contact,
         } = b;
         let policy: Box<dyn SolverPolicy> = match policy {
             Some(p) => p,
@@ -393,7 +406,7 @@ impl Integrator {
                     reason,
                 })?;
         }
-        let asm = Assembly::new(mesh, materials)?;
+        let mut asm = Assembly::new(mesh, materials)?;
         let mass = match options.mass {
             MassKind::Lumped => Mass::lumped(mesh, density),
             MassKind::Consistent => Mass::consistent(mesh, density, asm.pattern()),
@@ -408,6 +421,9 @@ impl Integrator {
         let k = asm.stiffness_matrix();
         let a_free = dofs.reduced_matrix(&k)?;
         let (lo, hi) = mesh.bounding_box();
+        let contact = contact
+            .map(|spec| Contact::build(&spec, mesh, &mut asm))
+            .transpose()?;
         Ok(Self {
             asm,
             mass,
@@ -426,6 +442,7 @@ impl Integrator {
             solvers: Vec::new(),
             candidates: Vec::new(),
             policy,
+            contact,
             steps_taken: 0,
             work: Work::default(),
         })
@@ -682,6 +699,7 @@ impl Integrator {
             solvers: Vec::new(),
             candidates: Vec::new(),
             policy,
+            contact: self.contact.clone(),
             steps_taken: 0,
             work: Work::default(),
         };
@@ -710,6 +728,22 @@ impl Integrator {
             }
         }
         true
+    }
+
+    /// The contact potential, when the body has obstacles to touch.
+    pub fn contact(&self) -> Option<&ContactModel> {
+        self.contact.as_ref().map(|c| &c.model)
+    }
+
+    /// The contact potential at positions `x` (flat `3N`): energy, active pairs, least
+    /// distance. `None` without contact.
+    ///
+    /// # Errors
+    /// [`ContactError::Penetration`] naming the first vertex inside an obstacle.
+    pub fn contact_at(&self, x: &[f64]) -> Option<Result<ContactSummary, ContactError>> {
+        self.contact
+            .as_ref()
+            .map(|c| c.model.evaluate(x, None, None))
     }
 
     /// Solver configurations to run, besides the policy's choice, on the same linear system
@@ -924,6 +958,7 @@ impl Integrator {
             let converged = self.converged(iteration, rn, &report);
             if converged || self.at_rounding_floor(iteration, rn, &report) {
                 (report.converged, report.rounding_floor) = (true, !converged);
+                report.contact = self.contact.as_ref().and_then(|c| c.last);
                 let v = match mode {
                     Mode::Dynamic { .. } => u,
                     Mode::Static => vec![0.0; x.len()],
@@ -936,18 +971,25 @@ impl Integrator {
             let clock = Instant::now();
             if !k_at_x {
                 self.newton_stiffness(mode, &x, &u, tangent)
-                    .map_err(|e| fail_assembly(e, &report))?;
+                    .map_err(|e| e.into_step_error(&report))?;
             }
             let (c_m, c_k) = self
                 .newton_matrix(mode)
                 .map_err(|e| fail_assembly(e, &report))?;
             stages.matrix = clock.elapsed().as_secs_f64();
             let clock = Instant::now();
+            // Contact's blocks leave `self` while the direction borrows it mutably.
+            let blocks = self
+                .contact
+                .as_mut()
+                .map(|c| std::mem::take(&mut c.blocks))
+                .unwrap_or_default();
             let point = NewtonPoint {
                 x: &x,
                 tangent,
                 c_m,
                 c_k,
+                contact: (&blocks, contact_scale(mode)),
             };
             let context = IterationContext {
                 step: self.steps_taken,
@@ -956,7 +998,11 @@ impl Integrator {
                 residual: rn,
                 initial_residual: report.initial_residual,
             };
-            let found = self.direction(point, &context, &report, &mut discarded, w)?;
+            let found = self.direction(point, &context, &report, &mut discarded, w);
+            if let Some(c) = self.contact.as_mut() {
+                c.blocks = blocks;
+            }
+            let found = found?;
             stages.direction = clock.elapsed().as_secs_f64();
             let Some(found) = found else {
                 // The exact tangent failed; this iteration again with the projected one.
@@ -968,14 +1014,15 @@ impl Integrator {
             self.dofs
                 .scatter(&w.du_free, &mut w.du)
                 .expect("sizes match");
+            let bound = self.step_bound(mode, state, &u, w);
             let step_length = if newton.line_search && found.slope < 0.0 {
                 let (step_length, at_trial) = self
-                    .line_search(mode, state, &u, (energy, found.slope, tangent), w)
+                    .line_search(mode, state, &u, (energy, found.slope, tangent), bound, w)
                     .map_err(|e| fail_assembly(e, &report))?;
                 evaluated = at_trial;
                 step_length
             } else {
-                1.0
+                bound
             };
             stages.line_search = clock.elapsed().as_secs_f64();
             for (ui, di) in u.iter_mut().zip(&w.du) {
@@ -999,6 +1046,7 @@ impl Integrator {
                 solve: found.solve,
                 fallback: found.fallback,
                 step_length,
+                step_bound: bound,
                 update,
                 seconds: started.elapsed().as_secs_f64(),
                 stages,
@@ -1029,6 +1077,7 @@ impl Integrator {
         match mode {
             Mode::Dynamic { dt } => {
                 self.apply_constraints(&mut x, Some((&mut u, &state.x)), t1, dt);
+                self.feasible_velocity(state, dt, &mut u);
                 for i in 0..x.len() {
                     x[i] = state.x[i] + dt * u[i];
                 }
@@ -1039,6 +1088,22 @@ impl Integrator {
             }
         }
         (x, u)
+    }
+
+    /// With contact, scales the free DOFs of the first iterate's velocity `u` so that the
+    /// first iterate `x^n + dt u` is reached from `x^n` without touching an obstacle (the
+    /// barrier must be finite there); the constrained ones follow their motions.
+    fn feasible_velocity(&self, state: &State, dt: f64, u: &mut [f64]) {
+        let Some(c) = &self.contact else {
+            return;
+        };
+        let dx: Vec<f64> = u.iter().map(|v| dt * v).collect();
+        let bound = c.model.step_bound(&state.x, &dx);
+        if bound < 1.0 {
+            for &i in self.dofs.free_dofs() {
+                u[i] *= bound;
+            }
+        }
     }
 
     /// Stage 1: assembles energy, forces, K (Newton's, see [`Integrator::newton_matrix`]) and,
@@ -1067,6 +1132,7 @@ impl Integrator {
                 stiffness_shift: shift,
             },
         )?;
+        energy += self.add_contact(x, Some(&mut w.f), true)?;
         Ok((energy, self.form_residual(mode, state, u, w)?))
     }
 
@@ -1120,7 +1186,7 @@ impl Integrator {
         x: &[f64],
         u: &[f64],
         tangent: Tangent,
-    ) -> Result<(), AssemblyError> {
+    ) -> Result<(), StageError> {
         let shift = self.damping_shift(mode, u, tangent);
         let outputs = Outputs {
             stiffness: Some(&mut self.k),
@@ -1128,7 +1194,42 @@ impl Integrator {
             stiffness_shift: shift,
             ..Outputs::default()
         };
-        self.asm.evaluate(x, outputs)
+        self.asm.evaluate(x, outputs)?;
+        self.add_contact(x, None, true)?;
+        Ok(())
+    }
+
+    /// The contact potential at `x`: adds its forces to `forces`, keeps its Hessian's
+    /// blocks for Newton's matrix when asked, and returns its energy (0 without contact).
+    fn add_contact(
+        &mut self,
+        x: &[f64],
+        forces: Option<&mut [f64]>,
+        hessian: bool,
+    ) -> Result<f64, ContactError> {
+        let Some(c) = self.contact.as_mut() else {
+            return Ok(0.0);
+        };
+        let summary = c
+            .model
+            .evaluate(x, forces, hessian.then_some(&mut c.blocks))?;
+        c.last = Some(summary);
+        Ok(summary.energy)
+    }
+
+    /// How far along `w.du` from the iterate `u` the line search may go: the contact's
+    /// continuous collision bound (1 without contact). Uses `w.xt` as scratch.
+    fn step_bound(&self, mode: Mode, state: &State, u: &[f64], w: &mut Work) -> f64 {
+        let Some(c) = &self.contact else {
+            return 1.0;
+        };
+        self.positions_into(mode, state, u, &mut w.xt);
+        let scale = match mode {
+            Mode::Dynamic { dt } => dt,
+            Mode::Static => 1.0,
+        };
+        let dx: Vec<f64> = w.du.iter().map(|d| scale * d).collect();
+        c.model.step_bound(&w.xt, &dx)
     }
 
     /// Rayleigh stiffness damping of this solve: `gamma` at the step (0 when static).
@@ -1210,6 +1311,10 @@ impl Integrator {
         };
         self.asm
             .combine_reduced(c_m, &self.mass, c_k, &self.k, &self.dofs, &mut self.a_free)?;
+        if let Some(c) = &self.contact {
+            self.a_free
+                .add_vertex_blocks(&self.dofs, &c.blocks, contact_scale(mode))?;
+        }
         Ok((c_m, c_k))
     }
 
@@ -1338,8 +1443,9 @@ impl Integrator {
         }))
     }
 
-    /// Stage 5: backtracking (Armijo) on the merit function along `w.du` from `u`; returns
-    /// the step length and the energy at the accepted trial, whose forces (and `K u`, with
+    /// Stage 5: backtracking (Armijo) on the merit function along `w.du` from `u`, from the
+    /// step length `bound` (contact's collision bound, else 1); returns the step length and
+    /// the energy at the accepted trial, whose forces (and `K u`, with
     /// stiffness damping) it leaves in `w.f` (and `w.ku`): each trial assembles them, so the
     /// next residual is formed without another pass (with the iterate's `tangent`, which the
     /// damping's `K u` is of). `None` when no trial was assembled.
@@ -1349,6 +1455,7 @@ impl Integrator {
         state: &State,
         u: &[f64],
         (energy, slope, tangent): (f64, f64, Tangent),
+        bound: f64,
         w: &mut Work,
     ) -> Result<(f64, Option<f64>), AssemblyError> {
         let gamma = self.stiffness_damping(mode);
@@ -1357,7 +1464,7 @@ impl Integrator {
         // Near the solution the predicted decrease falls below the rounding noise of the
         // merit function; Armijo's test is then meaningless, so take the step.
         let noise = 1e-12 * phi0.abs();
-        let mut step_length = 1.0;
+        let mut step_length = bound;
         loop {
             // The trial is assembled even then: its energy and forces are the next residual's.
             let untestable = -slope * step_length <= noise;
@@ -1375,17 +1482,29 @@ impl Integrator {
                 stiffness_product: (gamma != 0.0).then_some((&trial[..], &mut w.ku[..])),
                 ..Outputs::default()
             };
-            let (phi, evaluated) = match self.asm.evaluate(&xt, outputs) {
-                Ok(()) => {
+            let assembled = match self.asm.evaluate(&xt, outputs) {
+                Ok(()) => true,
+                Err(AssemblyError::Inadmissible { .. }) => false,
+                Err(e) => return Err(e),
+            };
+            // Within the bound no vertex reaches an obstacle; the barrier is finite.
+            let contact = match assembled {
+                true => self.add_contact(&xt, Some(&mut w.f[..]), false).ok(),
+                false => None,
+            };
+            let (phi, evaluated) = match contact {
+                Some(c) => {
+                    e += c;
                     let (l, q) = damping;
                     let quadratic = step_length * (l + 0.5 * step_length * q);
                     (self.merit(mode, state, &trial, e, quadratic, w), true)
                 }
-                Err(AssemblyError::Inadmissible { .. }) => (f64::INFINITY, false),
-                Err(e) => return Err(e),
+                None => (f64::INFINITY, false),
             };
             (w.trial, w.xt) = (trial, xt);
-            if untestable || phi <= phi0 + 1e-4 * step_length * slope + noise || step_length < 1e-4
+            if untestable
+                || phi <= phi0 + 1e-4 * step_length * slope + noise
+                || step_length < 1e-4 * bound
             {
                 return Ok((step_length, evaluated.then_some(e)));
             }
@@ -1609,7 +1728,14 @@ struct Direction {
 /// Why the residual stage failed.
 enum StageError {
     Assembly(AssemblyError),
+    Contact(ContactError),
     NonFinite(&'static str),
+}
+
+impl From<ContactError> for StageError {
+    fn from(e: ContactError) -> Self {
+        Self::Contact(e)
+    }
 }
 
 impl From<AssemblyError> for StageError {
@@ -1622,11 +1748,25 @@ impl StageError {
     fn into_step_error(self, report: &StepReport) -> StepError {
         match self {
             StageError::Assembly(e) => fail_assembly(e, report),
+            StageError::Contact(source) => StepError::Contact {
+                source,
+                report: Box::new(report.clone()),
+            },
             StageError::NonFinite(what) => StepError::NonFinite {
                 what,
                 report: Box::new(report.clone()),
             },
         }
+    }
+}
+
+/// The factor of the contact Hessian in Newton's matrix: contact is a force on positions,
+/// which move `dt` times the unknown velocity when dynamic (`dt^2`, as for K without
+/// damping: Rayleigh damping is of the elastic forces only).
+fn contact_scale(mode: Mode) -> f64 {
+    match mode {
+        Mode::Dynamic { dt } => dt * dt,
+        Mode::Static => 1.0,
     }
 }
 
@@ -1655,6 +1795,8 @@ struct NewtonPoint<'a> {
     tangent: Tangent,
     c_m: f64,
     c_k: f64,
+    /// Contact's Hessian blocks at `x` and their factor ([`contact_scale`]).
+    contact: (&'a [deform_contact::VertexBlock], f64),
 }
 
 /// The linear system of a Newton iteration: the assembled reduced matrix, or the same matrix
@@ -1695,7 +1837,8 @@ impl System<'_> {
                 "element tangents failed at this point",
             ))
         })?;
-        let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k);
+        let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k)
+            .with_vertex_blocks(p.contact.0, p.contact.1);
         let reduced = Restricted::new(&op, self.dofs);
         solve_with(list, self, &reduced, decision, rhs, x)
     }

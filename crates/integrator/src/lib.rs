@@ -37,6 +37,7 @@
 
 pub mod benchmark;
 mod conditions;
+mod contact;
 mod integrator;
 mod matrix_free;
 mod policy;
@@ -49,6 +50,9 @@ mod state;
 pub use conditions::{Conditions, Load, LoadForce, LoadSpec};
 /// What building an [`Integrator`] takes, re-exported from the crates below.
 pub use deform_assembly::MaterialField;
+pub use deform_contact::{
+    Barrier, ContactError, ContactModel, ContactSpec, ContactSummary, Obstacle,
+};
 pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};
 pub use deform_mesh::TetMesh;
 pub use integrator::{

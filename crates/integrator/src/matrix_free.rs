@@ -3,7 +3,7 @@
 
 use deform_assembly::{Assembly, DofMap, ElementTangents, Mass};
 use deform_solvers::{LinearOperator, SolverError};
-use nalgebra::Matrix3;
+use nalgebra::{Matrix3, Vector3};
 
 /// `y = c_m M x + c_k K x` with `K x` from stored element tangents and the lumped (row-sum)
 /// mass, on all `3N` degrees of freedom: the Newton matrix of an unconstrained body, for
@@ -13,6 +13,10 @@ pub struct MatrixFreeNewton<'a> {
     masses: Vec<f64>,
     c_m: f64,
     c_k: f64,
+    /// Vertex blocks added to the operator (a potential on single vertices, such as
+    /// contact's Hessian) and their factor.
+    blocks: &'a [(usize, Matrix3<f64>)],
+    block_scale: f64,
 }
 
 impl<'a> MatrixFreeNewton<'a> {
@@ -29,7 +33,15 @@ impl<'a> MatrixFreeNewton<'a> {
             masses: asm.vertex_masses(mass),
             c_m,
             c_k,
+            blocks: &[],
+            block_scale: 0.0,
         }
+    }
+
+    /// The operator plus `scale` times each vertex's 3x3 block `(v, B)` on its diagonal.
+    pub fn with_vertex_blocks(mut self, blocks: &'a [(usize, Matrix3<f64>)], scale: f64) -> Self {
+        (self.blocks, self.block_scale) = (blocks, scale);
+        self
     }
 }
 
@@ -43,12 +55,23 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (i, yi) in y.iter_mut().enumerate() {
             *yi = self.c_k * *yi + self.c_m * self.masses[i / 3] * x[i];
         }
+        for (v, b) in self.blocks {
+            let bx = b * Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]) * self.block_scale;
+            for k in 0..3 {
+                y[3 * v + k] += bx[k];
+            }
+        }
     }
 
     fn diagonal(&self, out: &mut [f64]) {
         self.tangents.diagonal(out);
         for (i, d) in out.iter_mut().enumerate() {
             *d = self.c_k * *d + self.c_m * self.masses[i / 3];
+        }
+        for (v, b) in self.blocks {
+            for k in 0..3 {
+                out[3 * v + k] += self.block_scale * b[(k, k)];
+            }
         }
     }
 
@@ -57,11 +80,14 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (b, m) in out.iter_mut().zip(&self.masses) {
             *b = *b * self.c_k + Matrix3::identity() * (self.c_m * m);
         }
+        for (v, b) in self.blocks {
+            out[*v] += b * self.block_scale;
+        }
         Ok(())
     }
 
     fn apply_flops(&self) -> u64 {
-        self.tangents.apply_flops() + 3 * self.nrows() as u64
+        self.tangents.apply_flops() + 3 * self.nrows() as u64 + 18 * self.blocks.len() as u64
     }
 }
 

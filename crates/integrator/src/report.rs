@@ -1,6 +1,7 @@
 //! What each Newton iteration and each step did, and why a step failed.
 
 use deform_assembly::AssemblyError;
+use deform_contact::{ContactError, ContactSummary};
 use deform_solvers::{SetupStats, SolveStats, SolverError, SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -24,6 +25,10 @@ pub struct IterationReport {
     pub fallback: bool,
     /// Line-search step length (1 = full Newton step).
     pub step_length: f64,
+    /// Where contact's continuous collision detection capped the line search (its first
+    /// trial): 1 when it did not (and without contact).
+    #[serde(default = "one")]
+    pub step_bound: f64,
     /// Max-norm of the position update of this iteration.
     pub update: f64,
     /// Wall time of the iteration (assembly, solve, line search), seconds.
@@ -41,6 +46,10 @@ pub struct IterationReport {
     /// [`StepReport::work`] and [`StepReport::solver_seconds`].
     #[serde(default)]
     pub discarded: Vec<CandidateOutcome>,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 /// Wall time of each stage of a Newton iteration, seconds.
@@ -138,9 +147,21 @@ pub struct StepReport {
     pub energy: f64,
     /// Wall time, seconds.
     pub seconds: f64,
+    /// The contact potential at the end of the step (active pairs, least distance), with
+    /// contact.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contact: Option<ContactSummary>,
 }
 
 impl StepReport {
+    /// Newton iterations whose line search contact's collision bound capped.
+    pub fn capped_line_searches(&self) -> usize {
+        self.iterations
+            .iter()
+            .filter(|i| i.step_bound < 1.0)
+            .count()
+    }
+
     /// Newton iterations.
     pub fn newton_iterations(&self) -> usize {
         self.iterations.len()
@@ -214,6 +235,15 @@ pub enum StepError {
         /// The report.
         report: Box<StepReport>,
     },
+    /// A vertex is inside an obstacle where Newton starts (a kinematic vertex driven into
+    /// it, or an initial state inside).
+    #[error("contact: {source}")]
+    Contact {
+        /// The cause.
+        source: ContactError,
+        /// The report.
+        report: Box<StepReport>,
+    },
     /// A residual or update became NaN or infinite.
     #[error("non-finite {what} at Newton iteration {}", report.newton_iterations())]
     NonFinite {
@@ -231,6 +261,7 @@ impl StepError {
             StepError::NotConverged { report }
             | StepError::Assembly { report, .. }
             | StepError::Solver { report, .. }
+            | StepError::Contact { report, .. }
             | StepError::NonFinite { report, .. } => report,
         }
     }
@@ -240,6 +271,7 @@ impl StepError {
             StepError::NotConverged { report }
             | StepError::Assembly { report, .. }
             | StepError::Solver { report, .. }
+            | StepError::Contact { report, .. }
             | StepError::NonFinite { report, .. } => report,
         }
     }

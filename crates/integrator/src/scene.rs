@@ -16,8 +16,8 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::{
-    Conditions, Constraint, Integrator, IntegratorOptions, Load, LoadSpec, Motion, PolicySpec,
-    State,
+    Conditions, Constraint, ContactSpec, Integrator, IntegratorError, IntegratorOptions, Load,
+    LoadSpec, Motion, PolicySpec, State,
 };
 
 /// Where the mesh comes from.
@@ -142,6 +142,10 @@ pub struct Scene {
     /// External loads: total forces on vertex sets ([`LoadSpec`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub loads: Vec<LoadSpec>,
+    /// Barrier contact of the body's surface against obstacles (IPC's log barrier, with
+    /// continuous collision detection in the line search).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contact: Option<ContactSpec>,
     /// Time stepping.
     #[serde(default)]
     pub integrator: IntegratorOptions,
@@ -444,14 +448,22 @@ impl Scene {
             .policy
             .build()
             .map_err(|e| invalid("policy", e.to_string()))?;
-        let mut integrator = Integrator::builder(&mesh, materials)
+        let mut builder = Integrator::builder(&mesh, materials)
             .density(self.density)
             .constraints(constraints)
             .loads(loads)
             .options(self.integrator.clone())
-            .policy(policy)
-            .build()
-            .map_err(|e| invalid("integrator", e.to_string()))?;
+            .policy(policy);
+        if let Some(contact) = &self.contact {
+            builder = builder.contact(contact.clone());
+        }
+        let mut integrator = builder.build().map_err(|e| match e {
+            IntegratorError::Invalid {
+                field: "contact",
+                reason,
+            } => invalid("contact", reason),
+            e => invalid("integrator", e.to_string()),
+        })?;
         if let Some(file) = &self.mass_scale {
             let scale = read_mass_scale(file, mesh.num_vertices())
                 .map_err(|reason| invalid("mass_scale", reason))?;
@@ -459,9 +471,15 @@ impl Scene {
                 .set_mass_scale(Some(&scale))
                 .map_err(|e| invalid("mass_scale", format!("{}: {e}", file.display())))?;
         }
+        if let Some(Err(e)) = integrator.contact_at(&integrator.rest_state().x) {
+            return Err(invalid("contact", format!("at rest, {e}")));
+        }
         let state = self
             .initial_state(&mesh, &mut integrator)
             .map_err(|e| invalid("initial", e))?;
+        if let Some(Err(e)) = integrator.contact_at(&state.x) {
+            return Err(invalid("initial", format!("{e}")));
+        }
         Ok(Built {
             mesh,
             integrator,

@@ -120,6 +120,7 @@ fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> Iteration
         },
         fallback: false,
         step_length: 1.0,
+        step_bound: 1.0,
         update: 0.0,
         seconds: 0.0,
         stages: Default::default(),

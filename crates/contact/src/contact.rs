@@ -1,0 +1,233 @@
+//! The contact potential of a body against obstacles, and the bound it puts on a step.
+
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::{Barrier, Obstacle};
+
+/// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ContactSpec {
+    /// The obstacles.
+    pub obstacles: Vec<Obstacle>,
+    /// The barrier's activation distance (m); by default 1e-3 of the rest shape's bounding
+    /// box diagonal, as IPC does.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dhat: Option<f64>,
+    /// The barrier's stiffness (N/m); by default the mean diagonal of the rest stiffness
+    /// matrix, the stiffness with which the material holds one vertex in place.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kappa: Option<f64>,
+}
+
+/// Why contact cannot be set up or evaluated.
+#[derive(Debug, Clone, PartialEq, Error)]
+#[non_exhaustive]
+pub enum ContactError {
+    /// An obstacle or parameter is malformed.
+    #[error("contact.{field}: {reason}")]
+    Invalid {
+        /// The field (`obstacles[1]`, `dhat`, `kappa`).
+        field: String,
+        /// Why.
+        reason: String,
+    },
+    /// A vertex is on or inside an obstacle: the barrier is not defined there.
+    #[error("vertex {vertex} is inside obstacle {obstacle} (signed distance {distance:e} m)")]
+    Penetration {
+        /// The vertex.
+        vertex: usize,
+        /// The obstacle's index.
+        obstacle: usize,
+        /// Its signed distance.
+        distance: f64,
+    },
+}
+
+/// What the potential found at a configuration.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ContactSummary {
+    /// The barrier energy (J).
+    pub energy: f64,
+    /// Vertex-obstacle pairs closer than `dhat`.
+    pub active: usize,
+    /// The least signed distance of a surface vertex to an obstacle (m; infinite with no
+    /// obstacle).
+    pub min_distance: f64,
+}
+
+/// A 3x3 block of the contact Hessian on a vertex's diagonal.
+pub type VertexBlock = (usize, Matrix3<f64>);
+
+/// The barrier potential `B(x) = sum_v sum_o b(phi_o(x_v))` of a body's surface vertices
+/// against analytic obstacles, with IPC's log barrier `b`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContactModel {
+    obstacles: Vec<Obstacle>,
+    barrier: Barrier,
+    vertices: Vec<usize>,
+}
+
+/// The fraction of a vertex's distance to an obstacle that a step may close: a step is
+/// bounded so that no distance falls below a tenth of what it was (IPC's CCD keeps the same
+/// margin), so that it stays positive and the barrier finite.
+pub const STEP_MARGIN: f64 = 0.1;
+
+impl ContactModel {
+    /// The potential of `vertices` (the ones that can touch: the body's surface) against
+    /// `obstacles`, with `barrier`.
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] naming a malformed obstacle or barrier parameter.
+    pub fn new(
+        obstacles: Vec<Obstacle>,
+        barrier: Barrier,
+        vertices: Vec<usize>,
+    ) -> Result<Self, ContactError> {
+        for (i, o) in obstacles.iter().enumerate() {
+            o.check().map_err(|reason| ContactError::Invalid {
+                field: format!("obstacles[{i}]"),
+                reason,
+            })?;
+        }
+        for (field, value) in [("dhat", barrier.dhat), ("kappa", barrier.kappa)] {
+            if !(value > 0.0 && value.is_finite()) {
+                return Err(ContactError::Invalid {
+                    field: field.into(),
+                    reason: format!("must be positive and finite, got {value}"),
+                });
+            }
+        }
+        Ok(Self {
+            obstacles,
+            barrier,
+            vertices,
+        })
+    }
+
+    /// The obstacles.
+    pub fn obstacles(&self) -> &[Obstacle] {
+        &self.obstacles
+    }
+
+    /// The barrier.
+    pub fn barrier(&self) -> Barrier {
+        self.barrier
+    }
+
+    /// The vertices that can touch.
+    pub fn vertices(&self) -> &[usize] {
+        &self.vertices
+    }
+
+    /// The potential at positions `x` (flat `3N`): its energy and summary; adds its forces
+    /// `-grad B` to `forces` and, with `hessian`, replaces its content with the Hessian's
+    /// nonzero vertex blocks, each projected to positive semidefinite.
+    ///
+    /// # Errors
+    /// [`ContactError::Penetration`] at the first vertex (in order) on or inside an obstacle.
+    pub fn evaluate(
+        &self,
+        x: &[f64],
+        mut forces: Option<&mut [f64]>,
+        mut hessian: Option<&mut Vec<VertexBlock>>,
+    ) -> Result<ContactSummary, ContactError> {
+        if let Some(h) = hessian.as_deref_mut() {
+            h.clear();
+        }
+        let b = self.barrier;
+        let mut summary = ContactSummary {
+            energy: 0.0,
+            active: 0,
+            min_distance: f64::INFINITY,
+        };
+        for &v in &self.vertices {
+            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+            let mut block = Matrix3::zeros();
+            for (i, o) in self.obstacles.iter().enumerate() {
+                let distance = o.distance(&p);
+                summary.min_distance = summary.min_distance.min(distance);
+                if !(distance > 0.0) {
+                    return Err(ContactError::Penetration {
+                        vertex: v,
+                        obstacle: i,
+                        distance,
+                    });
+                }
+                if distance >= b.dhat {
+                    continue;
+                }
+                let jet = o.jet(&p);
+                summary.active += 1;
+                summary.energy += b.value(distance);
+                let (d1, d2) = (b.first(distance), b.second(distance));
+                if let Some(f) = forces.as_deref_mut() {
+                    for k in 0..3 {
+                        f[3 * v + k] -= d1 * jet.gradient[k];
+                    }
+                }
+                if hessian.is_some() {
+                    let n = jet.gradient;
+                    block += project_psd(n * n.transpose() * d2 + jet.hessian * d1);
+                }
+            }
+            if let Some(h) = hessian.as_deref_mut()
+                && block != Matrix3::zeros()
+            {
+                h.push((v, block));
+            }
+        }
+        Ok(summary)
+    }
+
+    /// The largest step length `s` in `[0, 1]` (conservatively) such that moving every
+    /// vertex from `x` along `dx` by `t dx`, `t <= s`, keeps each vertex-obstacle distance
+    /// above [`STEP_MARGIN`] of its value at `x`: continuous collision detection for a
+    /// linear path (positions linear in the step length, as in Newton's line search).
+    pub fn step_bound(&self, x: &[f64], dx: &[f64]) -> f64 {
+        let mut bound = 1.0f64;
+        for &v in &self.vertices {
+            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+            let dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
+            if dp == Vector3::zeros() {
+                continue;
+            }
+            for o in &self.obstacles {
+                let d = o.distance(&p);
+                if d > 0.0 {
+                    bound = bound.min(o.time_of_approach(&p, &dp, STEP_MARGIN * d));
+                } else {
+                    return 0.0;
+                }
+            }
+        }
+        bound
+    }
+}
+
+/// `m` with its negative eigenvalues set to zero.
+fn project_psd(m: Matrix3<f64>) -> Matrix3<f64> {
+    let eig = SymmetricEigen::new(m);
+    if eig.eigenvalues.min() >= 0.0 {
+        return m;
+    }
+    let clamped = eig.eigenvalues.map(|l| l.max(0.0));
+    eig.eigenvectors * Matrix3::from_diagonal(&clamped) * eig.eigenvectors.transpose()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn projection_keeps_psd_and_drops_negative_parts() {
+        let n = Vector3::new(0.0, 0.6, 0.8);
+        let m = n * n.transpose() * 3.0 - (Matrix3::identity() - n * n.transpose()) * 2.0;
+        let p = project_psd(m);
+        assert!((p - n * n.transpose() * 3.0).norm() < 1e-12);
+        let psd = Matrix3::new(2.0, 1.0, 0.0, 1.0, 2.0, 0.0, 0.0, 0.0, 1.0);
+        assert_eq!(project_psd(psd), psd);
+    }
+}

@@ -1,0 +1,154 @@
+//! The contact potential against differences of itself, and the step bound against an exact
+//! check of the path.
+
+use deform_contact::{Barrier, ContactError, ContactModel, Obstacle, STEP_MARGIN};
+use nalgebra::{DMatrix, Vector3};
+use proptest::prelude::*;
+
+fn model() -> ContactModel {
+    let obstacles = vec![
+        Obstacle::Plane {
+            point: [0.0, 0.0, 0.0],
+            normal: [0.0, 0.0, 1.0],
+        },
+        Obstacle::Sphere {
+            center: [0.5, 0.0, 0.3],
+            radius: 0.2,
+        },
+        Obstacle::Box {
+            min: [-0.6, -0.1, 0.0],
+            max: [-0.4, 0.1, 0.2],
+        },
+    ];
+    let barrier = Barrier {
+        dhat: 0.05,
+        kappa: 1e3,
+    };
+    // Vertex 1 is not a surface vertex: it never feels contact.
+    ContactModel::new(obstacles, barrier, vec![0, 2, 3]).unwrap()
+}
+
+/// Four vertices, each within `dhat` of one obstacle (or two).
+fn positions(t: [f64; 12]) -> Vec<f64> {
+    let near = [
+        [0.1, 0.2, 0.01],  // above the ground
+        [0.3, 0.3, 0.001], // not on the surface
+        [0.5, 0.0, 0.53],  // above the sphere
+        [-0.5, 0.0, 0.22], // above the box, near the ground too? no: 0.22 m up
+    ];
+    let mut x = Vec::new();
+    for (v, p) in near.iter().enumerate() {
+        for k in 0..3 {
+            x.push(p[k] + 0.008 * t[3 * v + k]);
+        }
+    }
+    x
+}
+
+fn energy(m: &ContactModel, x: &[f64]) -> f64 {
+    m.evaluate(x, None, None).unwrap().energy
+}
+
+proptest! {
+    /// Forces are minus the energy's central differences; the Hessian blocks are symmetric
+    /// positive semidefinite, equal to the differences of the gradient where the exact
+    /// Hessian is (the plane and the box's faces), and above them otherwise (the projection
+    /// only removes negative curvature).
+    #[test]
+    fn forces_and_hessian_match_differences(t in proptest::array::uniform12(-1.0f64..1.0)) {
+        let m = model();
+        let x = positions(t);
+        let mut f = vec![0.0; x.len()];
+        let mut blocks = Vec::new();
+        let s = m.evaluate(&x, Some(&mut f), Some(&mut blocks)).unwrap();
+        prop_assert!(s.active >= 3, "{s:?}");
+        let h = 1e-7;
+        let n = x.len();
+        let mut hessian_fd = DMatrix::zeros(n, n);
+        for i in 0..n {
+            let (mut a, mut b) = (x.clone(), x.clone());
+            a[i] += h;
+            b[i] -= h;
+            let g = -(energy(&m, &a) - energy(&m, &b)) / (2.0 * h);
+            prop_assert!((g - f[i]).abs() <= 1e-6 * (1.0 + f[i].abs()), "force {i}: {g} {}", f[i]);
+            let (mut fa, mut fb) = (vec![0.0; n], vec![0.0; n]);
+            m.evaluate(&a, Some(&mut fa), None).unwrap();
+            m.evaluate(&b, Some(&mut fb), None).unwrap();
+            for j in 0..n {
+                hessian_fd[(j, i)] = -(fa[j] - fb[j]) / (2.0 * h);
+            }
+        }
+        let mut hessian = DMatrix::zeros(n, n);
+        for (v, b) in &blocks {
+            hessian.view_mut((3 * v, 3 * v), (3, 3)).copy_from(b);
+            prop_assert!((b - b.transpose()).norm() <= 1e-12 * b.norm());
+            prop_assert!(b.symmetric_eigenvalues().min() >= -1e-9 * b.norm());
+        }
+        let scale = hessian_fd.norm();
+        let excess = (&hessian - &hessian_fd).symmetric_eigenvalues().min();
+        prop_assert!(excess >= -1e-5 * scale, "projected less exact has eigenvalue {excess}");
+        // Vertex 0 (the plane) is exact.
+        let exact = hessian_fd.view((0, 0), (3, 3)) - hessian.view((0, 0), (3, 3));
+        prop_assert!(exact.norm() <= 1e-5 * scale, "{exact}");
+        // Vertex 1 is not on the surface: no force, no block.
+        prop_assert!(f[3..6].iter().all(|&v| v == 0.0));
+        prop_assert!(blocks.iter().all(|(v, _)| *v != 1));
+    }
+
+    /// No vertex comes closer than the margin on the bounded path, checked on a fine sampling
+    /// of the path against every obstacle.
+    #[test]
+    fn bounded_steps_never_interpenetrate(
+        t in proptest::array::uniform12(-1.0f64..1.0),
+        dx in proptest::collection::vec(-0.5f64..0.5, 12),
+    ) {
+        let m = model();
+        let x = positions(t);
+        let s = m.step_bound(&x, &dx);
+        prop_assert!((0.0..=1.0).contains(&s));
+        for k in 0..=400 {
+            let a = s * k as f64 / 400.0;
+            for &v in m.vertices() {
+                let p0 = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+                let p = p0 + Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]) * a;
+                for o in m.obstacles() {
+                    let margin = STEP_MARGIN * o.distance(&p0);
+                    prop_assert!(o.distance(&p) >= margin * (1.0 - 1e-9), "vertex {v} at {a} of {s}");
+                }
+            }
+        }
+        let trial: Vec<f64> = x.iter().zip(&dx).map(|(a, b)| a + s * b).collect();
+        prop_assert!(m.evaluate(&trial, None, None).is_ok());
+    }
+}
+
+#[test]
+fn a_vertex_inside_is_named_and_bad_parameters_are_refused() {
+    let m = model();
+    let mut x = positions([0.0; 12]);
+    x[2] = -1e-3;
+    assert_eq!(
+        m.evaluate(&x, None, None),
+        Err(ContactError::Penetration {
+            vertex: 0,
+            obstacle: 0,
+            distance: -1e-3
+        })
+    );
+    assert_eq!(m.step_bound(&x, &[0.0; 12]), 1.0);
+    let bad = ContactModel::new(
+        vec![],
+        Barrier {
+            dhat: 0.0,
+            kappa: 1.0,
+        },
+        vec![],
+    );
+    assert!(matches!(bad, Err(ContactError::Invalid { field, .. }) if field == "dhat"));
+    let spec: deform_contact::ContactSpec = ron::from_str(
+        "(obstacles: [Plane(point: (0, 0, 0), normal: (0, 0, 1))], dhat: Some(1e-3))",
+    )
+    .unwrap();
+    assert_eq!(spec.dhat, Some(1e-3));
+    assert!(ron::from_str::<deform_contact::ContactSpec>("(obstacles: [], dhta: 1)").is_err());
+}

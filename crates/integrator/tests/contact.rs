@@ -1,0 +1,291 @@
+//! Barrier contact in the Newton loop: no interpenetration over every step (checked against
+//! the obstacles' exact distances, not the collision detection), energy that never grows,
+//! the ground carrying the weight at rest, a bounce, and every solver agreeing.
+
+use deform_assembly::MaterialField;
+use deform_integrator::{
+    ContactSpec, Integrator, IntegratorOptions, Obstacle, PolicySpec, State, StepError,
+};
+use deform_materials::MaterialSpec;
+use deform_mesh::TetMesh;
+use deform_mesh::generate::BoxGrid;
+use nalgebra::Vector3;
+
+const GROUND: Obstacle = Obstacle::Plane {
+    point: [0.0, 0.0, 0.0],
+    normal: [0.0, 0.0, 1.0],
+};
+
+/// A 10 cm cube of 3 x 3 x 3 cells, `lift` above the ground.
+fn cube(lift: f64) -> TetMesh {
+    BoxGrid {
+        cells: [3, 3, 3],
+        size: [0.1, 0.1, 0.1],
+        origin: [0.0, 0.0, lift],
+        split: Default::default(),
+    }
+    .build()
+    .unwrap()
+}
+
+fn sim(mesh: &TetMesh, obstacles: Vec<Obstacle>, dt: f64, policy: &str) -> Integrator {
+    let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e5, nu: 0.4))")
+        .unwrap()
+        .build()
+        .unwrap();
+    Integrator::builder(mesh, MaterialField::Uniform(model))
+        .density(1000.0)
+        .options(IntegratorOptions {
+            dt,
+            ..Default::default()
+        })
+        .policy(
+            ron::from_str::<PolicySpec>(policy)
+                .unwrap()
+                .build()
+                .unwrap(),
+        )
+        .contact(ContactSpec {
+            obstacles,
+            ..Default::default()
+        })
+        .build()
+        .unwrap()
+}
+
+/// Kinetic, elastic, barrier and gravitational energy.
+fn total_energy(sim: &mut Integrator, s: &State) -> f64 {
+    let masses = sim.assembly().vertex_masses(sim.mass());
+    let g = Vector3::from(sim.gravity());
+    let mut elastic = 0.0;
+    sim.assembly_mut()
+        .evaluate(
+            &s.x,
+            deform_assembly::Outputs {
+                energy: Some(&mut elastic),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+    let barrier = sim.contact_at(&s.x).unwrap().unwrap().energy;
+    let mut other = 0.0;
+    for (v, m) in masses.iter().enumerate() {
+        let p = Vector3::new(s.x[3 * v], s.x[3 * v + 1], s.x[3 * v + 2]);
+        let u = Vector3::new(s.v[3 * v], s.v[3 * v + 1], s.v[3 * v + 2]);
+        other += 0.5 * m * u.norm_squared() - m * g.dot(&p);
+    }
+    elastic + barrier + other
+}
+
+/// The least height of a vertex: for a plane, a tet mesh is clear of the half-space exactly
+/// when every vertex is (a tet is the convex hull of its vertices).
+fn lowest(s: &State) -> f64 {
+    s.x.chunks(3).map(|p| p[2]).fold(f64::INFINITY, f64::min)
+}
+
+fn velocity_z(sim: &Integrator, s: &State) -> f64 {
+    let masses = sim.assembly().vertex_masses(sim.mass());
+    let total: f64 = masses.iter().sum();
+    masses
+        .iter()
+        .enumerate()
+        .map(|(v, m)| m * s.v[3 * v + 2])
+        .sum::<f64>()
+        / total
+}
+
+#[test]
+fn a_dropped_cube_bounces_without_touching_and_loses_energy() {
+    let mesh = cube(0.01);
+    let mut sim = sim(&mesh, vec![GROUND], 2e-3, "Fixed(Direct())");
+    let mut s = sim.rest_state();
+    s.v.chunks_mut(3).for_each(|v| v[2] = -1.0);
+    let mut energy = total_energy(&mut sim, &s);
+    let (mut bounced, mut touched, mut capped) = (false, false, 0);
+    for step in 0..150 {
+        let report = sim.step(&mut s).unwrap();
+        assert!(lowest(&s) > 0.0, "step {step}: a vertex at {}", lowest(&s));
+        let now = total_energy(&mut sim, &s);
+        assert!(
+            now <= energy * (1.0 + 1e-9) + 1e-12,
+            "step {step}: energy grew from {energy} to {now}"
+        );
+        energy = now;
+        let contact = report.contact.unwrap();
+        touched |= contact.active > 0;
+        capped += report.capped_line_searches();
+        bounced |= touched && velocity_z(&sim, &s) > 0.1;
+    }
+    assert!(touched && bounced, "touched {touched}, bounced {bounced}");
+    assert!(capped > 0, "the collision bound never capped a line search");
+}
+
+#[test]
+fn the_ground_carries_the_weight_at_rest() {
+    let mesh = cube(2e-4);
+    let mut sim = sim(&mesh, vec![GROUND], 1e-2, "Fixed(Direct())");
+    let mut s = sim.rest_state();
+    let report = sim.solve_static(&mut s).unwrap();
+    assert!(report.converged);
+    let model = sim.contact().unwrap();
+    let mut forces = vec![0.0; s.x.len()];
+    model.evaluate(&s.x, Some(&mut forces), None).unwrap();
+    let lift: f64 = forces.chunks(3).map(|f| f[2]).sum();
+    let weight: f64 = sim.assembly().vertex_masses(sim.mass()).iter().sum::<f64>() * 9.81;
+    assert!(
+        (lift - weight).abs() <= 1e-6 * weight,
+        "lift {lift} N, weight {weight} N"
+    );
+    let gap = lowest(&s);
+    assert!(gap > 0.0 && gap < model.barrier().dhat, "gap {gap}");
+    // Only the bottom face touches.
+    let bottom = mesh.rest_positions().iter().filter(|p| p.z < 1e-3).count();
+    assert_eq!(report.contact.unwrap().active, bottom);
+}
+
+#[test]
+fn a_fast_body_meets_a_thin_plate_and_a_ball_without_crossing() {
+    // 30 m/s against 5 mm of gap: a free step would cross the plane 12 times over.
+    let mesh = cube(0.005);
+    let ball = Obstacle::Sphere {
+        center: [0.05, 0.05, -0.3],
+        radius: 0.3,
+    };
+    let mut sim = sim(&mesh, vec![GROUND, ball.clone()], 2e-3, "Fixed(Direct())");
+    let mut s = sim.rest_state();
+    s.v.chunks_mut(3).for_each(|v| v[2] = -30.0);
+    let surface = deform_mesh::topology::boundary_faces(&mesh);
+    for step in 0..20 {
+        sim.step(&mut s).unwrap();
+        assert!(lowest(&s) > 0.0, "step {step}");
+        // Every surface triangle against the ball, exactly.
+        for f in &surface {
+            let p = |i: usize| Vector3::new(s.x[3 * f[i]], s.x[3 * f[i] + 1], s.x[3 * f[i] + 2]);
+            let d = point_triangle_distance(&Vector3::new(0.05, 0.05, -0.3), [p(0), p(1), p(2)]);
+            assert!(
+                d > 0.3,
+                "step {step}: a face at {} m from the ball's centre",
+                d
+            );
+        }
+    }
+}
+
+#[test]
+fn every_solver_takes_the_same_contact_step() {
+    let mesh = cube(0.002);
+    let run = |policy: &str| {
+        let mut sim = sim(&mesh, vec![GROUND], 5e-3, policy);
+        let mut s = sim.rest_state();
+        s.v.chunks_mut(3).for_each(|v| v[2] = -2.0);
+        for _ in 0..3 {
+            sim.step(&mut s).unwrap();
+        }
+        s.x
+    };
+    let reference = run("Fixed(Direct())");
+    for policy in [
+        "Fixed(Cg(tolerance: (rel: 1e-12, max_iterations: 5000)))",
+        "Fixed(Pcg(preconditioner: Ic0, tolerance: (rel: 1e-12)))",
+        "Fixed(MatrixFree(Pcg(preconditioner: BlockJacobi, tolerance: (rel: 1e-12))))",
+    ] {
+        let x = run(policy);
+        let diff = x
+            .iter()
+            .zip(&reference)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-8, "{policy}: {diff} m from the direct solver's");
+    }
+}
+
+#[test]
+fn a_body_started_inside_is_refused_with_the_vertex() {
+    let mesh = cube(-0.01);
+    let sim = sim(&mesh, vec![GROUND], 1e-3, "Fixed(Direct())");
+    let err = sim.contact_at(&sim.rest_state().x).unwrap().unwrap_err();
+    assert!(
+        err.to_string().contains("vertex 0 is inside obstacle 0"),
+        "{err}"
+    );
+    // A kinematic push into the ground fails the step with the contact named, not a NaN.
+    let mesh = cube(0.001);
+    let mut sim = sim_with_push(&mesh);
+    let mut s = sim.rest_state();
+    let mut failed = None;
+    for _ in 0..20 {
+        if let Err(e) = sim.step(&mut s) {
+            failed = Some(e);
+            break;
+        }
+    }
+    assert!(
+        matches!(failed, Some(StepError::Contact { .. })),
+        "{failed:?}"
+    );
+}
+
+/// The cube with its bottom layer driven down at 1 m/s.
+fn sim_with_push(mesh: &TetMesh) -> Integrator {
+    let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e5, nu: 0.4))")
+        .unwrap()
+        .build()
+        .unwrap();
+    let bottom: Vec<usize> = (0..mesh.num_vertices())
+        .filter(|&v| mesh.rest_positions()[v].z < 0.002)
+        .collect();
+    Integrator::builder(mesh, MaterialField::Uniform(model))
+        .constraints(vec![deform_integrator::Constraint {
+            vertices: bottom,
+            motion: deform_integrator::Motion::Translate {
+                velocity: [0.0, 0.0, -1.0],
+                until: None,
+            },
+        }])
+        .options(IntegratorOptions {
+            dt: 1e-3,
+            max_retries: 0,
+            ..Default::default()
+        })
+        .contact(ContactSpec {
+            obstacles: vec![GROUND],
+            ..Default::default()
+        })
+        .build()
+        .unwrap()
+}
+
+/// The distance from `p` to the triangle `t` (Ericson's closest-point regions).
+fn point_triangle_distance(p: &Vector3<f64>, t: [Vector3<f64>; 3]) -> f64 {
+    let [a, b, c] = t;
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return (p - a).norm();
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(&bp), ac.dot(&bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return (p - b).norm();
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return (p - (a + ab * (d1 / (d1 - d3)))).norm();
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(&cp), ac.dot(&cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return (p - c).norm();
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return (p - (a + ac * (d2 / (d2 - d6)))).norm();
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return (p - (b + (c - b) * w)).norm();
+    }
+    let denom = 1.0 / (va + vb + vc);
+    let (v, w) = (vb * denom, vc * denom);
+    (p - (a + ab * v + ac * w)).norm()
+}
