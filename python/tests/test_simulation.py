@@ -98,3 +98,34 @@ def test_every_solver_policy_gives_the_direct_solvers_trajectory(policy):
     x, summary = run(SCENE.replace("steps: 20,", f"policy: {policy}, steps: 20,"))
     assert summary["steps"] == 5
     assert np.abs(x - reference).max() < 1e-6
+
+
+DROP = """Scene(
+    name: "drop",
+    mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.01))),
+    material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+    density: 1000.0,
+    contact: Some((obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))])),
+    integrator: (dt: 0.005),
+    initial: (velocity: (0.0, 0.0, -1.0)),
+    steps: 40,
+)"""
+
+
+def test_a_body_dropped_on_the_ground_never_goes_through_it():
+    sim = deform.Simulation(deform.Scene.from_ron(DROP))
+    lowest, active = [], []
+
+    def seen(report):
+        lowest.append(sim.x[:, 2].min())
+        active.append(report["contact"]["active"])
+
+    sim.run(40, callback=seen)
+    assert min(lowest) > 0.0
+    assert max(active) > 0
+    # A state set inside the ground is refused by the next step, naming the vertex.
+    x = sim.x
+    x[0, 2] = -0.01
+    sim.x = x
+    with pytest.raises(deform.SimulationError, match="vertex 0 is inside obstacle 0"):
+        sim.step()

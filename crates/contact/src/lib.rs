@@ -17,4 +17,4 @@ pub use barrier::Barrier;
 pub use contact::{
     ContactError, ContactModel, ContactSpec, ContactSummary, STEP_MARGIN, VertexBlock,
 };
-pub use obstacle::{DistanceJet, Obstacle};
+pub use obstacle::{DistanceJet, Obstacle, Surface};

@@ -162,6 +162,83 @@ impl Obstacle {
     }
 }
 
+/// A triangle surface: flat `3V` positions and vertex triples, normals outward.
+pub type Surface = (Vec<f64>, Vec<[usize; 3]>);
+
+impl Obstacle {
+    /// The obstacle's surface as triangles, for viewing beside the body (ParaView): a plane
+    /// as a square of side `extent` centred at its point, a sphere as a latitude-longitude
+    /// mesh, a box as its twelve triangles.
+    pub fn surface(&self, extent: f64) -> Surface {
+        match self {
+            Obstacle::Plane { point, normal } => {
+                let n = Vector3::from(*normal).normalize();
+                // Any unit vector not parallel to n, then the plane's two axes.
+                let helper = if n.x.abs() < 0.9 {
+                    Vector3::x()
+                } else {
+                    Vector3::y()
+                };
+                let a = n.cross(&helper).normalize() * (0.5 * extent);
+                let b = n.cross(&a);
+                let c = Vector3::from(*point);
+                let corners = [c - a - b, c + a - b, c + a + b, c - a + b];
+                let x = corners.iter().flat_map(|p| [p.x, p.y, p.z]).collect();
+                (x, vec![[0, 1, 2], [0, 2, 3]])
+            }
+            Obstacle::Sphere { center, radius } => sphere_surface(center, *radius, 16, 32),
+            Obstacle::Box { min, max } => {
+                let corner =
+                    |i: usize| [0, 1, 2].map(|k| if i >> k & 1 == 1 { max[k] } else { min[k] });
+                let x = (0..8).flat_map(corner).collect();
+                // Two triangles per face, counter-clockwise seen from outside.
+                let faces = [
+                    [0, 2, 6, 4],
+                    [1, 5, 7, 3],
+                    [0, 4, 5, 1],
+                    [2, 3, 7, 6],
+                    [0, 1, 3, 2],
+                    [4, 6, 7, 5],
+                ];
+                let t = faces
+                    .iter()
+                    .flat_map(|f| [[f[0], f[2], f[1]], [f[0], f[3], f[2]]])
+                    .collect();
+                (x, t)
+            }
+        }
+    }
+}
+
+/// A latitude-longitude sphere of `rings` bands and `segments` meridians.
+fn sphere_surface(center: &[f64; 3], radius: f64, rings: usize, segments: usize) -> Surface {
+    let mut x = vec![center[0], center[1], center[2] + radius];
+    for i in 1..rings {
+        let theta = std::f64::consts::PI * i as f64 / rings as f64;
+        for j in 0..segments {
+            let phi = 2.0 * std::f64::consts::PI * j as f64 / segments as f64;
+            x.extend([
+                center[0] + radius * theta.sin() * phi.cos(),
+                center[1] + radius * theta.sin() * phi.sin(),
+                center[2] + radius * theta.cos(),
+            ]);
+        }
+    }
+    x.extend([center[0], center[1], center[2] - radius]);
+    let ring = |i: usize, j: usize| 1 + (i - 1) * segments + j % segments;
+    let south = 1 + (rings - 1) * segments;
+    let mut t = Vec::new();
+    for j in 0..segments {
+        t.push([0, ring(1, j), ring(1, j + 1)]);
+        t.push([south, ring(rings - 1, j + 1), ring(rings - 1, j)]);
+        for i in 1..rings - 1 {
+            t.push([ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)]);
+            t.push([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)]);
+        }
+    }
+    (x, t)
+}
+
 /// The box's signed distance, gradient and Hessian: outside, the distance to the nearest
 /// point (a face, edge or corner region); inside, to the nearest face.
 fn box_jet(p: &Vector3<f64>, lo: &Vector3<f64>, hi: &Vector3<f64>) -> DistanceJet {
@@ -283,6 +360,31 @@ mod tests {
         let mut gaps: Vec<f64> = (0..3).flat_map(|i| [p[i] - lo[i], hi[i] - p[i]]).collect();
         gaps.sort_by(f64::total_cmp);
         near_face || (inside && gaps[1] - gaps[0] < 1e-5)
+    }
+
+    /// Every surface vertex is on the obstacle, and every triangle's normal points out.
+    #[test]
+    fn surfaces_lie_on_the_obstacles_facing_out() {
+        for o in obstacles() {
+            let (x, t) = o.surface(2.0);
+            let p = |i: usize| Vector3::new(x[3 * i], x[3 * i + 1], x[3 * i + 2]);
+            for i in 0..x.len() / 3 {
+                assert!(o.distance(&p(i)).abs() < 1e-12, "{o:?}: vertex {i}");
+            }
+            for tri in &t {
+                let (a, b, c) = (p(tri[0]), p(tri[1]), p(tri[2]));
+                let n = (b - a).cross(&(c - a));
+                assert!(n.norm() > 0.0, "{o:?}: degenerate {tri:?}");
+                let centroid = (a + b + c) / 3.0;
+                // A point a little outside the face is outside the obstacle (or further
+                // from it, for the sphere's chords).
+                let outside = centroid + n.normalize() * 1e-3;
+                assert!(
+                    o.distance(&outside) > o.distance(&centroid),
+                    "{o:?}: {tri:?} faces in"
+                );
+            }
+        }
     }
 
     #[test]

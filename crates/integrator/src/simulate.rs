@@ -12,6 +12,7 @@ use deform_mesh::TetMesh;
 use deform_mesh::io::{Pvd, Vtu};
 use thiserror::Error;
 
+use crate::Integrator;
 use crate::report::{IterationReport, StepError, StepReport};
 use crate::run::{Observer, RunOptions, RunSummary};
 use crate::scene::{Scene, SceneError};
@@ -96,7 +97,7 @@ pub fn simulate(
     // Appended and flushed step by step, so it always matches the frames on disk.
     let csv_path = out.join("steps.csv");
     let mut csv = std::fs::File::create(&csv_path).map_err(|e| write_error(&csv_path, e))?;
-    csv.write_all(b"step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z\n")
+    csv.write_all(b"step,t,dt,newton_iterations,linear_iterations,initial_residual,final_residual,elastic_energy,kinetic_energy,flops,seconds,retries,tracked_x,tracked_y,tracked_z,contacts,min_distance,capped_line_searches\n")
         .map_err(|e| write_error(&csv_path, e))?;
     let mut log = StepLog {
         csv: (csv, csv_path),
@@ -112,6 +113,7 @@ pub fn simulate(
         user: observer,
     };
     log.frames.write(0, &state)?;
+    write_obstacles(&out, &mesh, &sim)?;
     let run = sim.run(&mut state, &RunOptions::steps(steps), &mut log);
     if let Some(e) = log.error {
         return Err(e);
@@ -159,6 +161,24 @@ pub fn simulate(
     })
 }
 
+/// The obstacles' surfaces in `obstacles.vtu`, to open in ParaView beside the frames (a
+/// plane as a square three times the body's size).
+fn write_obstacles(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Result<(), SimulateError> {
+    let Some(contact) = sim.contact() else {
+        return Ok(());
+    };
+    let (lo, hi) = mesh.bounding_box();
+    let (mut x, mut triangles) = (Vec::new(), Vec::new());
+    for o in contact.obstacles() {
+        let (p, t) = o.surface(3.0 * (hi - lo).norm());
+        let first = x.len() / 3;
+        x.extend(p);
+        triangles.extend(t.iter().map(|tri| tri.map(|i| i + first)));
+    }
+    let path = out.join("obstacles.vtu");
+    deform_mesh::io::write_triangles(&path, &x, &triangles).map_err(|e| write_error(&path, e))
+}
+
 /// Removes what an earlier run left in `out` (frames, series, CSV, summary, and the
 /// temporaries of atomic writes a killed run left behind), so the folder only ever holds
 /// one run's files.
@@ -166,7 +186,8 @@ pub fn simulate(
 fn clear_previous_run(out: &Path) -> Result<(), SimulateError> {
     deform_fs::clear_previous_run(out, |name, is_dir| {
         let frame = name.starts_with("frame_") && name.ends_with(".vtu");
-        !is_dir && (frame || ["series.pvd", "steps.csv", "summary.txt"].contains(&name))
+        let known = ["series.pvd", "steps.csv", "summary.txt", "obstacles.vtu"];
+        !is_dir && (frame || known.contains(&name))
     })
     .map_err(fs_error)
 }
@@ -234,7 +255,7 @@ impl Observer for StepLog<'_> {
         let mut row = String::new();
         let _ = writeln!(
             row,
-            "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9}",
+            "{step},{:.6},{:e},{},{},{:e},{:e},{:e},{:e},{},{:.6},{},{:.9},{:.9},{:.9},{},{},{}",
             report.t,
             report.dt,
             report.newton_iterations(),
@@ -248,7 +269,12 @@ impl Observer for StepLog<'_> {
             report.retries,
             tracked[0],
             tracked[1],
-            tracked[2]
+            tracked[2],
+            report.contact.map_or(0, |c| c.active),
+            report
+                .contact
+                .map_or(String::new(), |c| format!("{:e}", c.min_distance)),
+            report.capped_line_searches(),
         );
         let (file, path) = &mut self.csv;
         if let Err(e) = file.write_all(row.as_bytes()).and_then(|()| file.flush()) {

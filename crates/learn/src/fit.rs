@@ -250,6 +250,17 @@ pub enum FitError {
     Optimiser(String),
 }
 
+/// Fits do not model contact yet (its forces in the equation error, its Hessian in the
+/// adjoint): a scene with obstacles is refused rather than fitted without them.
+pub(crate) fn refuse_contact(sim: &Integrator) -> Result<(), FitError> {
+    match sim.contact() {
+        Some(_) => Err(FitError::Invalid(
+            "fits of scenes with contact are not supported yet: the fit would leave out the contact forces".into(),
+        )),
+        None => Ok(()),
+    }
+}
+
 /// Fits the coefficients of the integrator's material (its term split) and optionally the
 /// Rayleigh parameters to the pairs of `trajectories`, by equation error.
 ///
@@ -326,6 +337,7 @@ fn equation_error(
     basis: Option<&Basis>,
     options: EquationErrorOptions,
 ) -> Result<EquationErrorFit, FitError> {
+    refuse_contact(sim)?;
     let asm = sim.assembly();
     let dt = sim.options().dt;
     let terms = asm.materials().max_terms();

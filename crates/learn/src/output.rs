@@ -248,13 +248,14 @@ impl<'a> OutputError<'a> {
     /// [`term_coefficients`]). `progress` sees each evaluation.
     ///
     /// # Errors
-    /// [`FitError::Invalid`] when the material is not uniform.
+    /// [`FitError::Invalid`] when the material is not uniform or the scene has contact.
     pub fn new(
         sim: &'a mut Integrator,
         trajectories: &[&'a Trajectory],
         options: OutputErrorOptions,
         progress: impl FnMut(usize, f64) + 'a,
     ) -> Result<Self, FitError> {
+        crate::fit::refuse_contact(sim)?;
         let MaterialField::Uniform(base) = sim.assembly().materials() else {
             return Err(FitError::Invalid(
                 "the output-error fit needs a uniform material".into(),

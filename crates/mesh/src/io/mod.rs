@@ -28,7 +28,7 @@ use nalgebra::Vector3;
 use thiserror::Error;
 
 pub use gmsh::{MshFormat, MshVersion};
-pub use vtu::{Pvd, Vtu};
+pub use vtu::{Pvd, Vtu, write_triangles};
 
 use crate::{MeshError, MeshOptions, TetMesh};
 use cursor::{ParseError, ParseErrorKind, line_of};

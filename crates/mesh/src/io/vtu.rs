@@ -179,6 +179,60 @@ impl<'a> Vtu<'a> {
     }
 }
 
+/// VTK cell type of a triangle.
+const VTK_TRIANGLE: u8 = 5;
+
+/// Writes a triangle surface (flat `3V` positions, vertex triples) as a `.vtu`: obstacles
+/// and other surfaces shown beside a simulation's frames.
+///
+/// # Errors
+/// [`WriteError`] naming the file; `InvalidInput` when a triangle names a vertex beyond
+/// the positions.
+pub fn write_triangles(
+    path: &Path,
+    positions: &[f64],
+    triangles: &[[usize; 3]],
+) -> Result<(), WriteError> {
+    write_atomic(path, |w| {
+        let (nv, nt) = (positions.len() / 3, triangles.len());
+        if triangles.iter().flatten().any(|&i| i >= nv) {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("a triangle names a vertex beyond the {nv} given"),
+            ));
+        }
+        writeln!(w, r#"<?xml version="1.0"?>"#)?;
+        writeln!(
+            w,
+            r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">"#
+        )?;
+        writeln!(
+            w,
+            "<UnstructuredGrid>\n<Piece NumberOfPoints=\"{nv}\" NumberOfCells=\"{nt}\">\n<Points>"
+        )?;
+        array(w, "Points", &Field::Vectors(positions[..3 * nv].to_vec()))?;
+        writeln!(w, "</Points>\n<Cells>")?;
+        let conn: Vec<i64> = triangles.iter().flatten().map(|&i| i as i64).collect();
+        let offsets: Vec<i64> = (1..=nt as i64).map(|k| 3 * k).collect();
+        raw(
+            w,
+            "connectivity",
+            "Int64",
+            1,
+            &bytes_of(&conn, |v| v.to_le_bytes()),
+        )?;
+        raw(
+            w,
+            "offsets",
+            "Int64",
+            1,
+            &bytes_of(&offsets, |v| v.to_le_bytes()),
+        )?;
+        raw(w, "types", "UInt8", 1, &vec![VTK_TRIANGLE; nt])?;
+        writeln!(w, "</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>")
+    })
+}
+
 fn bytes_of<T: Copy, const N: usize>(v: &[T], f: impl Fn(T) -> [u8; N]) -> Vec<u8> {
     v.iter().flat_map(|x| f(*x)).collect()
 }
