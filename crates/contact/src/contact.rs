@@ -4,7 +4,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::{Barrier, Obstacle};
+use crate::{Barrier, FrictionSpec, Obstacle};
 
 /// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -20,6 +20,9 @@ pub struct ContactSpec {
     /// matrix, the stiffness with which the material holds one vertex in place.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub kappa: Option<f64>,
+    /// Coulomb friction against the obstacles (none by default: they are frictionless).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub friction: Option<FrictionSpec>,
 }
 
 /// Why contact cannot be set up or evaluated.
@@ -68,6 +71,8 @@ pub struct ContactModel {
     obstacles: Vec<Obstacle>,
     barrier: Barrier,
     vertices: Vec<usize>,
+    /// Each obstacle's coefficient of friction and the smoothing speed `eps_v` (m/s).
+    friction: Option<(Vec<f64>, f64)>,
 }
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
@@ -104,7 +109,23 @@ impl ContactModel {
             obstacles,
             barrier,
             vertices,
+            friction: None,
         })
+    }
+
+    /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]).
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] naming a bad coefficient or threshold.
+    pub fn with_friction(mut self, spec: &FrictionSpec) -> Result<Self, ContactError> {
+        let mu = spec.coefficients(self.obstacles.len())?;
+        self.friction = Some((mu, spec.velocity_threshold));
+        Ok(self)
+    }
+
+    /// Each obstacle's coefficient of friction and the smoothing speed, with friction.
+    pub fn friction(&self) -> Option<(&[f64], f64)> {
+        self.friction.as_ref().map(|(mu, eps)| (&mu[..], *eps))
     }
 
     /// The obstacles.

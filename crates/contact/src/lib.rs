@@ -6,15 +6,20 @@
 //! Hessian (projected to positive semidefinite per vertex) joins Newton's matrix, and
 //! [`ContactModel::step_bound`] caps the line search so that no trial state interpenetrates.
 //!
+//! Friction is lagged and smoothed Coulomb friction ([`FrictionSpec`], [`FrictionLag`]):
+//! one more potential during a step's Newton solve.
+//!
 //! This crate knows nothing of meshes or time stepping: positions are flat `3N` slices and
 //! the vertices that can touch are given by index.
 
 mod barrier;
 mod contact;
+mod friction;
 mod obstacle;
 
 pub use barrier::Barrier;
 pub use contact::{
     ContactError, ContactModel, ContactSpec, ContactSummary, STEP_MARGIN, VertexBlock,
 };
+pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
 pub use obstacle::{DistanceJet, Obstacle, Surface};

@@ -152,3 +152,55 @@ fn a_vertex_inside_is_named_and_bad_parameters_are_refused() {
     assert_eq!(spec.dhat, Some(1e-3));
     assert!(ron::from_str::<deform_contact::ContactSpec>("(obstacles: [], dhta: 1)").is_err());
 }
+
+proptest! {
+    /// The friction potential, lagged at a start, against differences of itself: forces are
+    /// minus its gradient and the blocks its exact Hessian, below and above the smoothing
+    /// threshold; it resists the motion (the force opposes the tangential displacement).
+    #[test]
+    fn friction_matches_differences_in_both_regimes(
+        t in proptest::array::uniform12(-1.0f64..1.0),
+        slide in proptest::collection::vec(-1.0f64..1.0, 12),
+        far in proptest::bool::ANY,
+    ) {
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3 };
+        let m = model().with_friction(&spec).unwrap();
+        let start = positions(t);
+        let dt = 0.01;
+        let lag = m.lag_friction(&start, dt);
+        prop_assert!(lag.pairs.len() >= 3);
+        // Displacements of 1e-5 m (below eps = 1e-5 m... around it) or 1e-3 m (sliding).
+        let scale = if far { 1e-3 } else { 1e-5 };
+        let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
+        let n = x.len();
+        let mut f = vec![0.0; n];
+        let mut blocks = Vec::new();
+        let energy = |y: &[f64]| m.add_friction(&lag, y, None, None);
+        m.add_friction(&lag, &x, Some(&mut f), Some(&mut blocks));
+        let h = 1e-4 * scale;
+        let mut hessian = DMatrix::zeros(n, n);
+        for (v, b) in &blocks {
+            let mut view = hessian.view_mut((3 * v, 3 * v), (3, 3));
+            view += b;
+        }
+        for i in 0..n {
+            let (mut a, mut b) = (x.clone(), x.clone());
+            a[i] += h;
+            b[i] -= h;
+            let g = -(energy(&a) - energy(&b)) / (2.0 * h);
+            prop_assert!((g - f[i]).abs() <= 1e-5 * (1.0 + f[i].abs()), "force {i}: {g} {}", f[i]);
+            let (mut fa, mut fb) = (vec![0.0; n], vec![0.0; n]);
+            m.add_friction(&lag, &a, Some(&mut fa), None);
+            m.add_friction(&lag, &b, Some(&mut fb), None);
+            for j in 0..n {
+                let d = -(fa[j] - fb[j]) / (2.0 * h);
+                // `|u| u` is not twice differentiable at u = 0: differences there are off by
+                // about h / eps of the Hessian's size.
+                prop_assert!((d - hessian[(j, i)]).abs() <= 1e-3 * hessian.amax(),
+                    "hessian ({j}, {i}): {d} {}", hessian[(j, i)]);
+            }
+        }
+        let work: f64 = f.iter().zip(x.iter().zip(&start)).map(|(f, (a, b))| f * (a - b)).sum();
+        prop_assert!(work <= 0.0, "friction did work {work}");
+    }
+}

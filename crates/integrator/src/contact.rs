@@ -3,7 +3,9 @@
 //! give them.
 
 use deform_assembly::{Assembly, Outputs, StiffnessMatrix};
-use deform_contact::{Barrier, ContactModel, ContactSpec, ContactSummary, VertexBlock};
+use deform_contact::{
+    Barrier, ContactModel, ContactSpec, ContactSummary, FrictionLag, VertexBlock,
+};
 use deform_mesh::TetMesh;
 
 use crate::IntegratorError;
@@ -16,6 +18,8 @@ pub(crate) struct Contact {
     pub(crate) blocks: Vec<VertexBlock>,
     /// The potential at the configuration evaluated last: at the end of a step, its state.
     pub(crate) last: Option<ContactSummary>,
+    /// Friction lagged at the start of the current Newton solve (empty when static).
+    pub(crate) lag: FrictionLag,
 }
 
 impl Contact {
@@ -36,16 +40,39 @@ impl Contact {
             Some(kappa) => kappa,
             None => rest_stiffness(mesh, asm, &vertices)?,
         };
-        let model = ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
-            .map_err(|e| IntegratorError::Invalid {
-                field: "contact",
-                reason: e.to_string(),
-            })?;
+        let invalid = |e: deform_contact::ContactError| IntegratorError::Invalid {
+            field: "contact",
+            reason: e.to_string(),
+        };
+        let mut model =
+            ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
+                .map_err(invalid)?;
+        if let Some(friction) = &spec.friction {
+            model = model.with_friction(friction).map_err(invalid)?;
+        }
         Ok(Self {
             model,
             blocks: Vec::new(),
             last: None,
+            lag: FrictionLag::default(),
         })
+    }
+
+    /// The potential at `x`: returns its energy (the barrier's and the lagged friction's),
+    /// adds its forces to `forces`, and with `hessian` keeps its blocks.
+    pub(crate) fn evaluate(
+        &mut self,
+        x: &[f64],
+        mut forces: Option<&mut [f64]>,
+        hessian: bool,
+    ) -> Result<f64, deform_contact::ContactError> {
+        let mut blocks = hessian.then_some(&mut self.blocks);
+        let summary = self
+            .model
+            .evaluate(x, forces.as_deref_mut(), blocks.as_deref_mut())?;
+        self.last = Some(summary);
+        let friction = self.model.add_friction(&self.lag, x, forces, blocks);
+        Ok(summary.energy + friction)
     }
 }
 

@@ -919,6 +919,12 @@ impl Integrator {
             Mode::Static => (state.t, 0.0),
         };
         self.refresh_external(t1, 1e-9 * self.options.dt);
+        if let Some(c) = self.contact.as_mut() {
+            c.lag = match mode {
+                Mode::Dynamic { dt } => c.model.lag_friction(&state.x, dt),
+                Mode::Static => Default::default(),
+            };
+        }
         let mut report = StepReport {
             t: t1,
             dt,
@@ -1207,14 +1213,10 @@ impl Integrator {
         forces: Option<&mut [f64]>,
         hessian: bool,
     ) -> Result<f64, ContactError> {
-        let Some(c) = self.contact.as_mut() else {
-            return Ok(0.0);
-        };
-        let summary = c
-            .model
-            .evaluate(x, forces, hessian.then_some(&mut c.blocks))?;
-        c.last = Some(summary);
-        Ok(summary.energy)
+        match self.contact.as_mut() {
+            Some(c) => c.evaluate(x, forces, hessian),
+            None => Ok(0.0),
+        }
     }
 
     /// How far along `w.du` from the iterate `u` the line search may go: the contact's

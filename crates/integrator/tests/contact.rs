@@ -289,3 +289,76 @@ fn point_triangle_distance(p: &Vector3<f64>, t: [Vector3<f64>; 3]) -> f64 {
     let (v, w) = (vb * denom, vc * denom);
     (p - (a + ab * v + ac * w)).norm()
 }
+
+/// A block resting on an incline of 30 degrees (the ground, with gravity tilted by the
+/// incline's angle), released: the distance its centre of mass travels in `steps` steps.
+fn incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
+    let theta = 30f64.to_radians();
+    let mesh = cube(1e-4);
+    let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))")
+        .unwrap()
+        .build()
+        .unwrap();
+    let options = IntegratorOptions {
+        dt,
+        gravity: [0.0, 0.0, -9.81 * theta.cos()],
+        ..Default::default()
+    };
+    let mut sim = Integrator::builder(&mesh, MaterialField::Uniform(model))
+        .density(1000.0)
+        .options(options.clone())
+        .contact(ContactSpec {
+            obstacles: vec![GROUND],
+            friction: Some(deform_integrator::FrictionSpec {
+                mu: vec![mu],
+                velocity_threshold: 1e-3,
+            }),
+            ..Default::default()
+        })
+        .build()
+        .unwrap();
+    // Settled on the barrier under the normal part of gravity, then the slope's part too.
+    let mut s = sim.rest_state();
+    sim.solve_static(&mut s).unwrap();
+    sim.set_options(IntegratorOptions {
+        gravity: [9.81 * theta.sin(), 0.0, -9.81 * theta.cos()],
+        ..options
+    })
+    .unwrap();
+    let masses = sim.assembly().vertex_masses(sim.mass());
+    let com = |s: &State| {
+        masses
+            .iter()
+            .enumerate()
+            .map(|(v, m)| m * s.x[3 * v])
+            .sum::<f64>()
+            / masses.iter().sum::<f64>()
+    };
+    let start = com(&s);
+    for _ in 0..steps {
+        sim.step(&mut s).unwrap();
+        assert!(lowest(&s) > 0.0);
+    }
+    // Backward Euler under a constant acceleration a travels a dt^2 N (N + 1) / 2.
+    let n = steps as f64;
+    let slide = 9.81 * (theta.sin() - mu * theta.cos()) * dt * dt * n * (n + 1.0) / 2.0;
+    (com(&s) - start, slide)
+}
+
+#[test]
+fn friction_on_an_incline_slides_or_sticks_as_coulomb_says() {
+    let (steps, dt) = (100, 5e-3);
+    // tan 30 = 0.577: mu = 0.3 slides at g (sin - mu cos), 2.36 m/s^2.
+    let (travel, expected) = incline_travel(0.3, steps, dt);
+    assert!(
+        (travel - expected).abs() <= 0.02 * expected,
+        "slid {travel} m, Coulomb says {expected} m"
+    );
+    // mu = 0.7 sticks: it creeps below the smoothing speed only.
+    let (travel, _) = incline_travel(0.7, steps, dt);
+    let (free, _) = incline_travel(0.0, steps, dt);
+    assert!(
+        travel.abs() <= 0.02 * free,
+        "crept {travel} m (frictionless: {free} m)"
+    );
+}

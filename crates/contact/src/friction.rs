@@ -1,0 +1,223 @@
+//! Lagged, smoothed Coulomb friction against obstacles (IPC: Li et al. 2020, Section 5).
+//!
+//! Each vertex-obstacle pair in contact at the start of a step gets a friction potential
+//! `D = mu lambda f0(|u|)` of its tangential displacement `u = T^T (x - x^n)` over the step,
+//! with the normal force `lambda` and the tangent basis `T` lagged at `x^n` (semi-implicit:
+//! they stay fixed during the step's Newton solve, so `D` is a potential and Newton minimises
+//! it with the rest). `f0` smooths `|u|` below `eps = eps_v dt`: friction grows from zero as
+//! the sliding speed grows to `eps_v` and is Coulomb's `mu lambda` above it, so sticking is a
+//! very viscous regime below `eps_v`.
+
+use nalgebra::{Matrix2, Matrix3, Matrix3x2, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::{ContactError, ContactModel, VertexBlock};
+
+/// Friction as a scene gives it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrictionSpec {
+    /// The coefficient of friction of each obstacle, in the obstacles' order, or a single
+    /// one for all of them.
+    pub mu: Vec<f64>,
+    /// The sliding speed (m/s) below which friction is smoothed towards zero (IPC's
+    /// `eps_v`); 1e-3 m/s by default.
+    #[serde(default = "default_threshold")]
+    pub velocity_threshold: f64,
+}
+
+fn default_threshold() -> f64 {
+    1e-3
+}
+
+/// One vertex-obstacle pair's lagged friction.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrictionPair {
+    /// The vertex.
+    pub vertex: usize,
+    /// `mu lambda`: the friction force when sliding (N).
+    pub limit: f64,
+    /// The tangent basis at the start of the step (orthonormal columns).
+    pub basis: Matrix3x2<f64>,
+    /// The vertex's position at the start of the step.
+    pub start: Vector3<f64>,
+}
+
+/// The friction of a step, lagged at its start.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct FrictionLag {
+    /// The pairs in contact at the start, with a non-zero coefficient.
+    pub pairs: Vec<FrictionPair>,
+    /// `eps_v dt` (m): the tangential displacement over the step below which friction is
+    /// smoothed.
+    pub threshold: f64,
+}
+
+impl FrictionSpec {
+    /// The coefficient of each of `obstacles` obstacles.
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] when the count is neither 1 nor `obstacles`, or a value is
+    /// negative or not finite.
+    pub fn coefficients(&self, obstacles: usize) -> Result<Vec<f64>, ContactError> {
+        let invalid = |field: &str, reason: String| ContactError::Invalid {
+            field: format!("friction.{field}"),
+            reason,
+        };
+        if let Some(m) = self.mu.iter().find(|m| !(m.is_finite() && **m >= 0.0)) {
+            return Err(invalid("mu", format!("{m} must be finite and >= 0")));
+        }
+        if !(self.velocity_threshold > 0.0 && self.velocity_threshold.is_finite()) {
+            return Err(invalid(
+                "velocity_threshold",
+                format!("{} must be positive and finite", self.velocity_threshold),
+            ));
+        }
+        match self.mu.len() {
+            1 => Ok(vec![self.mu[0]; obstacles]),
+            n if n == obstacles => Ok(self.mu.clone()),
+            n => Err(invalid(
+                "mu",
+                format!("{n} coefficients for {obstacles} obstacles (give one, or one each)"),
+            )),
+        }
+    }
+}
+
+/// `f1(y) = f0'(y)`: `2 y/eps - (y/eps)^2` below `eps`, 1 above (the gradient uses
+/// `f1(s) / s` in closed form).
+#[cfg(test)]
+fn f1(y: f64, eps: f64) -> f64 {
+    if y >= eps {
+        1.0
+    } else {
+        let r = y / eps;
+        2.0 * r - r * r
+    }
+}
+
+/// `f0(y)`: `-y^3 / (3 eps^2) + y^2 / eps + eps / 3` below `eps`, `y` above (`C^1`).
+fn f0(y: f64, eps: f64) -> f64 {
+    if y >= eps {
+        y
+    } else {
+        -y * y * y / (3.0 * eps * eps) + y * y / eps + eps / 3.0
+    }
+}
+
+impl ContactModel {
+    /// Lags friction at the start of a step of `dt` from positions `x`: every pair closer
+    /// than `dhat` with a positive coefficient, its normal force `-b'(d)` and tangent basis.
+    /// Empty without friction.
+    pub fn lag_friction(&self, x: &[f64], dt: f64) -> FrictionLag {
+        let Some((mu, eps_v)) = self.friction() else {
+            return FrictionLag::default();
+        };
+        let b = self.barrier();
+        let mut pairs = Vec::new();
+        for &v in self.vertices() {
+            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+            for (o, &m) in self.obstacles().iter().zip(mu) {
+                let d = o.distance(&p);
+                if m == 0.0 || !(d > 0.0 && d < b.dhat) {
+                    continue;
+                }
+                let n = o.jet(&p).gradient;
+                pairs.push(FrictionPair {
+                    vertex: v,
+                    limit: m * -b.first(d),
+                    basis: tangent_basis(&n),
+                    start: p,
+                });
+            }
+        }
+        FrictionLag {
+            pairs,
+            threshold: eps_v * dt,
+        }
+    }
+
+    /// The friction potential of `lag` at positions `x`: returns its energy, adds its forces
+    /// to `forces` and appends its Hessian's vertex blocks (positive semidefinite as they
+    /// are) to `hessian`.
+    pub fn add_friction(
+        &self,
+        lag: &FrictionLag,
+        x: &[f64],
+        mut forces: Option<&mut [f64]>,
+        mut hessian: Option<&mut Vec<VertexBlock>>,
+    ) -> f64 {
+        let eps = lag.threshold;
+        let mut energy = 0.0;
+        for pair in &lag.pairs {
+            let v = pair.vertex;
+            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+            let u: Vector2<f64> = pair.basis.transpose() * (p - pair.start);
+            let s = u.norm();
+            energy += pair.limit * f0(s, eps);
+            // `grad_u = limit phi(s) u` with `phi = f1(s) / s` (finite at 0: 2 / eps).
+            let (phi, dphi) = if s >= eps {
+                (1.0 / s, -1.0 / (s * s))
+            } else {
+                (2.0 / eps - s / (eps * eps), -1.0 / (eps * eps))
+            };
+            if let Some(f) = forces.as_deref_mut() {
+                let g = pair.basis * (u * (pair.limit * phi));
+                for k in 0..3 {
+                    f[3 * v + k] -= g[k];
+                }
+            }
+            if let Some(h) = hessian.as_deref_mut() {
+                let mut h2 = Matrix2::identity() * phi;
+                if s > 0.0 {
+                    h2 += u * u.transpose() * (dphi / s);
+                }
+                let block: Matrix3<f64> = pair.basis * h2 * pair.basis.transpose() * pair.limit;
+                h.push((v, block));
+            }
+        }
+        energy
+    }
+}
+
+/// Two orthonormal vectors orthogonal to the unit vector `n`, as columns.
+fn tangent_basis(n: &Vector3<f64>) -> Matrix3x2<f64> {
+    let helper = if n.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let a = n.cross(&helper).normalize();
+    let b = n.cross(&a);
+    Matrix3x2::from_columns(&[a, b])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_smoothing_is_c1_and_its_derivative_is_f1() {
+        let eps = 1e-3;
+        for y in [1e-5, 3e-4, 7e-4, 0.999e-3, 2e-3] {
+            let h = 1e-9;
+            let d = (f0(y + h, eps) - f0(y - h, eps)) / (2.0 * h);
+            assert!((d - f1(y, eps)).abs() < 1e-6, "{y}: {d} {}", f1(y, eps));
+        }
+        assert!((f0(eps * (1.0 - 1e-12), eps) - eps).abs() < 1e-14);
+        assert!((f1(eps * (1.0 - 1e-9), eps) - 1.0).abs() < 1e-8);
+    }
+
+    #[test]
+    fn tangent_bases_are_orthonormal_and_tangent() {
+        for n in [
+            Vector3::z(),
+            Vector3::x(),
+            Vector3::new(0.3, -0.4, 0.5).normalize(),
+        ] {
+            let t = tangent_basis(&n);
+            assert!((t.transpose() * t - Matrix2::identity()).norm() < 1e-14);
+            assert!((t.transpose() * n).norm() < 1e-14);
+        }
+    }
+}
