@@ -11,7 +11,7 @@ use clap::{Args, Subcommand};
 use deform_fs::write_atomic;
 use deform_integrator::benchmark::{
     AssemblyOutputs, ITERATIVE_SOLVERS, STEP_POLICIES, beam, beam_free_coordinates,
-    beam_integrator, beam_system, time_assembly, time_direct, time_iterative,
+    beam_integrator, beam_integrator_with, beam_system, time_assembly, time_direct, time_iterative,
 };
 use deform_integrator::{MaterialField, Model, OnStep, RunOptions, State, StepReport};
 use deform_materials::StableNeoHookean;
@@ -140,6 +140,10 @@ pub struct StepArgs {
     /// Only these policies (comma-separated names, e.g. `pcg_amg,pcg_ic0`); all by default.
     #[arg(long, value_delimiter = ',')]
     pub policies: Vec<String>,
+    /// Also run each policy with a ground plane this far (m) below the beam, which its tip
+    /// reaches as it sags, and compare the cost of a step with contact to one without.
+    #[arg(long)]
+    pub ground: Option<f64>,
 }
 
 pub fn run(task: BenchTask) -> Result<()> {
@@ -366,43 +370,97 @@ fn solvers(args: SolversArgs) -> Result<()> {
 }
 
 fn step(args: StepArgs) -> Result<()> {
-    let tets = beam(args.n).0.num_tets();
     for (name, policy) in chosen(&STEP_POLICIES, &args.policies, "--policies")? {
-        let (mut sim, mut state) = beam_integrator(args.n, policy)?;
-        let mut last = Instant::now();
-        let run = sim.run(
-            &mut state,
-            &RunOptions::steps(args.steps),
-            &mut OnStep(|report: &StepReport, _: &State| {
-                // Wall time of the whole step as the caller sees it.
-                let seconds = last.elapsed().as_secs_f64();
-                let solve = report.solver_seconds();
-                let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
-                // The process's peak so far (it includes earlier policies' runs).
-                let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
-                // The Newton iterations' stages: assembly and residual, the Newton matrix
-                // (with K when the residual came from the line search), the line search. The
-                // final convergence check is no iteration: it is in `other_seconds` only.
-                let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
-                    report.iterations.iter().map(|i| f(&i.stages)).sum()
-                };
-                println!(
-                    r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "residual_seconds": {:.3}, "matrix_seconds": {:.3}, "line_search_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}}}"#,
-                    report.step,
-                    report.newton_iterations(),
-                    report.linear_iterations(),
-                    seconds - solve,
-                    stage(|s| s.residual),
-                    stage(|s| s.matrix),
-                    stage(|s| s.line_search),
-                    report.flops()
-                );
-                last = Instant::now();
-            }),
+        let (sim, state) = beam_integrator(args.n, policy)?;
+        let free = timed_steps(sim, state, args.steps, name)?;
+        let Some(gap) = args.ground else {
+            continue;
+        };
+        let ground = deform_integrator::ContactSpec {
+            obstacles: vec![deform_integrator::Obstacle::Plane {
+                point: [0.0, 0.0, -gap],
+                normal: [0.0, 0.0, 1.0],
+            }],
+            ..Default::default()
+        };
+        let (sim, state) = beam_integrator_with(args.n, policy, Some(ground))?;
+        let surface = sim.contact().map_or(0, |c| c.vertices().len());
+        let touching = timed_steps(sim, state, args.steps, name)?;
+        // The same step with and without the ground, where the ground touches fewer than
+        // 5 % of the surface vertices (and at all).
+        let few = |active: usize| active > 0 && (active as f64) < 0.05 * surface as f64;
+        let pairs: Vec<(f64, f64)> = touching
+            .iter()
+            .zip(&free)
+            .filter(|(with, _)| few(with.2))
+            .map(|(with, without)| {
+                (
+                    with.0 / without.0,
+                    (with.0 / with.1.max(1) as f64) / (without.0 / without.1.max(1) as f64),
+                )
+            })
+            .collect();
+        let median = |mut x: Vec<f64>| {
+            x.sort_by(f64::total_cmp);
+            x.get(x.len() / 2).copied().unwrap_or(f64::NAN)
+        };
+        let most = touching.iter().map(|s| s.2).max().unwrap_or(0);
+        let step_ratio = median(pairs.iter().map(|p| p.0).collect());
+        let newton_ratio = median(pairs.iter().map(|p| p.1).collect());
+        println!(
+            r#"{{"what": "contact_step", "policy": "{name}", "steps": {}, "steps_touching_under_5_percent": {}, "most_in_contact": {most}, "surface_vertices": {surface}, "median_step_ratio": {step_ratio:.2}, "median_newton_iteration_ratio": {newton_ratio:.2}}}"#,
+            args.steps,
+            pairs.len(),
         );
-        run.into_result()?;
     }
     Ok(())
+}
+
+/// Runs `steps` steps printing a JSON line per step; returns each step's wall time, Newton
+/// iterations and active contact pairs.
+fn timed_steps(
+    mut sim: deform_integrator::Integrator,
+    mut state: State,
+    steps: usize,
+    name: &str,
+) -> Result<Vec<(f64, usize, usize)>> {
+    let tets = sim.assembly().num_elements();
+    let mut last = Instant::now();
+    let mut timings = Vec::new();
+    let run = sim.run(
+        &mut state,
+        &RunOptions::steps(steps),
+        &mut OnStep(|report: &StepReport, _: &State| {
+            // Wall time of the whole step as the caller sees it.
+            let seconds = last.elapsed().as_secs_f64();
+            let solve = report.solver_seconds();
+            let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
+            // The process's peak so far (it includes earlier policies' runs).
+            let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
+            // The Newton iterations' stages: assembly and residual, the Newton matrix
+            // (with K when the residual came from the line search), the line search. The
+            // final convergence check is no iteration: it is in `other_seconds` only.
+            let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
+                report.iterations.iter().map(|i| f(&i.stages)).sum()
+            };
+            let active = report.contact.map_or(0, |c| c.active);
+            println!(
+                r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "residual_seconds": {:.3}, "matrix_seconds": {:.3}, "line_search_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}, "contacts": {active}}}"#,
+                report.step,
+                report.newton_iterations(),
+                report.linear_iterations(),
+                seconds - solve,
+                stage(|s| s.residual),
+                stage(|s| s.matrix),
+                stage(|s| s.line_search),
+                report.flops()
+            );
+            timings.push((seconds, report.newton_iterations(), active));
+            last = Instant::now();
+        }),
+    );
+    run.into_result()?;
+    Ok(timings)
 }
 
 /// Times every stage in a pool of each thread count (JSON lines as they come), then a table

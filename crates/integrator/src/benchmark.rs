@@ -405,6 +405,22 @@ pub fn beam_integrator(
     n: usize,
     policy: &str,
 ) -> Result<(crate::Integrator, crate::State), crate::PolicyError> {
+    beam_integrator_with(n, policy, None)
+}
+
+/// [`beam_integrator`] with barrier contact as `contact` says (e.g. a ground under the beam,
+/// which its tip reaches as it sags).
+///
+/// # Errors
+/// A policy text that does not parse or build.
+///
+/// # Panics
+/// When `contact` does not build (an invalid obstacle).
+pub fn beam_integrator_with(
+    n: usize,
+    policy: &str,
+    contact: Option<crate::ContactSpec>,
+) -> Result<(crate::Integrator, crate::State), crate::PolicyError> {
     let (mesh, material, _) = beam(n);
     let clamp: Vec<usize> = (0..mesh.num_vertices())
         .filter(|&v| mesh.rest_positions()[v].x == 0.0)
@@ -415,14 +431,16 @@ pub fn beam_integrator(
             reason: e.to_string(),
         })?
         .build()?;
-    let sim = crate::Integrator::builder(&mesh, material)
+    let mut builder = crate::Integrator::builder(&mesh, material)
         .constraints(vec![crate::Constraint {
             vertices: clamp,
             motion: crate::Motion::Fixed,
         }])
-        .policy(policy)
-        .build()
-        .expect("the benchmark beam builds");
+        .policy(policy);
+    if let Some(contact) = contact {
+        builder = builder.contact(contact);
+    }
+    let sim = builder.build().expect("the benchmark beam builds");
     let state = sim.rest_state();
     Ok((sim, state))
 }

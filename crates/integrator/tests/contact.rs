@@ -362,3 +362,30 @@ fn friction_on_an_incline_slides_or_sticks_as_coulomb_says() {
         "crept {travel} m (frictionless: {free} m)"
     );
 }
+
+#[test]
+fn the_readme_contact_field_and_the_bundled_scene_parse() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let block = readme
+        .split("```ron\ncontact: ")
+        .nth(1)
+        .and_then(|rest| rest.split("\n```").next())
+        .expect("the README shows a contact field");
+    let spec: Option<ContactSpec> = ron::from_str(block.trim_end().trim_end_matches(',')).unwrap();
+    let spec = spec.unwrap();
+    assert_eq!(spec.obstacles.len(), 2);
+    assert_eq!(
+        spec.friction.unwrap().coefficients(2).unwrap(),
+        vec![0.5, 0.2]
+    );
+    let path = root.join("assets/scenes/torus_drop.ron");
+    let scene = deform_integrator::Scene::load(&path).unwrap();
+    let built = scene.build(&path).unwrap();
+    let summary = built
+        .integrator
+        .contact_at(&built.state.x)
+        .unwrap()
+        .unwrap();
+    assert!(summary.min_distance > 0.0 && summary.active == 0);
+}
