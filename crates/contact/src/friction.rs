@@ -35,6 +35,8 @@ fn default_threshold() -> f64 {
 pub struct FrictionPair {
     /// The vertex.
     pub vertex: usize,
+    /// The obstacle's index.
+    pub obstacle: usize,
     /// `mu lambda`: the friction force when sliding (N).
     pub limit: f64,
     /// The tangent basis at the start of the step (orthonormal columns).
@@ -117,7 +119,7 @@ impl ContactModel {
         let mut pairs = Vec::new();
         for &v in self.vertices() {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
-            for (o, &m) in self.obstacles().iter().zip(mu) {
+            for (i, (o, &m)) in self.obstacles().iter().zip(mu).enumerate() {
                 let d = o.distance(&p);
                 if m == 0.0 || !(d > 0.0 && d < b.dhat) {
                     continue;
@@ -125,6 +127,7 @@ impl ContactModel {
                 let n = o.jet(&p).gradient;
                 pairs.push(FrictionPair {
                     vertex: v,
+                    obstacle: i,
                     limit: m * -b.first(d),
                     basis: tangent_basis(&n),
                     start: p,

@@ -919,12 +919,7 @@ impl Integrator {
             Mode::Static => (state.t, 0.0),
         };
         self.refresh_external(t1, 1e-9 * self.options.dt);
-        if let Some(c) = self.contact.as_mut() {
-            c.lag = match mode {
-                Mode::Dynamic { dt } => c.model.lag_friction(&state.x, dt),
-                Mode::Static => Default::default(),
-            };
-        }
+        self.lag_friction(state, mode);
         let mut report = StepReport {
             t: t1,
             dt,
@@ -984,18 +979,12 @@ impl Integrator {
                 .map_err(|e| fail_assembly(e, &report))?;
             stages.matrix = clock.elapsed().as_secs_f64();
             let clock = Instant::now();
-            // Contact's blocks leave `self` while the direction borrows it mutably.
-            let blocks = self
-                .contact
-                .as_mut()
-                .map(|c| std::mem::take(&mut c.blocks))
-                .unwrap_or_default();
             let point = NewtonPoint {
                 x: &x,
                 tangent,
                 c_m,
                 c_k,
-                contact: (&blocks, contact_scale(mode)),
+                c_contact: contact_scale(mode),
             };
             let context = IterationContext {
                 step: self.steps_taken,
@@ -1004,11 +993,7 @@ impl Integrator {
                 residual: rn,
                 initial_residual: report.initial_residual,
             };
-            let found = self.direction(point, &context, &report, &mut discarded, w);
-            if let Some(c) = self.contact.as_mut() {
-                c.blocks = blocks;
-            }
-            let found = found?;
+            let found = self.direction(point, &context, &report, &mut discarded, w)?;
             stages.direction = clock.elapsed().as_secs_f64();
             let Some(found) = found else {
                 // The exact tangent failed; this iteration again with the projected one.
@@ -1216,6 +1201,16 @@ impl Integrator {
         match self.contact.as_mut() {
             Some(c) => c.evaluate(x, forces, hessian),
             None => Ok(0.0),
+        }
+    }
+
+    /// Lags contact's friction at the start `state` of a dynamic solve (none when static).
+    fn lag_friction(&mut self, state: &State, mode: Mode) {
+        if let Some(c) = self.contact.as_mut() {
+            c.lag = match mode {
+                Mode::Dynamic { dt } => c.model.lag_friction(&state.x, dt),
+                Mode::Static => Default::default(),
+            };
         }
     }
 
@@ -1605,6 +1600,7 @@ impl Integrator {
                 rest: &self.rest,
                 options: &self.options,
                 a_free: &self.a_free.matrix,
+                contact: self.contact.as_ref().map_or(&[], |c| &c.blocks[..]),
                 point,
             },
             &mut self.solvers,
@@ -1797,8 +1793,8 @@ struct NewtonPoint<'a> {
     tangent: Tangent,
     c_m: f64,
     c_k: f64,
-    /// Contact's Hessian blocks at `x` and their factor ([`contact_scale`]).
-    contact: (&'a [deform_contact::VertexBlock], f64),
+    /// The factor of contact's Hessian blocks ([`contact_scale`]).
+    c_contact: f64,
 }
 
 /// The linear system of a Newton iteration: the assembled reduced matrix, or the same matrix
@@ -1811,6 +1807,8 @@ struct System<'a> {
     rest: &'a [Vector3<f64>],
     options: &'a IntegratorOptions,
     a_free: &'a CsMat<f64>,
+    /// Contact's Hessian blocks at the point (for matrix-free solves).
+    contact: &'a [deform_contact::VertexBlock],
     point: NewtonPoint<'a>,
 }
 
@@ -1840,7 +1838,7 @@ impl System<'_> {
             ))
         })?;
         let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k)
-            .with_vertex_blocks(p.contact.0, p.contact.1);
+            .with_vertex_blocks(self.contact, p.c_contact);
         let reduced = Restricted::new(&op, self.dofs);
         solve_with(list, self, &reduced, decision, rhs, x)
     }

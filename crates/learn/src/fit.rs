@@ -27,6 +27,9 @@ pub struct EquationErrorOptions {
     pub by_region: bool,
     /// Keep every coefficient non-negative.
     pub nonnegative: bool,
+    /// Also fit each obstacle's coefficient of friction (a scene with contact; otherwise
+    /// the scene's own coefficients are known forces, as the barrier's always are).
+    pub friction: bool,
 }
 
 impl Default for EquationErrorOptions {
@@ -35,6 +38,7 @@ impl Default for EquationErrorOptions {
             damping: false,
             by_region: false,
             nonnegative: true,
+            friction: false,
         }
     }
 }
@@ -56,6 +60,12 @@ pub struct EquationErrorFit {
     pub relative_residual: f64,
     /// Equations used (free DOFs x pairs).
     pub equations: usize,
+    /// The barrier's stiffness (N/m), fitted in a scene with contact whose data touch.
+    #[serde(default)]
+    pub kappa: Option<f64>,
+    /// Each obstacle's coefficient of friction, when fitted (else empty).
+    #[serde(default)]
+    pub friction: Vec<f64>,
 }
 
 /// Why a stage-1 estimate cannot be used as a model (and so cannot start stage 2).
@@ -337,13 +347,15 @@ fn equation_error(
     basis: Option<&Basis>,
     options: EquationErrorOptions,
 ) -> Result<EquationErrorFit, FitError> {
-    refuse_contact(sim)?;
     let asm = sim.assembly();
     let dt = sim.options().dt;
     let terms = asm.materials().max_terms();
     let sets = basis.map_or(grouping.num_groups(), Basis::num_functions);
     let nc = terms * sets;
-    let p = if options.damping { 2 * nc + 1 } else { nc };
+    let contact = ContactForces::new(sim, options.friction)?;
+    // Coefficients, then damping's, then contact's (`kappa`, `mu kappa` per obstacle).
+    let first_mu = if options.damping { 2 * nc + 1 } else { nc };
+    let p = first_mu + contact.as_ref().map_or(0, ContactForces::unknowns);
     // The non-zeros of row `i` of a term Jacobian in the field's coefficients, as
     // `(offset + column, scale * value)`.
     let nonzeros = |jacobian: &[f64], i: usize, offset: usize, scale: f64| {
@@ -379,7 +391,7 @@ fn equation_error(
         }
         let mut external = external_at(sim, t, ti, t.start_time + dt)?;
         for step in 0..t.steps() {
-            let (x1, v0, v1) = (&t.x[step + 1], &t.v[step], &t.v[step + 1]);
+            let (x0, x1, v0, v1) = (&t.x[step], &t.x[step + 1], &t.v[step], &t.v[step + 1]);
             let fail = |source| FitError::Assembly {
                 trajectory: ti,
                 step: step + 1,
@@ -400,6 +412,13 @@ fn equation_error(
             for (bi, gi) in b.iter_mut().zip(&external) {
                 *bi -= dt * gi;
             }
+            if let Some(c) = &contact {
+                c.add(x0, x1, dt, &mut rows, (free, first_mu))
+                    .map_err(|reason| FitError::Data {
+                        index: ti,
+                        reason: format!("step {}: {reason}", step + 1),
+                    })?;
+            }
             let mut mv = vec![0.0; n];
             asm.mass_apply(mass, v1, &mut mv).map_err(fail)?;
             if options.damping {
@@ -411,18 +430,7 @@ fn equation_error(
                     row.push((2 * nc, -dt * mv[i]));
                 }
             } else {
-                // Known damping moves to the right-hand side, with the model's own K.
-                if gamma0 != 0.0 || alpha0 != 0.0 {
-                    let mut kv = vec![0.0; n];
-                    if gamma0 != 0.0 {
-                        asm.tangents(x1, deform_assembly::Tangent::Exact)
-                            .map_err(fail)?
-                            .apply(v1, &mut kv);
-                    }
-                    for i in 0..n {
-                        b[i] += dt * (alpha0 * mv[i] + gamma0 * kv[i]);
-                    }
-                }
+                known_damping(asm, (alpha0, gamma0), (x1, v1, &mv), dt, &mut b).map_err(fail)?;
             }
             // Accumulate the normal equations on the free DOFs, over each row's non-zeros.
             for (row, &i) in rows.iter().zip(free) {
@@ -440,19 +448,13 @@ fn equation_error(
     if equations == 0 {
         return Err(FitError::NoData);
     }
-    // Unit column scaling.
-    let scale: Vec<f64> = (0..p).map(|a| g[(a, a)].sqrt()).collect();
-    if scale.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-        return Err(FitError::Singular);
+    // Contact that the data never touch leaves its columns empty: zero coefficients.
+    for c in first_mu..p {
+        if g[(c, c)] == 0.0 {
+            g[(c, c)] = 1.0;
+        }
     }
-    let gs = DMatrix::from_fn(p, p, |a, c| g[(a, c)] / (scale[a] * scale[c]));
-    let hs = DVector::from_fn(p, |a, _| h[a] / scale[a]);
-    let ys = if options.nonnegative {
-        nnls_normal(&gs, &hs).ok_or(FitError::Singular)?
-    } else {
-        solve_spd(&gs, &hs).ok_or(FitError::Singular)?
-    };
-    let y: Vec<f64> = (0..p).map(|a| ys[a] / scale[a]).collect();
+    let y = solve_normal_equations(&g, &h, options.nonnegative)?;
     let yv = DVector::from_column_slice(&y);
     let residual2 = (bb - 2.0 * h.dot(&yv) + yv.dot(&(&g * &yv))).max(0.0);
     let coefficients = y[..nc].to_vec();
@@ -475,7 +477,164 @@ fn equation_error(
         gamma,
         relative_residual: (residual2 / bb.max(f64::MIN_POSITIVE)).sqrt(),
         equations,
+        kappa: contact.as_ref().map(|_| y[first_mu]).filter(|k| *k > 0.0),
+        friction: match y.get(first_mu) {
+            Some(&kappa) if kappa > 0.0 => y[first_mu + 1..].iter().map(|c| c / kappa).collect(),
+            _ => Vec::new(),
+        },
     })
+}
+
+/// The least-squares solution of the normal equations `g y = h`, its columns scaled to unit
+/// norm first, non-negative when asked.
+fn solve_normal_equations(
+    g: &DMatrix<f64>,
+    h: &DVector<f64>,
+    nonnegative: bool,
+) -> Result<Vec<f64>, FitError> {
+    let p = h.len();
+    // Unit column scaling.
+    let scale: Vec<f64> = (0..p).map(|a| g[(a, a)].sqrt()).collect();
+    if scale.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(FitError::Singular);
+    }
+    let gs = DMatrix::from_fn(p, p, |a, c| g[(a, c)] / (scale[a] * scale[c]));
+    let hs = DVector::from_fn(p, |a, _| h[a] / scale[a]);
+    let ys = if nonnegative {
+        nnls_normal(&gs, &hs).ok_or(FitError::Singular)?
+    } else {
+        solve_spd(&gs, &hs).ok_or(FitError::Singular)?
+    };
+    Ok((0..p).map(|a| ys[a] / scale[a]).collect())
+}
+
+/// Known Rayleigh damping `(alpha, gamma)` at `(x1, v1)` (with `mv = M v1`) moves to the
+/// right-hand side `b`, with the model's own K.
+fn known_damping(
+    asm: &deform_assembly::Assembly,
+    (alpha, gamma): (f64, f64),
+    (x1, v1, mv): (&[f64], &[f64], &[f64]),
+    dt: f64,
+    b: &mut [f64],
+) -> Result<(), deform_assembly::AssemblyError> {
+    if gamma == 0.0 && alpha == 0.0 {
+        return Ok(());
+    }
+    let mut kv = vec![0.0; b.len()];
+    if gamma != 0.0 {
+        asm.tangents(x1, deform_assembly::Tangent::Exact)?
+            .apply(v1, &mut kv);
+    }
+    for i in 0..b.len() {
+        b[i] += dt * (alpha * mv[i] + gamma * kv[i]);
+    }
+    Ok(())
+}
+
+/// The contact forces of a step in the equation error. They are linear in the barrier's
+/// stiffness `kappa` (the barrier and friction's normal force scale with it), which is a
+/// column: the scene's own `kappa` may be the default one, chosen from a material that is
+/// being fitted. Friction's coefficients are known (the scene's) or fitted: then each
+/// obstacle's friction at unit `mu` is a column too, of coefficient `mu kappa`.
+struct ContactForces {
+    /// The barrier at unit `kappa`, with the scene's friction unless it is fitted.
+    barrier: deform_integrator::ContactModel,
+    /// The same at unit `mu`, when friction is fitted.
+    friction: Option<deform_integrator::ContactModel>,
+}
+
+impl ContactForces {
+    fn new(sim: &Integrator, fit_friction: bool) -> Result<Option<Self>, FitError> {
+        let Some(model) = sim.contact() else {
+            return match fit_friction {
+                true => Err(FitError::Invalid(
+                    "friction: the scene has no contact to fit the friction of".into(),
+                )),
+                false => Ok(None),
+            };
+        };
+        let invalid = |e: deform_integrator::ContactError| FitError::Invalid(e.to_string());
+        let barrier = deform_integrator::Barrier {
+            kappa: 1.0,
+            ..model.barrier()
+        };
+        let unit = deform_integrator::ContactModel::new(
+            model.obstacles().to_vec(),
+            barrier,
+            model.vertices().to_vec(),
+        )
+        .map_err(invalid)?;
+        let scene_friction = model
+            .friction()
+            .map(|(mu, eps)| deform_integrator::FrictionSpec {
+                mu: mu.to_vec(),
+                velocity_threshold: eps,
+            });
+        let (barrier, friction) = match (fit_friction, scene_friction) {
+            (false, Some(spec)) => (unit.with_friction(&spec).map_err(invalid)?, None),
+            (false, None) => (unit, None),
+            (true, spec) => {
+                let eps = spec.map_or(1e-3, |s| s.velocity_threshold);
+                let spec = deform_integrator::FrictionSpec {
+                    mu: vec![1.0],
+                    velocity_threshold: eps,
+                };
+                let friction = unit.clone().with_friction(&spec).map_err(invalid)?;
+                (unit, Some(friction))
+            }
+        };
+        Ok(Some(Self { barrier, friction }))
+    }
+
+    /// Its columns: `kappa`, then `mu kappa` per obstacle when friction is fitted.
+    fn unknowns(&self) -> usize {
+        1 + self.friction.as_ref().map_or(0, |f| f.obstacles().len())
+    }
+
+    /// Appends the step's contact columns (from `first`) to the rows of the free DOFs: the
+    /// barrier's (and known friction's) forces at `x1` at unit `kappa`, and each obstacle's
+    /// friction at unit `mu` and `kappa`, lagged at `x0`.
+    fn add(
+        &self,
+        x0: &[f64],
+        x1: &[f64],
+        dt: f64,
+        rows: &mut [Vec<(usize, f64)>],
+        (free, first): (&[usize], usize),
+    ) -> Result<(), String> {
+        let mut columns = vec![vec![0.0; x1.len()]];
+        self.barrier
+            .evaluate(x1, Some(&mut columns[0]), None)
+            .map_err(|e| e.to_string())?;
+        let lag = self.barrier.lag_friction(x0, dt);
+        self.barrier
+            .add_friction(&lag, x1, Some(&mut columns[0]), None);
+        if let Some(friction) = &self.friction {
+            let lag = friction.lag_friction(x0, dt);
+            for o in 0..friction.obstacles().len() {
+                let part = deform_integrator::FrictionLag {
+                    pairs: lag
+                        .pairs
+                        .iter()
+                        .filter(|p| p.obstacle == o)
+                        .cloned()
+                        .collect(),
+                    threshold: lag.threshold,
+                };
+                let mut f = vec![0.0; x1.len()];
+                friction.add_friction(&part, x1, Some(&mut f), None);
+                columns.push(f);
+            }
+        }
+        for (c, f) in columns.iter().enumerate() {
+            for (row, &i) in rows.iter_mut().zip(free) {
+                if f[i] != 0.0 {
+                    row.push((first + c, dt * f[i]));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Solves the SPD system `G y = h` (Cholesky, or `None` if singular).
@@ -568,6 +727,8 @@ mod tests {
             gamma: 0.0,
             relative_residual,
             equations: 10,
+            kappa: None,
+            friction: Vec::new(),
         };
         assert_eq!(fit(vec![3e4, 5e4], 2, 0.1).unusable(), None);
         // The case: mu = lambda = 0 with residual 1.00 on noisy positions.

@@ -1605,3 +1605,80 @@ fn an_ensemble_leaves_out_models_the_data_leave_undefined() {
             .is_err()
     );
 }
+
+/// A cube dropped on an incline (the ground, gravity tilted 30 degrees) with friction, from
+/// random initial velocities: the equation error recovers the Lame pair and the coefficient
+/// of friction together (the barrier's forces are known: they do not depend on either).
+#[test]
+fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
+    let text = r#"Scene(
+        name: "incline",
+        mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.02))),
+        material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+        density: 1000.0,
+        contact: Some((
+            obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))],
+            friction: Some((mu: [0.3])),
+        )),
+        integrator: (dt: 0.005, gravity: (4.905, 0.0, -8.4957), newton: (rel: 1e-11, abs: 1e-13)),
+        steps: 1,
+    )"#;
+    let truth: Scene = ron::from_str(text).unwrap();
+    let data = generate(
+        &truth,
+        Path::new("test"),
+        &DatasetSpec {
+            variations: Variations {
+                speed: 0.5,
+                spin: 0.0,
+                stretch: 0.0,
+                rest: false,
+            },
+            split: (1.0, 0.0),
+            ..DatasetSpec::new(2, 60, 7)
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    // Every trajectory slid on the ground: friction is in the data.
+    let touched = data
+        .trajectories
+        .iter()
+        .all(|t| t.x.last().unwrap().chunks(3).any(|p| p[2] < 2e-4));
+    assert!(touched);
+    // The model to fit starts from other moduli and no friction.
+    let mut guess = truth.clone();
+    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
+    guess.contact.as_mut().unwrap().friction = None;
+    let sim = guess.build(Path::new("test")).unwrap().integrator;
+    let options = EquationErrorOptions {
+        friction: true,
+        ..Default::default()
+    };
+    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
+    let lame = lame_of(&fit, 0).unwrap();
+    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
+    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
+    assert!(
+        relative(lame.lambda, lambda) < 0.01,
+        "lambda {} against {lambda}",
+        lame.lambda
+    );
+    // The barrier's stiffness, by default from the (true) material's rest K, is fitted too.
+    let truth_sim = truth.build(Path::new("test")).unwrap().integrator;
+    let kappa = truth_sim.contact().unwrap().barrier().kappa;
+    assert!(
+        relative(fit.kappa.unwrap(), kappa) < 0.01,
+        "kappa {:?} against {kappa}",
+        fit.kappa
+    );
+    assert_eq!(fit.friction.len(), 1);
+    assert!(
+        relative(fit.friction[0], 0.3) < 0.01,
+        "friction {:?}",
+        fit.friction
+    );
+    // Without the friction column the fit cannot explain the sliding as well.
+    let without = fit_equation_error(&sim, &data.split(Split::Train), Default::default()).unwrap();
+    assert!(without.relative_residual > 10.0 * fit.relative_residual.max(1e-12));
+}
