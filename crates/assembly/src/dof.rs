@@ -246,6 +246,46 @@ impl ReducedMatrix {
     }
 }
 
+impl ReducedMatrix {
+    /// The matrix plus `scale` times each 3x3 block `(i, j, B)` between two vertices
+    /// (blocks touching a constrained vertex are skipped), as a new matrix on the union of
+    /// the patterns: the Hessian of a potential that couples vertices no element joins, such
+    /// as self-contact. The stored matrix is left as it is.
+    ///
+    /// # Errors
+    /// [`AssemblyError::VertexOutOfRange`] for a vertex beyond `dofs`.
+    pub fn with_couplings(
+        &self,
+        dofs: &DofMap,
+        blocks: &[(usize, usize, nalgebra::Matrix3<f64>)],
+        scale: f64,
+    ) -> Result<CsMat<f64>, AssemblyError> {
+        let n = self.matrix.rows();
+        let mut extra = sprs::TriMat::with_capacity((n, n), 9 * blocks.len());
+        for (i, j, b) in blocks {
+            for v in [*i, *j] {
+                if v >= dofs.num_vertices {
+                    return Err(AssemblyError::VertexOutOfRange {
+                        vertex: v,
+                        num_vertices: dofs.num_vertices,
+                    });
+                }
+            }
+            if dofs.is_constrained(*i) || dofs.is_constrained(*j) {
+                continue;
+            }
+            for r in 0..3 {
+                for c in 0..3 {
+                    let (row, col) = (dofs.reduced[3 * i + r], dofs.reduced[3 * j + c]);
+                    extra.add_triplet(row, col, scale * b[(r, c)]);
+                }
+            }
+        }
+        let extra: CsMat<f64> = extra.to_csr();
+        Ok(&self.matrix + &extra)
+    }
+}
+
 /// Values of a CSR matrix with row pointers `ptr` split by rows into chunks of `rows` rows:
 /// `(first row, last row + 1, values)` each, for filling rows in parallel.
 pub(crate) fn row_chunks<'v>(

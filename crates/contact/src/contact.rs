@@ -4,7 +4,8 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::{Barrier, FrictionSpec, Obstacle};
+use crate::surface_contact::SelfContact;
+use crate::{Barrier, FrictionSpec, Obstacle, SurfacePair};
 
 /// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -23,6 +24,10 @@ pub struct ContactSpec {
     /// Coulomb friction against the obstacles (none by default: they are frictionless).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub friction: Option<FrictionSpec>,
+    /// Whether the body's boundary surface also stays apart from itself (point-triangle and
+    /// edge-edge barriers; off by default: self-contact costs a broad phase per evaluation).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub self_contact: bool,
 }
 
 /// Why contact cannot be set up or evaluated.
@@ -47,6 +52,14 @@ pub enum ContactError {
         /// Its signed distance.
         distance: f64,
     },
+    /// Two primitives of the body's surface touch: self-contact's barrier is not defined.
+    #[error("{pair} touch (distance {distance:e} m)")]
+    SelfContact {
+        /// The primitives.
+        pair: SurfacePair,
+        /// Their distance.
+        distance: f64,
+    },
 }
 
 /// What the potential found at a configuration.
@@ -54,15 +67,62 @@ pub enum ContactError {
 pub struct ContactSummary {
     /// The barrier energy (J).
     pub energy: f64,
-    /// Vertex-obstacle pairs closer than `dhat`.
+    /// Vertex-obstacle pairs, and with self-contact surface pairs, closer than `dhat`.
     pub active: usize,
-    /// The least signed distance of a surface vertex to an obstacle (m; infinite with no
-    /// obstacle).
+    /// The least signed distance of a surface vertex to an obstacle, or of two surface
+    /// primitives closer than `dhat` (m; infinite with neither).
     pub min_distance: f64,
 }
 
 /// A 3x3 block of the contact Hessian on a vertex's diagonal.
 pub type VertexBlock = (usize, Matrix3<f64>);
+
+/// A 3x3 block of the contact Hessian coupling two different vertices: rows of the first,
+/// columns of the second.
+pub type CouplingBlock = (usize, usize, Matrix3<f64>);
+
+/// The contact Hessian as blocks; a vertex or a pair of vertices may appear more than once
+/// (the blocks add up). Each pair's Hessian is projected to positive semidefinite, so their
+/// sum is too.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ContactHessian {
+    /// Blocks on vertices' diagonals (obstacles, friction, self-contact).
+    pub vertex: Vec<VertexBlock>,
+    /// Blocks between two different vertices (self-contact), each with its transpose as
+    /// `(j, i, B^T)`.
+    pub coupling: Vec<CouplingBlock>,
+}
+
+impl ContactHessian {
+    /// Forgets every block.
+    pub fn clear(&mut self) {
+        self.vertex.clear();
+        self.coupling.clear();
+    }
+
+    /// Whether there is no block.
+    pub fn is_empty(&self) -> bool {
+        self.vertex.is_empty() && self.coupling.is_empty()
+    }
+
+    /// Adds the 12x12 Hessian `h` of a pair of primitives on `vertices`, block by block
+    /// (blocks that are zero are left out).
+    pub(crate) fn add_pair(&mut self, vertices: &[usize; 4], h: &nalgebra::SMatrix<f64, 12, 12>) {
+        for (a, &va) in vertices.iter().enumerate() {
+            for (b, &vb) in vertices.iter().enumerate() {
+                let block: Matrix3<f64> = h.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
+                if block == Matrix3::zeros() {
+                    continue;
+                }
+                if va == vb {
+                    self.vertex.push((va, block));
+                } else {
+                    self.coupling.push((va, vb, block));
+                }
+            }
+        }
+    }
+}
 
 /// The barrier potential `B(x) = sum_v sum_o b(phi_o(x_v))` of a body's surface vertices
 /// against analytic obstacles, with IPC's log barrier `b`.
@@ -73,6 +133,8 @@ pub struct ContactModel {
     vertices: Vec<usize>,
     /// Each obstacle's coefficient of friction and the smoothing speed `eps_v` (m/s).
     friction: Option<(Vec<f64>, f64)>,
+    /// The surface's self-contact, when modelled.
+    surface: Option<SelfContact>,
 }
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
@@ -110,7 +172,31 @@ impl ContactModel {
             barrier,
             vertices,
             friction: None,
+            surface: None,
         })
+    }
+
+    /// The same potential with self-contact of the surface `triangles` (vertex indices into
+    /// `rest`, the rest positions, flat `3N`): point-triangle and edge-edge barriers, the
+    /// edge pairs' mollifier from their rest lengths.
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] naming a malformed triangle, or two primitives closer than
+    /// `dhat` at rest (`dhat`).
+    pub fn with_self_contact(
+        mut self,
+        triangles: Vec<[usize; 3]>,
+        rest: &[f64],
+    ) -> Result<Self, ContactError> {
+        let surface = SelfContact::new(triangles, rest)?;
+        surface.check_separated(rest, self.barrier.dhat)?;
+        self.surface = Some(surface);
+        Ok(self)
+    }
+
+    /// The triangles of the surface in self-contact, when modelled.
+    pub fn self_contact_surface(&self) -> Option<&[[usize; 3]]> {
+        self.surface.as_ref().map(SelfContact::triangles)
     }
 
     /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]).
@@ -145,15 +231,17 @@ impl ContactModel {
 
     /// The potential at positions `x` (flat `3N`): its energy and summary; adds its forces
     /// `-grad B` to `forces` and, with `hessian`, replaces its content with the Hessian's
-    /// nonzero vertex blocks, each projected to positive semidefinite.
+    /// nonzero blocks, each vertex's and each surface pair's projected to positive
+    /// semidefinite.
     ///
     /// # Errors
-    /// [`ContactError::Penetration`] at the first vertex (in order) on or inside an obstacle.
+    /// [`ContactError::Penetration`] at the first vertex (in order) on or inside an obstacle;
+    /// [`ContactError::SelfContact`] for two surface primitives that touch.
     pub fn evaluate(
         &self,
         x: &[f64],
         mut forces: Option<&mut [f64]>,
-        mut hessian: Option<&mut Vec<VertexBlock>>,
+        mut hessian: Option<&mut ContactHessian>,
     ) -> Result<ContactSummary, ContactError> {
         if let Some(h) = hessian.as_deref_mut() {
             h.clear();
@@ -197,16 +285,21 @@ impl ContactModel {
             if let Some(h) = hessian.as_deref_mut()
                 && block != Matrix3::zeros()
             {
-                h.push((v, block));
+                h.vertex.push((v, block));
             }
+        }
+        if let Some(surface) = &self.surface {
+            surface.evaluate(x, b, &mut summary, forces, hessian)?;
         }
         Ok(summary)
     }
 
     /// The largest step length `s` in `[0, 1]` (conservatively) such that moving every
     /// vertex from `x` along `dx` by `t dx`, `t <= s`, keeps each vertex-obstacle distance
-    /// above [`STEP_MARGIN`] of its value at `x`: continuous collision detection for a
-    /// linear path (positions linear in the step length, as in Newton's line search).
+    /// above [`STEP_MARGIN`] of its value at `x` (with self-contact, each surface pair's
+    /// above [`STEP_MARGIN`] of the least of its value and `dhat`): continuous collision
+    /// detection for a linear path (positions linear in the step length, as in Newton's line
+    /// search).
     pub fn step_bound(&self, x: &[f64], dx: &[f64]) -> f64 {
         let mut bound = 1.0f64;
         for &v in &self.vertices {
@@ -223,6 +316,9 @@ impl ContactModel {
                     return 0.0;
                 }
             }
+        }
+        if let Some(surface) = &self.surface {
+            bound = bound.min(surface.step_bound(x, dx, self.barrier.dhat));
         }
         bound
     }

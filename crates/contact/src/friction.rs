@@ -11,7 +11,7 @@
 use nalgebra::{Matrix2, Matrix3, Matrix3x2, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::{ContactError, ContactModel, VertexBlock};
+use crate::{ContactError, ContactHessian, ContactModel};
 
 /// Friction as a scene gives it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -148,7 +148,7 @@ impl ContactModel {
         lag: &FrictionLag,
         x: &[f64],
         mut forces: Option<&mut [f64]>,
-        mut hessian: Option<&mut Vec<VertexBlock>>,
+        mut hessian: Option<&mut ContactHessian>,
     ) -> f64 {
         let eps = lag.threshold;
         let mut energy = 0.0;
@@ -176,7 +176,7 @@ impl ContactModel {
                     h2 += u * u.transpose() * (dphi / s);
                 }
                 let block: Matrix3<f64> = pair.basis * h2 * pair.basis.transpose() * pair.limit;
-                h.push((v, block));
+                h.vertex.push((v, block));
             }
         }
         energy

@@ -13,13 +13,19 @@
 //! the vertices that can touch are given by index.
 
 mod barrier;
+mod bvh;
 mod contact;
+mod distance;
 mod friction;
+mod jet;
 mod obstacle;
+mod surface_contact;
 
 pub use barrier::Barrier;
 pub use contact::{
-    ContactError, ContactModel, ContactSpec, ContactSummary, STEP_MARGIN, VertexBlock,
+    ContactError, ContactHessian, ContactModel, ContactSpec, ContactSummary, CouplingBlock,
+    STEP_MARGIN, VertexBlock,
 };
 pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
 pub use obstacle::{DistanceJet, Obstacle, Surface};
+pub use surface_contact::SurfacePair;

@@ -1,7 +1,7 @@
 //! The contact potential against differences of itself, and the step bound against an exact
 //! check of the path.
 
-use deform_contact::{Barrier, ContactError, ContactModel, Obstacle, STEP_MARGIN};
+use deform_contact::{Barrier, ContactError, ContactHessian, ContactModel, Obstacle, STEP_MARGIN};
 use nalgebra::{DMatrix, Vector3};
 use proptest::prelude::*;
 
@@ -59,7 +59,7 @@ proptest! {
         let m = model();
         let x = positions(t);
         let mut f = vec![0.0; x.len()];
-        let mut blocks = Vec::new();
+        let mut blocks = ContactHessian::default();
         let s = m.evaluate(&x, Some(&mut f), Some(&mut blocks)).unwrap();
         prop_assert!(s.active >= 3, "{s:?}");
         let h = 1e-7;
@@ -79,7 +79,7 @@ proptest! {
             }
         }
         let mut hessian = DMatrix::zeros(n, n);
-        for (v, b) in &blocks {
+        for (v, b) in &blocks.vertex {
             hessian.view_mut((3 * v, 3 * v), (3, 3)).copy_from(b);
             prop_assert!((b - b.transpose()).norm() <= 1e-12 * b.norm());
             prop_assert!(b.symmetric_eigenvalues().min() >= -1e-9 * b.norm());
@@ -92,7 +92,7 @@ proptest! {
         prop_assert!(exact.norm() <= 1e-5 * scale, "{exact}");
         // Vertex 1 is not on the surface: no force, no block.
         prop_assert!(f[3..6].iter().all(|&v| v == 0.0));
-        prop_assert!(blocks.iter().all(|(v, _)| *v != 1));
+        prop_assert!(blocks.vertex.iter().all(|(v, _)| *v != 1));
     }
 
     /// No vertex comes closer than the margin on the bounded path, checked on a fine sampling
@@ -174,12 +174,12 @@ proptest! {
         let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
         let n = x.len();
         let mut f = vec![0.0; n];
-        let mut blocks = Vec::new();
+        let mut blocks = ContactHessian::default();
         let energy = |y: &[f64]| m.add_friction(&lag, y, None, None);
         m.add_friction(&lag, &x, Some(&mut f), Some(&mut blocks));
         let h = 1e-4 * scale;
         let mut hessian = DMatrix::zeros(n, n);
-        for (v, b) in &blocks {
+        for (v, b) in &blocks.vertex {
             let mut view = hessian.view_mut((3 * v, 3 * v), (3, 3));
             view += b;
         }

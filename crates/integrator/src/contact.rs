@@ -4,7 +4,7 @@
 
 use deform_assembly::{Assembly, Outputs, StiffnessMatrix};
 use deform_contact::{
-    Barrier, ContactModel, ContactSpec, ContactSummary, FrictionLag, VertexBlock,
+    Barrier, ContactHessian, ContactModel, ContactSpec, ContactSummary, FrictionLag,
 };
 use deform_mesh::TetMesh;
 
@@ -14,8 +14,11 @@ use crate::IntegratorError;
 #[derive(Debug, Clone)]
 pub(crate) struct Contact {
     pub(crate) model: ContactModel,
-    /// The Hessian's vertex blocks at Newton's iterate (for its matrix).
-    pub(crate) blocks: Vec<VertexBlock>,
+    /// The Hessian's blocks at Newton's iterate (for its matrix).
+    pub(crate) hessian: ContactHessian,
+    /// Newton's matrix with the Hessian's blocks between vertices (self-contact), on the
+    /// union of its pattern and theirs; `None` without such blocks.
+    pub(crate) coupled: Option<sprs::CsMat<f64>>,
     /// The potential at the configuration evaluated last: at the end of a step, its state.
     pub(crate) last: Option<ContactSummary>,
     /// Friction lagged at the start of the current Newton solve (empty when static).
@@ -50,9 +53,16 @@ impl Contact {
         if let Some(friction) = &spec.friction {
             model = model.with_friction(friction).map_err(invalid)?;
         }
+        if spec.self_contact {
+            let rest = mesh.rest_positions_flat();
+            model = model
+                .with_self_contact(deform_mesh::topology::boundary_faces(mesh), &rest)
+                .map_err(invalid)?;
+        }
         Ok(Self {
             model,
-            blocks: Vec::new(),
+            hessian: ContactHessian::default(),
+            coupled: None,
             last: None,
             lag: FrictionLag::default(),
         })
@@ -66,7 +76,7 @@ impl Contact {
         mut forces: Option<&mut [f64]>,
         hessian: bool,
     ) -> Result<f64, deform_contact::ContactError> {
-        let mut blocks = hessian.then_some(&mut self.blocks);
+        let mut blocks = hessian.then_some(&mut self.hessian);
         let summary = self
             .model
             .evaluate(x, forces.as_deref_mut(), blocks.as_deref_mut())?;

@@ -1308,9 +1308,18 @@ impl Integrator {
         };
         self.asm
             .combine_reduced(c_m, &self.mass, c_k, &self.k, &self.dofs, &mut self.a_free)?;
-        if let Some(c) = &self.contact {
+        if let Some(c) = &mut self.contact {
+            let scale = contact_scale(mode);
             self.a_free
-                .add_vertex_blocks(&self.dofs, &c.blocks, contact_scale(mode))?;
+                .add_vertex_blocks(&self.dofs, &c.hessian.vertex, scale)?;
+            c.coupled = if c.hessian.coupling.is_empty() {
+                None
+            } else {
+                Some(
+                    self.a_free
+                        .with_couplings(&self.dofs, &c.hessian.coupling, scale)?,
+                )
+            };
         }
         Ok((c_m, c_k))
     }
@@ -1599,8 +1608,12 @@ impl Integrator {
                 dofs: &self.dofs,
                 rest: &self.rest,
                 options: &self.options,
-                a_free: &self.a_free.matrix,
-                contact: self.contact.as_ref().map_or(&[], |c| &c.blocks[..]),
+                a_free: self
+                    .contact
+                    .as_ref()
+                    .and_then(|c| c.coupled.as_ref())
+                    .unwrap_or(&self.a_free.matrix),
+                contact: self.contact.as_ref().map(|c| &c.hessian),
                 point,
             },
             &mut self.solvers,
@@ -1808,7 +1821,7 @@ struct System<'a> {
     options: &'a IntegratorOptions,
     a_free: &'a CsMat<f64>,
     /// Contact's Hessian blocks at the point (for matrix-free solves).
-    contact: &'a [deform_contact::VertexBlock],
+    contact: Option<&'a deform_contact::ContactHessian>,
     point: NewtonPoint<'a>,
 }
 
@@ -1838,7 +1851,7 @@ impl System<'_> {
             ))
         })?;
         let op = MatrixFreeNewton::new(self.asm, tangents, self.mass, p.c_m, p.c_k)
-            .with_vertex_blocks(self.contact, p.c_contact);
+            .with_contact(self.contact, p.c_contact);
         let reduced = Restricted::new(&op, self.dofs);
         solve_with(list, self, &reduced, decision, rhs, x)
     }

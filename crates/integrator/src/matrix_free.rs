@@ -16,6 +16,8 @@ pub struct MatrixFreeNewton<'a> {
     /// Vertex blocks added to the operator (a potential on single vertices, such as
     /// contact's Hessian) and their factor.
     blocks: &'a [(usize, Matrix3<f64>)],
+    /// Blocks between two vertices (self-contact's Hessian), with the same factor.
+    couplings: &'a [(usize, usize, Matrix3<f64>)],
     block_scale: f64,
 }
 
@@ -34,6 +36,7 @@ impl<'a> MatrixFreeNewton<'a> {
             c_m,
             c_k,
             blocks: &[],
+            couplings: &[],
             block_scale: 0.0,
         }
     }
@@ -41,6 +44,19 @@ impl<'a> MatrixFreeNewton<'a> {
     /// The operator plus `scale` times each vertex's 3x3 block `(v, B)` on its diagonal.
     pub fn with_vertex_blocks(mut self, blocks: &'a [(usize, Matrix3<f64>)], scale: f64) -> Self {
         (self.blocks, self.block_scale) = (blocks, scale);
+        self
+    }
+
+    /// The operator plus `scale` times contact's Hessian, its vertex blocks and its blocks
+    /// between vertices (nothing without contact).
+    pub fn with_contact(
+        mut self,
+        hessian: Option<&'a deform_contact::ContactHessian>,
+        scale: f64,
+    ) -> Self {
+        if let Some(h) = hessian {
+            (self.blocks, self.couplings, self.block_scale) = (&h.vertex, &h.coupling, scale);
+        }
         self
     }
 }
@@ -55,10 +71,11 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (i, yi) in y.iter_mut().enumerate() {
             *yi = self.c_k * *yi + self.c_m * self.masses[i / 3] * x[i];
         }
-        for (v, b) in self.blocks {
-            let bx = b * Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]) * self.block_scale;
+        let coupled = self.couplings.iter().map(|(i, j, b)| (i, j, b));
+        for (i, j, b) in self.blocks.iter().map(|(v, b)| (v, v, b)).chain(coupled) {
+            let bx = b * Vector3::new(x[3 * j], x[3 * j + 1], x[3 * j + 2]) * self.block_scale;
             for k in 0..3 {
-                y[3 * v + k] += bx[k];
+                y[3 * i + k] += bx[k];
             }
         }
     }
@@ -87,7 +104,9 @@ impl LinearOperator for MatrixFreeNewton<'_> {
     }
 
     fn apply_flops(&self) -> u64 {
-        self.tangents.apply_flops() + 3 * self.nrows() as u64 + 18 * self.blocks.len() as u64
+        self.tangents.apply_flops()
+            + 3 * self.nrows() as u64
+            + 18 * (self.blocks.len() + self.couplings.len()) as u64
     }
 }
 

@@ -1,0 +1,284 @@
+//! Distances between the primitives of triangle surfaces: a point and a triangle, two edges.
+//!
+//! The distance between two closed primitives is the distance between two of their
+//! sub-primitives, found by which region the closest points lie in (IPC's distance types):
+//! point-point, point-edge (point to line), point-plane, or line-line. Each is a smooth
+//! function of the pair's points, which is what the barrier's derivatives differentiate.
+
+use nalgebra::Vector3;
+
+use crate::jet::{Jet, JetPoint, cross, dot, sub};
+
+/// Which sub-primitives realise a pair's distance, by index into the pair's four points
+/// (`[p, a, b, c]` for a point and a triangle; `[a0, a1, b0, b1]` for two edges).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Form {
+    /// Between points `i` and `j`.
+    PointPoint(usize, usize),
+    /// From point `i` to the line through `j` and `k`.
+    PointLine(usize, usize, usize),
+    /// From point `i` to the plane through `j`, `k` and `l`.
+    PointPlane(usize, usize, usize, usize),
+    /// Between the line through `i`, `j` and the line through `k`, `l`.
+    LineLine(usize, usize, usize, usize),
+}
+
+/// Below this `|u x v|^2 / (|u|^2 |v|^2)` (the squared sine of the angle) two edges count as
+/// parallel and their distance is taken at an endpoint, where it is attained anyway.
+const PARALLEL: f64 = 1e-20;
+
+/// The distance from `p` to the triangle `abc` (closed), and its form on `[p, a, b, c]`.
+pub(crate) fn point_triangle(
+    p: &Vector3<f64>,
+    a: &Vector3<f64>,
+    b: &Vector3<f64>,
+    c: &Vector3<f64>,
+) -> (f64, Form) {
+    let form = point_triangle_form(p, a, b, c);
+    let points = [*p, *a, *b, *c];
+    (squared(form, &points).max(0.0).sqrt(), form)
+}
+
+/// The Voronoi region of the triangle that `p` projects into (Ericson, Real-Time Collision
+/// Detection, 5.1.5).
+fn point_triangle_form(
+    p: &Vector3<f64>,
+    a: &Vector3<f64>,
+    b: &Vector3<f64>,
+    c: &Vector3<f64>,
+) -> Form {
+    let (ab, ac, ap) = (b - a, c - a, p - a);
+    let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return Form::PointPoint(0, 1);
+    }
+    let bp = p - b;
+    let (d3, d4) = (ab.dot(&bp), ac.dot(&bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return Form::PointPoint(0, 2);
+    }
+    if d1 * d4 - d3 * d2 <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return Form::PointLine(0, 1, 2);
+    }
+    let cp = p - c;
+    let (d5, d6) = (ab.dot(&cp), ac.dot(&cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return Form::PointPoint(0, 3);
+    }
+    if d5 * d2 - d1 * d6 <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return Form::PointLine(0, 3, 1);
+    }
+    if d3 * d6 - d5 * d4 <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
+        return Form::PointLine(0, 2, 3);
+    }
+    Form::PointPlane(0, 1, 2, 3)
+}
+
+/// The distance between the segments `a0 a1` and `b0 b1` (closed), and its form on
+/// `[a0, a1, b0, b1]`.
+pub(crate) fn edge_edge(
+    a0: &Vector3<f64>,
+    a1: &Vector3<f64>,
+    b0: &Vector3<f64>,
+    b1: &Vector3<f64>,
+) -> (f64, Form) {
+    let points = [*a0, *a1, *b0, *b1];
+    let (u, v, w) = (a1 - a0, b1 - b0, a0 - b0);
+    let (uu, uv, vv, uw, vw) = (u.dot(&u), u.dot(&v), v.dot(&v), u.dot(&w), v.dot(&w));
+    let den = uu * vv - uv * uv;
+    if den > PARALLEL * uu * vv {
+        // The lines' closest points, if both lie inside the segments.
+        let s = (uv * vw - vv * uw) / den;
+        let t = (uu * vw - uv * uw) / den;
+        if s > 0.0 && s < 1.0 && t > 0.0 && t < 1.0 {
+            let form = Form::LineLine(0, 1, 2, 3);
+            return (squared(form, &points).max(0.0).sqrt(), form);
+        }
+    }
+    // Otherwise an endpoint of one segment is closest to the other segment.
+    [(0, 2, 3), (1, 2, 3), (2, 0, 1), (3, 0, 1)]
+        .into_iter()
+        .map(|(i, j, k)| {
+            let form = point_segment_form(&points, i, j, k);
+            (squared(form, &points).max(0.0).sqrt(), form)
+        })
+        .fold((f64::INFINITY, Form::PointPoint(0, 2)), |best, next| {
+            if next.0 < best.0 { next } else { best }
+        })
+}
+
+/// The form of the distance from point `i` to the segment `j k`.
+fn point_segment_form(points: &[Vector3<f64>; 4], i: usize, j: usize, k: usize) -> Form {
+    let e = points[k] - points[j];
+    let t = (points[i] - points[j]).dot(&e) / e.norm_squared();
+    if t <= 0.0 {
+        Form::PointPoint(i, j)
+    } else if t >= 1.0 {
+        Form::PointPoint(i, k)
+    } else {
+        Form::PointLine(i, j, k)
+    }
+}
+
+/// The squared distance of `form` on `points`.
+pub(crate) fn squared(form: Form, x: &[Vector3<f64>; 4]) -> f64 {
+    match form {
+        Form::PointPoint(i, j) => (x[i] - x[j]).norm_squared(),
+        Form::PointLine(i, j, k) => {
+            let e = x[k] - x[j];
+            (x[i] - x[j]).cross(&e).norm_squared() / e.norm_squared()
+        }
+        Form::PointPlane(i, j, k, l) => {
+            let n = (x[k] - x[j]).cross(&(x[l] - x[j]));
+            let h = (x[i] - x[j]).dot(&n);
+            h * h / n.norm_squared()
+        }
+        Form::LineLine(i, j, k, l) => {
+            let n = (x[j] - x[i]).cross(&(x[l] - x[k]));
+            let h = (x[k] - x[i]).dot(&n);
+            h * h / n.norm_squared()
+        }
+    }
+}
+
+/// The squared distance of `form` on `points`, with its derivatives.
+pub(crate) fn squared_jet(form: Form, x: &[JetPoint; 4]) -> Jet {
+    match form {
+        Form::PointPoint(i, j) => {
+            let d = sub(&x[i], &x[j]);
+            dot(&d, &d)
+        }
+        Form::PointLine(i, j, k) => {
+            let e = sub(&x[k], &x[j]);
+            let c = cross(&sub(&x[i], &x[j]), &e);
+            dot(&c, &c) * dot(&e, &e).recip()
+        }
+        Form::PointPlane(i, j, k, l) => {
+            let n = cross(&sub(&x[k], &x[j]), &sub(&x[l], &x[j]));
+            let h = dot(&sub(&x[i], &x[j]), &n);
+            h * h * dot(&n, &n).recip()
+        }
+        Form::LineLine(i, j, k, l) => {
+            let n = cross(&sub(&x[j], &x[i]), &sub(&x[l], &x[k]));
+            let h = dot(&sub(&x[k], &x[i]), &n);
+            h * h * dot(&n, &n).recip()
+        }
+    }
+}
+
+/// IPC's mollifier of two edges' energy, `m(c) = (2 - c / eps) c / eps` below `eps` and 1
+/// above, of `c = |(a1 - a0) x (b1 - b0)|^2`: it takes an edge pair's barrier smoothly to
+/// zero as the edges become parallel, where their distance's form jumps.
+pub(crate) fn mollifier(x: &[JetPoint; 4], eps: f64) -> Jet {
+    let n = cross(&sub(&x[1], &x[0]), &sub(&x[3], &x[2]));
+    let c = dot(&n, &n);
+    if c.value >= eps {
+        return Jet::constant(1.0);
+    }
+    let r = c.value / eps;
+    c.map((2.0 - r) * r, (2.0 - 2.0 * r) / eps, -2.0 / (eps * eps))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::jet::variables;
+    use proptest::prelude::*;
+
+    fn point() -> impl Strategy<Value = Vector3<f64>> {
+        prop::array::uniform3(-1.0f64..1.0).prop_map(Vector3::from)
+    }
+
+    /// The least distance over samples of the closed primitives: an upper bound of the
+    /// distance that a fine sampling approaches.
+    fn sampled(f: impl Fn(f64, f64) -> f64) -> f64 {
+        let n = 60;
+        let mut best = f64::INFINITY;
+        for i in 0..=n {
+            for j in 0..=n {
+                best = best.min(f(i as f64 / n as f64, j as f64 / n as f64));
+            }
+        }
+        best
+    }
+
+    proptest! {
+        /// The point-triangle distance is at most, and close to, the least sampled distance.
+        #[test]
+        fn point_triangle_matches_sampling(p in point(), a in point(), b in point(), c in point()) {
+            prop_assume!((b - a).cross(&(c - a)).norm() > 0.05);
+            let (d, _) = point_triangle(&p, &a, &b, &c);
+            let s = sampled(|u, v| {
+                let (u, v) = if u + v > 1.0 { (1.0 - u, 1.0 - v) } else { (u, v) };
+                (p - (a + (b - a) * u + (c - a) * v)).norm()
+            });
+            prop_assert!(d <= s + 1e-12 && s - d < 0.05, "{d} {s}");
+        }
+
+        /// The edge-edge distance is at most, and close to, the least sampled distance.
+        #[test]
+        fn edge_edge_matches_sampling(a0 in point(), a1 in point(), b0 in point(), b1 in point()) {
+            prop_assume!((a1 - a0).norm() > 0.05 && (b1 - b0).norm() > 0.05);
+            let (d, _) = edge_edge(&a0, &a1, &b0, &b1);
+            let s = sampled(|u, v| ((a0 + (a1 - a0) * u) - (b0 + (b1 - b0) * v)).norm());
+            prop_assert!(d <= s + 1e-12 && s - d < 0.05, "{d} {s}");
+        }
+
+        /// Every form's gradient and Hessian match central differences.
+        #[test]
+        fn forms_differentiate_exactly(
+            x in prop::array::uniform4(point()),
+            which in 0usize..4,
+        ) {
+            let form = [
+                Form::PointPoint(0, 2),
+                Form::PointLine(1, 2, 3),
+                Form::PointPlane(0, 1, 2, 3),
+                Form::LineLine(0, 1, 2, 3),
+            ][which];
+            prop_assume!((x[3] - x[2]).cross(&(x[1] - x[0])).norm() > 0.1);
+            prop_assume!((x[2] - x[1]).cross(&(x[3] - x[1])).norm() > 0.1);
+            let jet = squared_jet(form, &variables(&x));
+            prop_assert!((jet.value - squared(form, &x)).abs() < 1e-12);
+            check_derivatives(&jet, |y| squared_jet(form, &variables(y)), &x)?;
+        }
+
+        /// The mollifier's derivatives, below its threshold.
+        #[test]
+        fn mollifier_differentiates_exactly(x in prop::array::uniform4(point())) {
+            let n = (x[1] - x[0]).cross(&(x[3] - x[2])).norm_squared();
+            prop_assume!(n > 1e-3);
+            let eps = 2.0 * n;
+            let jet = mollifier(&variables(&x), eps);
+            prop_assert!(jet.value > 0.0 && jet.value < 1.0);
+            check_derivatives(&jet, |y| mollifier(&variables(y), eps), &x)?;
+        }
+    }
+
+    fn check_derivatives(
+        jet: &Jet,
+        f: impl Fn(&[Vector3<f64>; 4]) -> Jet,
+        x: &[Vector3<f64>; 4],
+    ) -> Result<(), TestCaseError> {
+        let h = 1e-6;
+        for i in 0..12 {
+            let (mut xp, mut xm) = (*x, *x);
+            xp[i / 3][i % 3] += h;
+            xm[i / 3][i % 3] -= h;
+            let (fp, fm) = (f(&xp), f(&xm));
+            let fd = (fp.value - fm.value) / (2.0 * h);
+            let scale = 1.0 + jet.gradient.amax();
+            prop_assert!(
+                (fd - jet.gradient[i]).abs() < 1e-6 * scale,
+                "{i}: {fd} {}",
+                jet.gradient[i]
+            );
+            let col = (fp.gradient - fm.gradient) / (2.0 * h);
+            let hscale = 1.0 + jet.hessian.amax();
+            for j in 0..12 {
+                prop_assert!((col[j] - jet.hessian[(i, j)]).abs() < 1e-5 * hscale);
+            }
+        }
+        Ok(())
+    }
+}
