@@ -408,9 +408,7 @@ mod tests {
         ) {
             let (surface, x) = pair(gap, [0.0; 24]);
             let mut dx = vec![0.0; 24];
-            for k in 0..12 {
-                dx[12 + k] = motion[k];
-            }
+            dx[12..].copy_from_slice(&motion);
             dx[14] -= 1.0;
             let s = surface.step_bound(&x, &dx, 0.1);
             prop_assert!(s > 0.0);
