@@ -11,6 +11,7 @@ Writes:
                                      (mesh sizes 0.04 and 0.125), for coarse-from-fine data
   assets/meshes/bracket.msh          gmsh, MSH 2.2 binary: an L bracket with a bolt hole, two regions
   assets/meshes/torus.msh            gmsh, MSH 4.1 binary: a torus (R 0.2, r 0.06) centred at z = 0.3
+  assets/meshes/tube.msh             gmsh, MSH 4.1 binary: a tube (radii 0.1 and 0.085, length 0.3) on the ground
   assets/meshes/block.node/.ele      TetGen 1.5 from a PLC of a notched block (1-based, region attribute)
   crates/mesh/tests/data/two_boxes_{22,41}_{ascii,binary}.msh
                                      one small two-region mesh in all four MSH variants
@@ -100,18 +101,34 @@ def bracket():
     print("  exact volume", 0.4 * 0.2 * 0.05 - np.pi * 0.04**2 * 0.05 + 0.05 * 0.2 * 0.25)
 
 
-def torus():
-    gmsh.model.add("torus")
-    gmsh.model.occ.addTorus(0, 0, 0.3, 0.2, 0.06)
+def one_solid(name, size, exact_volume):
+    """Meshes the one solid just built as physical group 1 named `name`, saves it as
+    assets/meshes/`name`.msh (MSH 4.1 binary) and prints its counts and exact volume."""
     gmsh.model.occ.synchronize()
-    gmsh.model.addPhysicalGroup(3, [1], 1, name="torus")
-    gmsh.option.setNumber("Mesh.MeshSizeMax", 0.04)
+    gmsh.model.addPhysicalGroup(3, [1], 1, name=name)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size)
     gmsh.model.mesh.generate(3)
-    path = os.path.join(ASSETS, "torus.msh")
+    path = os.path.join(ASSETS, f"{name}.msh")
     save(path, 4.1, True)
     gmsh.model.remove()
     summary(path)
-    print("  exact volume", 2 * np.pi**2 * 0.2 * 0.06**2)
+    print("  exact volume", exact_volume)
+
+
+def torus():
+    gmsh.model.add("torus")
+    gmsh.model.occ.addTorus(0, 0, 0.3, 0.2, 0.06)
+    one_solid("torus", 0.04, 2 * np.pi**2 * 0.2 * 0.06**2)
+
+
+def tube():
+    # A thin-walled tube lying along x, 2 mm above the ground: soft enough, it collapses
+    # under its own weight until its inner wall meets itself (self-contact).
+    gmsh.model.add("tube")
+    outer = gmsh.model.occ.addCylinder(0, 0, 0.102, 0.3, 0, 0, 0.1)
+    inner = gmsh.model.occ.addCylinder(0, 0, 0.102, 0.3, 0, 0, 0.085)
+    gmsh.model.occ.cut([(3, outer)], [(3, inner)])
+    one_solid("tube", 0.011, np.pi * (0.1**2 - 0.085**2) * 0.3)
 
 
 def two_boxes():
@@ -179,7 +196,7 @@ if __name__ == "__main__":
     only = sys.argv[1:]  # e.g. `torus` to make one mesh; all when empty
     gmsh.initialize()
     gmsh.option.setNumber("General.Terminal", 0)
-    for make in [beam, beam_pair, bracket, torus, two_boxes]:
+    for make in [beam, beam_pair, bracket, torus, tube, two_boxes]:
         if not only or make.__name__ in only:
             make()
     gmsh.finalize()
