@@ -244,9 +244,7 @@ impl ReducedMatrix {
         }
         Ok(())
     }
-}
 
-impl ReducedMatrix {
     /// The matrix plus `scale` times each 3x3 block `(i, j, B)` between two vertices
     /// (blocks touching a constrained vertex are skipped), as a new matrix on the union of
     /// the patterns: the Hessian of a potential that couples vertices no element joins, such

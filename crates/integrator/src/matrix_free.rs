@@ -41,12 +41,6 @@ impl<'a> MatrixFreeNewton<'a> {
         }
     }
 
-    /// The operator plus `scale` times each vertex's 3x3 block `(v, B)` on its diagonal.
-    pub fn with_vertex_blocks(mut self, blocks: &'a [(usize, Matrix3<f64>)], scale: f64) -> Self {
-        (self.blocks, self.block_scale) = (blocks, scale);
-        self
-    }
-
     /// The operator plus `scale` times contact's Hessian, its vertex blocks and its blocks
     /// between vertices (nothing without contact).
     pub fn with_contact(
