@@ -27,10 +27,12 @@ pub(crate) struct Contact {
 
 impl Contact {
     /// Contact of `mesh`'s surface vertices as `spec` says: `dhat` by default 1e-3 of the
-    /// rest bounding box's diagonal (IPC's choice), `kappa` by default the mean diagonal of
-    /// the rest stiffness matrix over the surface DOFs, the stiffness with which the material
-    /// holds a surface vertex in place: the barrier's second derivative is 6.4 kappa at half
-    /// `dhat` and grows without bound as the gap closes.
+    /// rest bounding box's diagonal (IPC's choice), `kappa` by default such that the
+    /// barrier's second derivative at half `dhat` equals the mean diagonal of the rest
+    /// stiffness matrix over the surface DOFs, the stiffness with which the material holds a
+    /// surface vertex in place. Stiffer barriers settle the gap nearer `dhat`, where the
+    /// barrier's curvature changes fastest, and Newton takes more iterations (see
+    /// docs/benchmarks.md, "Contact").
     pub(crate) fn build(
         spec: &ContactSpec,
         mesh: &TetMesh,
@@ -41,7 +43,10 @@ impl Contact {
         let dhat = spec.dhat.unwrap_or(1e-3 * (hi - lo).norm());
         let kappa = match spec.kappa {
             Some(kappa) => kappa,
-            None => rest_stiffness(mesh, asm, &vertices)?,
+            None => {
+                let unit = Barrier { dhat, kappa: 1.0 };
+                rest_stiffness(mesh, asm, &vertices)? / unit.second(0.5 * dhat)
+            }
         };
         let invalid = |e: deform_contact::ContactError| IntegratorError::Invalid {
             field: "contact",
