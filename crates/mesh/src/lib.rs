@@ -13,7 +13,9 @@
 //!   VTK `.vtu` + `.pvd` for ParaView, and surface `.obj`, all written atomically,
 //! - [`embed`]: points located in a mesh (element and barycentric weights), to carry a fine
 //!   model's states onto a coarse mesh,
-//! - [`memory`]: what a mesh and its simulation need, refused when the machine lacks it.
+//! - [`memory`]: what a mesh and its simulation need, refused when the machine lacks it,
+//! - [`Surface`]: triangle surfaces (a mesh's boundary, or read by [`io::read_surface`]),
+//!   as contact's obstacles are given.
 //!
 //! ```
 //! use deform_mesh::generate::{BoxGrid, Split};
@@ -37,12 +39,14 @@ pub mod memory;
 mod mesh;
 pub mod quality;
 pub mod select;
+mod surface;
 pub mod topology;
 
 pub use error::MeshError;
 pub use info::MeshInfo;
 pub use mass::ConsistentMass;
 pub use mesh::{BuildReport, MeshOptions, TetMesh, Unreferenced};
+pub use surface::Surface;
 
 /// Re-exported so users build positions with the same nalgebra version.
 pub use nalgebra::Vector3;

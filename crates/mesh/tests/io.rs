@@ -258,6 +258,81 @@ fn obj_surface_is_closed_and_outward() {
     assert_relative_eq!(vol, 0.0625, max_relative = 1e-12);
 }
 
+#[test]
+fn obj_surfaces_read_back_as_written_and_as_the_mesh_boundary() {
+    let dir = tempfile::tempdir().unwrap();
+    let mesh = BoxGrid::beam(2).build().unwrap();
+    let obj = dir.path().join("s.obj");
+    let msh = dir.path().join("s.msh");
+    io::write(&obj, &mesh).unwrap();
+    io::write(&msh, &mesh).unwrap();
+    let boundary = deform_mesh::Surface::boundary(&mesh);
+    // The .obj written and the .msh's boundary both read as the boundary surface.
+    assert_eq!(io::read_surface(&obj).unwrap(), boundary);
+    assert_eq!(io::read_surface(&msh).unwrap(), boundary);
+}
+
+#[test]
+fn obj_reader_takes_polygons_relative_indices_and_slashes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("quad.obj");
+    let text = "# a unit square and a triangle\no square\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n\
+                vn 0 0 1\nvt 0 0\nusemtl x\nf 1/1/1 2//1 3/1 4\nv 0 0 1 1.0\nf -5 -4 -1 # relative\n";
+    std::fs::write(&path, text).unwrap();
+    let s = io::read_surface(&path).unwrap();
+    assert_eq!(s.positions.len(), 5);
+    assert_eq!(s.triangles, vec![[0, 1, 2], [0, 2, 3], [0, 1, 4]]);
+}
+
+#[test]
+fn bad_obj_files_name_the_file_and_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n",
+            4,
+            "a vertex index in 1..=3",
+        ),
+        ("v 0 0 0\nv 1 0 x\n", 2, "a finite vertex coordinate"),
+        ("v 0 0 0\nv 1 0 nan\n", 2, "a finite vertex coordinate"),
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\n\nf 1 2\n",
+            5,
+            "a face of at least 3 vertices",
+        ),
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 2\n",
+            4,
+            "a face of distinct vertices",
+        ),
+        ("v 0 0 0\nf 0 1 1\n", 2, "a vertex index in 1..=1"),
+    ];
+    for (k, (text, line, expected)) in cases.iter().enumerate() {
+        let path = dir.path().join(format!("bad{k}.obj"));
+        std::fs::write(&path, text).unwrap();
+        match io::read_surface(&path) {
+            Err(ReadError::Parse {
+                path: p,
+                line: l,
+                expected: e,
+                ..
+            }) => {
+                assert_eq!(
+                    (p, l, e.as_str()),
+                    (path.clone(), *line, *expected),
+                    "{text:?}"
+                );
+            }
+            other => panic!("{text:?}: {other:?}"),
+        }
+    }
+    let empty = dir.path().join("empty.obj");
+    std::fs::write(&empty, "v 0 0 0\n").unwrap();
+    let e = io::read_surface(&empty).unwrap_err();
+    assert!(matches!(e, ReadError::InvalidSurface { .. }), "{e}");
+    assert!(e.to_string().contains("empty.obj"), "{e}");
+}
+
 fn parse_err(text: &str) -> ReadError {
     io::parse_msh(text.as_bytes(), Path::new("bad.msh"))
         .and_then(|raw| raw.into_mesh(Path::new("bad.msh"), &MeshOptions::default()))

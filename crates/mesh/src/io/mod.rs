@@ -5,7 +5,7 @@
 //! | Gmsh `.msh` 2.2 / 4.1, ASCII / binary | [`read_msh`] | [`write_msh`] |
 //! | TetGen `.node` + `.ele` | [`read_tetgen`] | [`write_tetgen`] |
 //! | VTK `.vtu` + `.pvd` (ParaView) | | [`Vtu`], [`Pvd`] |
-//! | Wavefront `.obj` (surface) | | [`write_obj`] |
+//! | Wavefront `.obj` (surface) | [`read_surface`] | [`write_obj`] |
 //!
 //! [`read_arrays`] reads a mesh from numpy's `.npy` vertex and tet arrays. [`read`] and
 //! [`write`] pick the format from the extension. Readers never panic on any
@@ -30,7 +30,7 @@ use thiserror::Error;
 pub use gmsh::{MshFormat, MshVersion};
 pub use vtu::{Pvd, Vtu, write_triangles};
 
-use crate::{MeshError, MeshOptions, TetMesh};
+use crate::{MeshError, MeshOptions, Surface, TetMesh};
 use cursor::{ParseError, ParseErrorKind, line_of};
 
 /// Why a mesh file could not be read.
@@ -82,6 +82,14 @@ pub enum ReadError {
     /// An `.npy` array of vertices or tets has the wrong dtype, shape or values.
     #[error("{}: {reason}", path.display())]
     Array {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A surface file parsed but is no usable surface (no triangle).
+    #[error("{}: invalid surface: {reason}", path.display())]
+    InvalidSurface {
         /// The file.
         path: PathBuf,
         /// What is wrong.
@@ -338,6 +346,30 @@ pub fn read(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
             path: path.to_owned(),
         }),
     }
+}
+
+/// Reads a triangle surface: an `.obj` file's vertices and faces (polygons as fans of
+/// triangles), or the outward boundary of a tet mesh in any format [`read`] takes (`.msh`,
+/// `.node`, `.ele`), as [`Surface::boundary`] gives it.
+///
+/// # Errors
+/// Any [`ReadError`] naming the file and line; [`ReadError::InvalidSurface`] for a file with
+/// no triangle.
+pub fn read_surface(path: &Path) -> Result<Surface, ReadError> {
+    let surface = match path.extension().and_then(|e| e.to_str()) {
+        Some("obj") => {
+            let data = read_bytes(path)?;
+            obj::parse(&data).map_err(|e| parse_failure(path, &data, e))?
+        }
+        _ => Surface::boundary(&read(path, &MeshOptions::default())?),
+    };
+    surface
+        .check()
+        .map_err(|reason| ReadError::InvalidSurface {
+            path: path.to_owned(),
+            reason,
+        })?;
+    Ok(surface)
 }
 
 /// [`deform_fs::write_atomic`] with the mesh writers' error.
