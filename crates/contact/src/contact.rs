@@ -1,11 +1,13 @@
 //! The contact potential of a body against obstacles, and the bound it puts on a step.
 
+use std::path::PathBuf;
+
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::surface_contact::SelfContact;
-use crate::{Barrier, FrictionSpec, Obstacle, SurfacePair};
+use crate::{Barrier, FrictionSpec, Obstacle, Surface, SurfacePair};
 
 /// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -28,6 +30,22 @@ pub struct ContactSpec {
     /// edge-edge barriers; off by default: self-contact costs a broad phase per evaluation).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub self_contact: bool,
+    /// Fixed triangle-mesh obstacles (point-triangle and edge-edge barriers against the
+    /// body's surface, frictionless).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub meshes: Vec<MeshObstacle>,
+}
+
+/// A fixed triangle-mesh obstacle as a scene names it; the integrator reads the file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshObstacle {
+    /// The surface: an `.obj` file, or a tet mesh (`.msh`, `.node`, `.ele`) whose boundary
+    /// is the obstacle. A scene's relative path is relative to the scene file.
+    pub file: PathBuf,
+    /// Moved by this much from where the file puts it (m).
+    #[serde(default)]
+    pub offset: [f64; 3],
 }
 
 /// Why contact cannot be set up or evaluated.
@@ -56,6 +74,19 @@ pub enum ContactError {
     #[error("{pair} touch (distance {distance:e} m)")]
     SelfContact {
         /// The primitives.
+        pair: SurfacePair,
+        /// Their distance.
+        distance: f64,
+    },
+    /// A primitive of the body's surface touches one of a triangle-mesh obstacle.
+    #[error(
+        "{pair} touch, the obstacle's numbered within mesh obstacle {mesh} (distance {distance:e} m)"
+    )]
+    MeshObstacle {
+        /// The obstacle's index in the meshes.
+        mesh: usize,
+        /// The primitives: the body's with the body's vertex indices, the obstacle's with
+        /// its mesh's.
         pair: SurfacePair,
         /// Their distance.
         distance: f64,
@@ -106,12 +137,18 @@ impl ContactHessian {
     }
 
     /// Adds the 12x12 Hessian `h` of a pair of primitives on `vertices`, block by block
-    /// (blocks that are zero are left out).
-    pub(crate) fn add_pair(&mut self, vertices: &[usize; 4], h: &nalgebra::SMatrix<f64, 12, 12>) {
+    /// (blocks that are zero, and those of vertices from `movable` on, fixed obstacles', are
+    /// left out).
+    pub(crate) fn add_pair(
+        &mut self,
+        vertices: &[usize; 4],
+        h: &nalgebra::SMatrix<f64, 12, 12>,
+        movable: usize,
+    ) {
         for (a, &va) in vertices.iter().enumerate() {
             for (b, &vb) in vertices.iter().enumerate() {
                 let block: Matrix3<f64> = h.fixed_view::<3, 3>(3 * a, 3 * b).into_owned();
-                if block == Matrix3::zeros() {
+                if block == Matrix3::zeros() || va >= movable || vb >= movable {
                     continue;
                 }
                 if va == vb {
@@ -125,7 +162,8 @@ impl ContactHessian {
 }
 
 /// The barrier potential `B(x) = sum_v sum_o b(phi_o(x_v))` of a body's surface vertices
-/// against analytic obstacles, with IPC's log barrier `b`.
+/// against analytic obstacles, with IPC's log barrier `b`; with the same barrier on the
+/// distances of surface primitives, against fixed triangle meshes and the surface itself.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ContactModel {
     obstacles: Vec<Obstacle>,
@@ -133,8 +171,10 @@ pub struct ContactModel {
     vertices: Vec<usize>,
     /// Each obstacle's coefficient of friction and the smoothing speed `eps_v` (m/s).
     friction: Option<(Vec<f64>, f64)>,
-    /// The surface's self-contact, when modelled.
+    /// The surface's self-contact and its contact with `meshes`, when modelled.
     surface: Option<SelfContact>,
+    /// Fixed triangle-mesh obstacles (flat positions, triangles).
+    meshes: Vec<Surface>,
 }
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
@@ -173,6 +213,7 @@ impl ContactModel {
             vertices,
             friction: None,
             surface: None,
+            meshes: Vec::new(),
         })
     }
 
@@ -188,15 +229,46 @@ impl ContactModel {
         triangles: Vec<[usize; 3]>,
         rest: &[f64],
     ) -> Result<Self, ContactError> {
-        let surface = SelfContact::new(triangles, rest)?;
+        let surface = SelfContact::with_meshes(triangles, rest, true, &self.meshes)?;
         surface.check_separated(rest, self.barrier.dhat)?;
         self.surface = Some(surface);
         Ok(self)
     }
 
+    /// The same potential with fixed triangle-mesh obstacles `meshes` (each flat positions
+    /// and triangles) that the body's surface `triangles` (vertex indices into `rest`, flat
+    /// `3N`) stays apart from: point-triangle and edge-edge barriers between the body's
+    /// primitives and the meshes', the same as self-contact's (which stays as it was). The
+    /// meshes are frictionless.
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] naming a malformed triangle or a non-finite position
+    /// (`meshes[1][4]`).
+    pub fn with_mesh_obstacles(
+        mut self,
+        triangles: Vec<[usize; 3]>,
+        rest: &[f64],
+        meshes: Vec<Surface>,
+    ) -> Result<Self, ContactError> {
+        let self_pairs = self.surface.as_ref().is_some_and(SelfContact::self_pairs);
+        self.surface = Some(SelfContact::with_meshes(
+            triangles, rest, self_pairs, &meshes,
+        )?);
+        self.meshes = meshes;
+        Ok(self)
+    }
+
     /// The triangles of the surface in self-contact, when modelled.
     pub fn self_contact_surface(&self) -> Option<&[[usize; 3]]> {
-        self.surface.as_ref().map(SelfContact::triangles)
+        self.surface
+            .as_ref()
+            .filter(|s| s.self_pairs())
+            .map(SelfContact::triangles)
+    }
+
+    /// The fixed triangle-mesh obstacles (flat positions, triangles).
+    pub fn mesh_obstacles(&self) -> &[Surface] {
+        &self.meshes
     }
 
     /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]).

@@ -24,7 +24,7 @@ mod surface_contact;
 pub use barrier::Barrier;
 pub use contact::{
     ContactError, ContactHessian, ContactModel, ContactSpec, ContactSummary, CouplingBlock,
-    STEP_MARGIN, VertexBlock,
+    MeshObstacle, STEP_MARGIN, VertexBlock,
 };
 pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
 pub use obstacle::{DistanceJet, Obstacle, Surface};

@@ -60,7 +60,12 @@ const MOLLIFIER: f64 = 1e-3;
 /// kept (it is safe at every step).
 const MAX_ADVANCES: usize = 500;
 
-/// The surface whose self-contact is modelled.
+/// The body's surface, in contact with itself, with fixed triangle-mesh obstacles, or both.
+///
+/// Vertex indices below `body` are the body's (positions from `x`); from `body` on, the
+/// obstacles' (positions in `fixed`, one mesh after another), so that one pair machinery
+/// serves both: a pair with an obstacle's primitive is a self-contact pair whose obstacle
+/// points do not move and get no force.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct SelfContact {
     triangles: Vec<[usize; 3]>,
@@ -68,6 +73,16 @@ pub(crate) struct SelfContact {
     vertices: Vec<usize>,
     /// Each edge's squared rest length.
     rest_length2: Vec<f64>,
+    /// The body's vertex count: indices from here on are the obstacles'.
+    body: usize,
+    /// The body's triangles come first in `triangles`, this many.
+    body_triangles: usize,
+    /// The obstacles' vertex positions.
+    fixed: Vec<Vector3<f64>>,
+    /// Where each obstacle mesh's vertices start in `fixed`.
+    mesh_starts: Vec<usize>,
+    /// Whether pairs of two body primitives count (self-contact).
+    self_pairs: bool,
 }
 
 fn point(x: &[f64], v: usize) -> Vector3<f64> {
@@ -76,49 +91,170 @@ fn point(x: &[f64], v: usize) -> Vector3<f64> {
 
 impl SelfContact {
     /// Self-contact of the surface `triangles` (vertex indices into `rest`, flat `3N`).
+    #[cfg(test)]
     pub(crate) fn new(triangles: Vec<[usize; 3]>, rest: &[f64]) -> Result<Self, ContactError> {
+        Self::with_meshes(triangles, rest, true, &[])
+    }
+
+    /// The body's surface `triangles` (vertex indices into `rest`, flat `3N`) against the
+    /// fixed triangle meshes `meshes`, and against itself when `self_pairs`.
+    pub(crate) fn with_meshes(
+        triangles: Vec<[usize; 3]>,
+        rest: &[f64],
+        self_pairs: bool,
+        meshes: &[crate::Surface],
+    ) -> Result<Self, ContactError> {
         let n = rest.len() / 3;
-        if let Some((i, t)) = triangles.iter().enumerate().find(|(_, t)| {
-            t.iter().any(|&v| v >= n) || t[0] == t[1] || t[1] == t[2] || t[0] == t[2]
-        }) {
-            return Err(ContactError::Invalid {
-                field: format!("surface[{i}]"),
-                reason: format!(
-                    "triangle {t:?} repeats a vertex or names one beyond the {n} given"
-                ),
-            });
+        Self::check_triangles(&triangles, n, "surface")?;
+        let body_triangles = triangles.len();
+        let mut triangles = triangles;
+        let (mut fixed, mut mesh_starts) = (Vec::new(), Vec::new());
+        for (m, (positions, mesh_triangles)) in meshes.iter().enumerate() {
+            let field = format!("meshes[{m}]");
+            if let Some(k) = positions.iter().position(|c| !c.is_finite()) {
+                return Err(ContactError::Invalid {
+                    field,
+                    reason: format!("vertex {} has a non-finite coordinate", k / 3),
+                });
+            }
+            Self::check_triangles(mesh_triangles, positions.len() / 3, &field)?;
+            let first = n + fixed.len();
+            mesh_starts.push(fixed.len());
+            fixed.extend(positions.chunks_exact(3).map(Vector3::from_column_slice));
+            triangles.extend(mesh_triangles.iter().map(|t| t.map(|v| v + first)));
         }
-        let mut edges: Vec<[usize; 2]> = triangles
+        let mut surface = Self {
+            triangles,
+            edges: Vec::new(),
+            vertices: Vec::new(),
+            rest_length2: Vec::new(),
+            body: n,
+            body_triangles,
+            fixed,
+            mesh_starts,
+            self_pairs,
+        };
+        surface.edges = surface.edges_of_triangles();
+        let mut vertices: Vec<usize> = surface.triangles.iter().flatten().copied().collect();
+        vertices.sort_unstable();
+        vertices.dedup();
+        surface.vertices = vertices;
+        surface.rest_length2 = surface
+            .edges
+            .iter()
+            .map(|e| (surface.at(rest, e[1]) - surface.at(rest, e[0])).norm_squared())
+            .collect();
+        Ok(surface)
+    }
+
+    fn edges_of_triangles(&self) -> Vec<[usize; 2]> {
+        let mut edges: Vec<[usize; 2]> = self
+            .triangles
             .iter()
             .flat_map(|t| [[t[0], t[1]], [t[1], t[2]], [t[2], t[0]]])
             .map(|[a, b]| [a.min(b), a.max(b)])
             .collect();
         edges.sort_unstable();
         edges.dedup();
-        let mut vertices: Vec<usize> = triangles.iter().flatten().copied().collect();
-        vertices.sort_unstable();
-        vertices.dedup();
-        let rest_length2 = edges
-            .iter()
-            .map(|e| (point(rest, e[1]) - point(rest, e[0])).norm_squared())
-            .collect();
-        Ok(Self {
-            triangles,
-            edges,
-            vertices,
-            rest_length2,
-        })
+        edges
     }
 
-    /// The surface's triangles.
+    fn check_triangles(
+        triangles: &[[usize; 3]],
+        n: usize,
+        field: &str,
+    ) -> Result<(), ContactError> {
+        if let Some((i, t)) = triangles.iter().enumerate().find(|(_, t)| {
+            t.iter().any(|&v| v >= n) || t[0] == t[1] || t[1] == t[2] || t[0] == t[2]
+        }) {
+            return Err(ContactError::Invalid {
+                field: format!("{field}[{i}]"),
+                reason: format!(
+                    "triangle {t:?} repeats a vertex or names one beyond the {n} given"
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// The body's surface triangles.
     pub(crate) fn triangles(&self) -> &[[usize; 3]] {
-        &self.triangles
+        &self.triangles[..self.body_triangles]
+    }
+
+    /// Whether pairs of two body primitives count.
+    pub(crate) fn self_pairs(&self) -> bool {
+        self.self_pairs
+    }
+
+    /// Vertex `v`'s position: the body's from `x`, an obstacle's from `fixed`.
+    fn at(&self, x: &[f64], v: usize) -> Vector3<f64> {
+        if v < self.body {
+            point(x, v)
+        } else {
+            self.fixed[v - self.body]
+        }
+    }
+
+    /// Vertex `v`'s displacement along `dx` (obstacles stay).
+    fn moved(&self, dx: &[f64], v: usize) -> Vector3<f64> {
+        if v < self.body {
+            point(dx, v)
+        } else {
+            Vector3::zeros()
+        }
+    }
+
+    /// Whether a pair of primitives on these sides (true: the body's) is modelled: the body
+    /// against an obstacle always, the body against itself with self-contact, never two
+    /// obstacles.
+    fn counts(&self, first_on_body: bool, second_on_body: bool) -> bool {
+        match (first_on_body, second_on_body) {
+            (true, true) => self.self_pairs,
+            (false, false) => false,
+            _ => true,
+        }
+    }
+
+    /// Whether both primitives of `c` are the body's.
+    fn on_body(&self, c: Candidate) -> bool {
+        self.indices(c).iter().all(|&v| v < self.body)
+    }
+
+    /// The error for a pair whose distance is not positive; an obstacle's vertices are
+    /// numbered within its mesh.
+    fn touching(&self, c: Candidate, distance: f64) -> ContactError {
+        let pair = self.pair(c);
+        let Some(&v) = self.indices(c).iter().find(|&&v| v >= self.body) else {
+            return ContactError::SelfContact { pair, distance };
+        };
+        let mesh = self.mesh_starts.partition_point(|&s| s <= v - self.body) - 1;
+        let first = self.body + self.mesh_starts[mesh];
+        let local = |i: usize| if i >= self.body { i - first } else { i };
+        let pair = match pair {
+            SurfacePair::PointTriangle { vertex, triangle } => SurfacePair::PointTriangle {
+                vertex: local(vertex),
+                triangle: triangle.map(local),
+            },
+            SurfacePair::EdgeEdge { first, second } => SurfacePair::EdgeEdge {
+                first: first.map(local),
+                second: second.map(local),
+            },
+        };
+        ContactError::MeshObstacle {
+            mesh,
+            pair,
+            distance,
+        }
     }
 
     /// Refuses positions where two primitives that share no vertex are closer than `dhat`
     /// (at rest they would push apart: the barrier must be zero there).
     pub(crate) fn check_separated(&self, x: &[f64], dhat: f64) -> Result<(), ContactError> {
         for c in self.candidates(x, None, dhat) {
+            if !self.on_body(c) {
+                continue;
+            }
             let d = self.distance(c, &self.points(c, x)).0;
             if d < dhat {
                 return Err(ContactError::Invalid {
@@ -147,7 +283,7 @@ impl SelfContact {
     }
 
     fn points(&self, c: Candidate, x: &[f64]) -> [Vector3<f64>; 4] {
-        self.indices(c).map(|v| point(x, v))
+        self.indices(c).map(|v| self.at(x, v))
     }
 
     fn pair(&self, c: Candidate) -> SurfacePair {
@@ -176,15 +312,16 @@ impl SelfContact {
     fn candidates(&self, x: &[f64], dx: Option<&[f64]>, reach: f64) -> Vec<Candidate> {
         let swept = |vs: &[usize]| {
             Aabb::of(vs.iter().flat_map(|&v| {
-                let p = point(x, v);
-                [p, dx.map_or(p, |dx| p + point(dx, v))]
+                let p = self.at(x, v);
+                [p, dx.map_or(p, |dx| p + self.moved(dx, v))]
             }))
         };
         let triangles = Bvh::new(self.triangles.iter().map(|t| swept(t)).collect());
         let mut out = Vec::new();
         for (i, &v) in self.vertices.iter().enumerate() {
             triangles.query(&swept(&[v]).inflate(reach), |t| {
-                if !self.triangles[t].contains(&v) {
+                let counts = self.counts(v < self.body, t < self.body_triangles);
+                if counts && !self.triangles[t].contains(&v) {
                     out.push(Candidate::PointTriangle(i, t));
                 }
             });
@@ -194,7 +331,8 @@ impl SelfContact {
         for (a, ea) in self.edges.iter().enumerate() {
             edges.query(&boxes[a].inflate(reach), |b| {
                 let eb = self.edges[b];
-                if b > a && !eb.contains(&ea[0]) && !eb.contains(&ea[1]) {
+                let counts = self.counts(ea[0] < self.body, eb[0] < self.body);
+                if counts && b > a && !eb.contains(&ea[0]) && !eb.contains(&ea[1]) {
                     out.push(Candidate::EdgeEdge(a, b));
                 }
             });
@@ -216,10 +354,7 @@ impl SelfContact {
             let p = self.points(c, x);
             let (d, form) = self.distance(c, &p);
             if !(d > 0.0) {
-                return Err(ContactError::SelfContact {
-                    pair: self.pair(c),
-                    distance: d,
-                });
+                return Err(self.touching(c, d));
             }
             if d >= barrier.dhat {
                 continue;
@@ -230,14 +365,14 @@ impl SelfContact {
             summary.energy += energy.value;
             let vertices = self.indices(c);
             if let Some(f) = forces.as_deref_mut() {
-                for (k, v) in vertices.iter().enumerate() {
+                for (k, v) in vertices.iter().enumerate().filter(|(_, v)| **v < self.body) {
                     for r in 0..3 {
                         f[3 * v + r] -= energy.gradient[3 * k + r];
                     }
                 }
             }
             if let Some(h) = hessian.as_deref_mut() {
-                h.add_pair(&vertices, &project_psd(energy.hessian));
+                h.add_pair(&vertices, &project_psd(energy.hessian), self.body);
             }
         }
         Ok(())
@@ -266,7 +401,7 @@ impl SelfContact {
         let mut bound = 1.0f64;
         for c in self.candidates(x, Some(dx), dhat) {
             let p = self.points(c, x);
-            let dp = self.points(c, dx);
+            let dp = self.indices(c).map(|v| self.moved(dx, v));
             bound = bound.min(self.advance(c, &p, &dp, dhat));
             if bound == 0.0 {
                 break;
@@ -347,6 +482,90 @@ mod tests {
         };
         let triangles = [faces(0), faces(4)].concat();
         (SelfContact::new(triangles, &x).unwrap(), x)
+    }
+
+    /// The second tetrahedron as a fixed mesh obstacle gives the first the same energy,
+    /// forces and Hessian blocks as the two in self-contact (no pair within one tetrahedron
+    /// is within `dhat`), and the obstacle no force or block.
+    #[test]
+    fn a_fixed_mesh_acts_as_the_same_surface_in_self_contact() {
+        let b = Barrier {
+            dhat: 0.1,
+            kappa: 10.0,
+        };
+        let (both, x) = pair(0.03, [0.0; 24]);
+        let faces = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]];
+        let mesh = SelfContact::with_meshes(
+            faces.to_vec(),
+            &x[..12],
+            false,
+            &[(x[12..].to_vec(), faces.to_vec())],
+        )
+        .unwrap();
+        let eval = |s: &SelfContact, y: &[f64]| {
+            let mut summary = ContactSummary {
+                energy: 0.0,
+                active: 0,
+                min_distance: f64::INFINITY,
+            };
+            let (mut f, mut h) = (vec![0.0; y.len()], ContactHessian::default());
+            s.evaluate(y, b, &mut summary, Some(&mut f), Some(&mut h))
+                .unwrap();
+            (summary, f, h)
+        };
+        let (s2, f2, h2) = eval(&both, &x);
+        let (s1, f1, h1) = eval(&mesh, &x[..12]);
+        assert!(s1.active >= 2 && s1.active == s2.active, "{s1:?} {s2:?}");
+        assert!(
+            (s1.energy - s2.energy).abs() <= 1e-12 * s2.energy,
+            "{s1:?} {s2:?}"
+        );
+        for i in 0..12 {
+            assert!(
+                (f1[i] - f2[i]).abs() <= 1e-9 * (1.0 + f2[i].abs()),
+                "{i}: {} {}",
+                f1[i],
+                f2[i]
+            );
+        }
+        let sum = |h: &ContactHessian, a: usize, c: usize| -> nalgebra::Matrix3<f64> {
+            let v = h
+                .vertex
+                .iter()
+                .filter(|(v, _)| a == c && *v == a)
+                .map(|(_, m)| *m);
+            let k = h
+                .coupling
+                .iter()
+                .filter(|(i, j, _)| (*i, *j) == (a, c))
+                .map(|(_, _, m)| *m);
+            v.chain(k).sum()
+        };
+        for a in 0..4 {
+            for c in 0..4 {
+                let (m1, m2) = (sum(&h1, a, c), sum(&h2, a, c));
+                assert!(
+                    (m1 - m2).norm() <= 1e-9 * (1.0 + m2.norm()),
+                    "block {a} {c}"
+                );
+            }
+        }
+        let obstacle_blocks = h1
+            .vertex
+            .iter()
+            .map(|(v, _)| *v)
+            .chain(h1.coupling.iter().flat_map(|(i, j, _)| [*i, *j]));
+        assert!(obstacle_blocks.clone().all(|v| v < 4));
+        // The step bound moves only the body: the mesh stays where it is.
+        let up: Vec<f64> = (0..12)
+            .map(|i| if i % 3 == 2 { 1.0 } else { 0.0 })
+            .collect();
+        let mut away = vec![0.0; 24];
+        away[..12].copy_from_slice(&up);
+        assert!(mesh.step_bound(&x[..12], &up, 0.1) < 1.0);
+        assert!(
+            (mesh.step_bound(&x[..12], &up, 0.1) - both.step_bound(&x, &away, 0.1)).abs() < 1e-12
+        );
     }
 
     proptest! {

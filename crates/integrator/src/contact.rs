@@ -4,7 +4,7 @@
 
 use deform_assembly::{Assembly, Outputs, StiffnessMatrix};
 use deform_contact::{
-    Barrier, ContactHessian, ContactModel, ContactSpec, ContactSummary, FrictionLag,
+    Barrier, ContactHessian, ContactModel, ContactSpec, ContactSummary, FrictionLag, MeshObstacle,
 };
 use deform_mesh::TetMesh;
 
@@ -58,10 +58,16 @@ impl Contact {
         if let Some(friction) = &spec.friction {
             model = model.with_friction(friction).map_err(invalid)?;
         }
+        let rest = mesh.rest_positions_flat();
         if spec.self_contact {
-            let rest = mesh.rest_positions_flat();
             model = model
                 .with_self_contact(deform_mesh::topology::boundary_faces(mesh), &rest)
+                .map_err(invalid)?;
+        }
+        if !spec.meshes.is_empty() {
+            let meshes = read_meshes(&spec.meshes)?;
+            model = model
+                .with_mesh_obstacles(deform_mesh::topology::boundary_faces(mesh), &rest, meshes)
                 .map_err(invalid)?;
         }
         Ok(Self {
@@ -89,6 +95,29 @@ impl Contact {
         let friction = self.model.add_friction(&self.lag, x, forces, blocks);
         Ok(summary.energy + friction)
     }
+}
+
+/// The mesh obstacles' surfaces as the contact model takes them (flat positions, moved by
+/// their offsets, and triangles).
+fn read_meshes(meshes: &[MeshObstacle]) -> Result<Vec<deform_contact::Surface>, IntegratorError> {
+    meshes
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let surface =
+                deform_mesh::io::read_surface(&m.file).map_err(|e| IntegratorError::Invalid {
+                    field: "contact",
+                    reason: format!("meshes[{i}]: {e}"),
+                })?;
+            let offset = nalgebra::Vector3::from(m.offset);
+            let flat = surface
+                .positions
+                .iter()
+                .flat_map(|p| (p + offset).iter().copied().collect::<Vec<_>>())
+                .collect();
+            Ok((flat, surface.triangles))
+        })
+        .collect()
 }
 
 /// The mean diagonal entry of K at rest over the DOFs of `vertices` (N/m).

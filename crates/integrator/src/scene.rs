@@ -285,6 +285,11 @@ impl Scene {
         for l in &mut scene.loads {
             l.select.resolve_paths(dir);
         }
+        for m in scene.contact.iter_mut().flat_map(|c| &mut c.meshes) {
+            if m.file.is_relative() {
+                m.file = dir.join(&m.file);
+            }
+        }
         scene.validate(path)?;
         Ok(scene)
     }

@@ -169,8 +169,11 @@ fn write_obstacles(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Result<(), S
     };
     let (lo, hi) = mesh.bounding_box();
     let (mut x, mut triangles) = (Vec::new(), Vec::new());
-    for o in contact.obstacles() {
-        let (p, t) = o.surface(3.0 * (hi - lo).norm());
+    let analytic = contact
+        .obstacles()
+        .iter()
+        .map(|o| o.surface(3.0 * (hi - lo).norm()));
+    for (p, t) in analytic.chain(contact.mesh_obstacles().iter().cloned()) {
         let first = x.len() / 3;
         x.extend(p);
         triangles.extend(t.iter().map(|tri| tri.map(|i| i + first)));
