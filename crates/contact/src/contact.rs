@@ -281,6 +281,28 @@ impl ContactModel {
         Ok(self)
     }
 
+    /// The same potential with the barrier's stiffness `kappa` (everything else, surfaces
+    /// and friction included, as it was).
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] for a `kappa` that is not positive and finite.
+    pub fn with_stiffness(mut self, kappa: f64) -> Result<Self, ContactError> {
+        if !(kappa > 0.0 && kappa.is_finite()) {
+            return Err(ContactError::Invalid {
+                field: "kappa".into(),
+                reason: format!("must be positive and finite, got {kappa}"),
+            });
+        }
+        self.barrier.kappa = kappa;
+        Ok(self)
+    }
+
+    /// The same potential without friction.
+    pub fn without_friction(mut self) -> Self {
+        self.friction = None;
+        self
+    }
+
     /// Each obstacle's coefficient of friction and the smoothing speed, with friction.
     pub fn friction(&self) -> Option<(&[f64], f64)> {
         self.friction.as_ref().map(|(mu, eps)| (&mu[..], *eps))

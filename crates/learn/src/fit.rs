@@ -554,33 +554,20 @@ impl ContactForces {
             };
         };
         let invalid = |e: deform_integrator::ContactError| FitError::Invalid(e.to_string());
-        let barrier = deform_integrator::Barrier {
-            kappa: 1.0,
-            ..model.barrier()
-        };
-        let unit = deform_integrator::ContactModel::new(
-            model.obstacles().to_vec(),
-            barrier,
-            model.vertices().to_vec(),
-        )
-        .map_err(invalid)?;
-        let scene_friction = model
-            .friction()
-            .map(|(mu, eps)| deform_integrator::FrictionSpec {
-                mu: mu.to_vec(),
-                velocity_threshold: eps,
-            });
-        let (barrier, friction) = match (fit_friction, scene_friction) {
-            (false, Some(spec)) => (unit.with_friction(&spec).map_err(invalid)?, None),
-            (false, None) => (unit, None),
-            (true, spec) => {
-                let eps = spec.map_or(1e-3, |s| s.velocity_threshold);
+        // The scene's whole potential (obstacles, mesh obstacles, self-contact, friction) at
+        // unit stiffness.
+        let unit = model.clone().with_stiffness(1.0).map_err(invalid)?;
+        let (barrier, friction) = match fit_friction {
+            false => (unit, None),
+            true => {
+                let eps = model.friction().map_or(1e-3, |(_, eps)| eps);
                 let spec = deform_integrator::FrictionSpec {
                     mu: vec![1.0],
                     velocity_threshold: eps,
                 };
-                let friction = unit.clone().with_friction(&spec).map_err(invalid)?;
-                (unit, Some(friction))
+                let frictionless = unit.without_friction();
+                let friction = frictionless.clone().with_friction(&spec).map_err(invalid)?;
+                (frictionless, Some(friction))
             }
         };
         Ok(Some(Self { barrier, friction }))

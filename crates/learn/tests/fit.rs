@@ -1682,3 +1682,68 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
     let without = fit_equation_error(&sim, &data.split(Split::Train), Default::default()).unwrap();
     assert!(without.relative_residual > 10.0 * fit.relative_residual.max(1e-12));
 }
+
+/// A cube dropped onto a spike, a triangle-mesh obstacle read from an `.obj` file: the
+/// equation error has the mesh's contact forces (its pairs with the cube's surface) in its
+/// barrier column, so it recovers the Lame pair and the barrier's stiffness.
+#[test]
+fn equation_error_fits_moduli_from_trajectories_against_a_mesh_obstacle() {
+    let dir = tempfile::tempdir().unwrap();
+    let spike = dir.path().join("spike.obj");
+    std::fs::write(
+        &spike,
+        "v 0.037 0.031 0.06\nv 0.017 0.011 0\nv 0.057 0.011 0\nv 0.057 0.051 0\n\
+         v 0.017 0.051 0\nf 1 2 3\nf 1 3 4\nf 1 4 5\nf 1 5 2\nf 2 5 4 3\n",
+    )
+    .unwrap();
+    let text = format!(
+        r#"Scene(
+        name: "spike",
+        mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.062))),
+        material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+        density: 1000.0,
+        contact: Some((obstacles: [], meshes: [(file: {:?})])),
+        integrator: (dt: 0.005, newton: (rel: 1e-11, abs: 1e-13)),
+        steps: 1,
+    )"#,
+        spike.display().to_string()
+    );
+    let truth: Scene = ron::from_str(&text).unwrap();
+    let data = generate(
+        &truth,
+        Path::new("test"),
+        &DatasetSpec {
+            variations: Variations {
+                speed: 0.05,
+                spin: 0.0,
+                stretch: 0.0,
+                rest: false,
+            },
+            split: (1.0, 0.0),
+            ..DatasetSpec::new(2, 30, 7)
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    let mut guess = truth.clone();
+    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
+    let sim = guess.build(Path::new("test")).unwrap().integrator;
+    let fit = fit_equation_error(&sim, &data.split(Split::Train), Default::default()).unwrap();
+    let lame = lame_of(&fit, 0).unwrap();
+    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
+    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
+    assert!(
+        relative(lame.lambda, lambda) < 0.01,
+        "lambda {} against {lambda}",
+        lame.lambda
+    );
+    // The data touched the spike (else the barrier's column is empty and no kappa is
+    // fitted), and its stiffness is the truth's.
+    let truth_sim = truth.build(Path::new("test")).unwrap().integrator;
+    let kappa = truth_sim.contact().unwrap().barrier().kappa;
+    assert!(
+        fit.kappa.is_some_and(|k| relative(k, kappa) < 0.01),
+        "kappa {:?} against {kappa}",
+        fit.kappa
+    );
+}
