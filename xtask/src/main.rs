@@ -53,8 +53,55 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", describe(&e));
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+/// The error and its causes joined by `: `, leaving out a cause whose message the text so far
+/// already shows (deform's errors name their cause in their own message, and still expose
+/// it as `source()` for callers who walk the chain).
+fn describe(e: &anyhow::Error) -> String {
+    let mut text = e.to_string();
+    for cause in e.chain().skip(1) {
+        let cause = cause.to_string();
+        if !text.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An error that shows its cause in its message and exposes it as its source.
+    #[derive(Debug)]
+    struct Shown {
+        source: std::io::Error,
+    }
+
+    impl std::fmt::Display for Shown {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            write!(f, "step 3: {}", self.source)
+        }
+    }
+
+    impl std::error::Error for Shown {
+        fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+            Some(&self.source)
+        }
+    }
+
+    #[test]
+    fn causes_already_in_the_message_are_not_repeated() {
+        let io = || std::io::Error::other("disk full");
+        let shown = anyhow::Error::new(Shown { source: io() });
+        assert_eq!(describe(&shown), "step 3: disk full");
+        let hidden = anyhow::Error::new(io()).context("writing frame 2");
+        assert_eq!(describe(&hidden), "writing frame 2: disk full");
     }
 }
