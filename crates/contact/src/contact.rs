@@ -80,7 +80,7 @@ pub enum ContactError {
     },
     /// A primitive of the body's surface touches one of a triangle-mesh obstacle.
     #[error(
-        "{pair} touch, the obstacle's numbered within mesh obstacle {mesh} (distance {distance:e} m)"
+        "the surface meets mesh obstacle {mesh}: {pair} (the obstacle's vertices numbered within it; distance {distance:e} m)"
     )]
     MeshObstacle {
         /// The obstacle's index in the meshes.
@@ -264,6 +264,22 @@ impl ContactModel {
             .as_ref()
             .filter(|s| s.self_pairs())
             .map(SelfContact::triangles)
+    }
+
+    /// Refuses positions `x` where the body's surface passes through a mesh obstacle's (or,
+    /// with self-contact, its own): an edge of one through a triangle of the other. Starting
+    /// states are checked with it; Newton's steps never make such a crossing (the collision
+    /// bound keeps every pair apart), so it is not repeated per evaluation. A body wholly
+    /// inside a closed obstacle, with no crossing, is not seen.
+    ///
+    /// # Errors
+    /// [`ContactError::MeshObstacle`] or [`ContactError::SelfContact`] naming the edge and
+    /// triangle ([`SurfacePair::EdgeTriangle`]).
+    pub fn check_crossings(&self, x: &[f64]) -> Result<(), ContactError> {
+        match &self.surface {
+            Some(s) => s.check_crossings(x),
+            None => Ok(()),
+        }
     }
 
     /// The fixed triangle-mesh obstacles (flat positions, triangles).

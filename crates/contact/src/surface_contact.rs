@@ -30,6 +30,13 @@ pub enum SurfacePair {
         /// The second edge's vertices.
         second: [usize; 2],
     },
+    /// A surface edge that passes through a triangle (surfaces that intersect).
+    EdgeTriangle {
+        /// The edge's vertices.
+        edge: [usize; 2],
+        /// The triangle's vertices.
+        triangle: [usize; 3],
+    },
 }
 
 impl fmt::Display for SurfacePair {
@@ -40,6 +47,9 @@ impl fmt::Display for SurfacePair {
             }
             SurfacePair::EdgeEdge { first, second } => {
                 write!(f, "surface edges {first:?} and {second:?}")
+            }
+            SurfacePair::EdgeTriangle { edge, triangle } => {
+                write!(f, "surface edge {edge:?} through triangle {triangle:?}")
             }
         }
     }
@@ -224,8 +234,13 @@ impl SelfContact {
     /// The error for a pair whose distance is not positive; an obstacle's vertices are
     /// numbered within its mesh.
     fn touching(&self, c: Candidate, distance: f64) -> ContactError {
-        let pair = self.pair(c);
-        let Some(&v) = self.indices(c).iter().find(|&&v| v >= self.body) else {
+        self.named(self.pair(c), &self.indices(c), distance)
+    }
+
+    /// The error for `pair` on `vertices` at `distance`: self-contact's, or a mesh
+    /// obstacle's with its vertices numbered within its mesh.
+    fn named(&self, pair: SurfacePair, vertices: &[usize], distance: f64) -> ContactError {
+        let Some(&v) = vertices.iter().find(|&&v| v >= self.body) else {
             return ContactError::SelfContact { pair, distance };
         };
         let mesh = self.mesh_starts.partition_point(|&s| s <= v - self.body) - 1;
@@ -239,6 +254,10 @@ impl SelfContact {
             SurfacePair::EdgeEdge { first, second } => SurfacePair::EdgeEdge {
                 first: first.map(local),
                 second: second.map(local),
+            },
+            SurfacePair::EdgeTriangle { edge, triangle } => SurfacePair::EdgeTriangle {
+                edge: edge.map(local),
+                triangle: triangle.map(local),
             },
         };
         ContactError::MeshObstacle {
@@ -305,6 +324,40 @@ impl SelfContact {
             Candidate::PointTriangle(..) => point_triangle(&p[0], &p[1], &p[2], &p[3]),
             Candidate::EdgeEdge(..) => edge_edge(&p[0], &p[1], &p[2], &p[3]),
         }
+    }
+
+    /// Refuses positions where an edge of one surface passes through a triangle of another
+    /// that it counts against (the body's and a mesh obstacle's; the body's own with
+    /// self-contact): intersecting surfaces whose primitives need not be close to a vertex
+    /// or edge, which the distances alone would not see.
+    pub(crate) fn check_crossings(&self, x: &[f64]) -> Result<(), ContactError> {
+        let boxes = |vs: &[usize]| Aabb::of(vs.iter().map(|&v| self.at(x, v)));
+        let triangles = Bvh::new(self.triangles.iter().map(|t| boxes(t)).collect());
+        for e in &self.edges {
+            let mut found = None;
+            triangles.query(&boxes(e), |t| {
+                let tri = self.triangles[t];
+                let counts = self.counts(e[0] < self.body, t < self.body_triangles);
+                if found.is_none()
+                    && counts
+                    && !tri.contains(&e[0])
+                    && !tri.contains(&e[1])
+                    && crosses(
+                        self.at(x, e[0]),
+                        self.at(x, e[1]),
+                        tri.map(|v| self.at(x, v)),
+                    )
+                {
+                    found = Some(tri);
+                }
+            });
+            if let Some(triangle) = found {
+                let pair = SurfacePair::EdgeTriangle { edge: *e, triangle };
+                let vertices = [e[0], e[1], triangle[0], triangle[1], triangle[2]];
+                return Err(self.named(pair, &vertices, 0.0));
+            }
+        }
+        Ok(())
     }
 
     /// Pairs whose boxes (over `x`, and `x + dx` when given) come within `reach`, in a fixed
@@ -449,6 +502,21 @@ impl SelfContact {
         }
         t
     }
+}
+
+/// Whether the segment `p q` meets the closed triangle `t`: its end points on opposite
+/// sides of (or on) the triangle's plane and the crossing point inside the triangle.
+fn crosses(p: Vector3<f64>, q: Vector3<f64>, t: [Vector3<f64>; 3]) -> bool {
+    let n = (t[1] - t[0]).cross(&(t[2] - t[0]));
+    let (sp, sq) = ((p - t[0]).dot(&n), (q - t[0]).dot(&n));
+    if sp * sq > 0.0 || sp == sq {
+        return false;
+    }
+    let x = p + (q - p) * (sp / (sp - sq));
+    (0..3).all(|i| {
+        let (a, b) = (t[i], t[(i + 1) % 3]);
+        (b - a).cross(&(x - a)).dot(&n) >= 0.0
+    })
 }
 
 /// `m` with its negative eigenvalues set to zero.

@@ -736,14 +736,17 @@ impl Integrator {
     }
 
     /// The contact potential at positions `x` (flat `3N`): energy, active pairs, least
-    /// distance. `None` without contact.
+    /// distance. `None` without contact. A state to start from is checked with it: it also
+    /// refuses surfaces that pass through each other ([`ContactModel::check_crossings`]).
     ///
     /// # Errors
-    /// [`ContactError::Penetration`] naming the first vertex inside an obstacle.
+    /// [`ContactError::Penetration`] naming the first vertex inside an obstacle; the pair of
+    /// surface primitives that touch or cross.
     pub fn contact_at(&self, x: &[f64]) -> Option<Result<ContactSummary, ContactError>> {
-        self.contact
-            .as_ref()
-            .map(|c| c.model.evaluate(x, None, None))
+        self.contact.as_ref().map(|c| {
+            c.model.check_crossings(x)?;
+            c.model.evaluate(x, None, None)
+        })
     }
 
     /// Solver configurations to run, besides the policy's choice, on the same linear system

@@ -184,6 +184,44 @@ fn a_cube_placed_on_a_spike_is_refused_by_name() {
 }
 
 #[test]
+fn a_cube_pierced_by_the_spike_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("spike.obj");
+    std::fs::write(&path, SPIKE).unwrap();
+    // The apex 3 cm inside the cube: no vertex or edge of either is near the other's, but
+    // the spike's edges pass through the cube's bottom face.
+    let mesh = cube(0.03);
+    let sim = sim(&mesh, &path, "Fixed(Direct())");
+    let e = sim.contact_at(&sim.rest_state().x).unwrap().unwrap_err();
+    let text = e.to_string();
+    assert!(
+        text.contains("through triangle") && text.contains("mesh obstacle 0"),
+        "{text}"
+    );
+    // A scene refuses it too, naming the field.
+    let scene = format!(
+        r#"Scene(
+            name: "pierced",
+            mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.03))),
+            material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+            density: 1000.0,
+            contact: Some((obstacles: [], meshes: [(file: {:?})])),
+            steps: 1,
+        )"#,
+        path.display().to_string()
+    );
+    let scene: deform_integrator::Scene = ron::from_str(&scene).unwrap();
+    let Err(e) = scene.build(std::path::Path::new("pierced.ron")) else {
+        panic!("the pierced cube was built");
+    };
+    let e = e.to_string();
+    assert!(
+        e.contains("contact") && e.contains("through triangle"),
+        "{e}"
+    );
+}
+
+#[test]
 fn unreadable_mesh_obstacles_name_the_field_and_file() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bad.obj");
