@@ -302,7 +302,8 @@ pub fn run(
     let of_split = |split: Split| cx.data.indices(split);
     // Counterfactual logs from the training trajectories' initial conditions.
     let train = of_split(Split::Train).count();
-    observer.start(Stage::SolverData, (train * steps) as u64);
+    let also_steps: usize = also_train.iter().map(|r| r.steps).sum();
+    observer.start(Stage::SolverData, (train * steps + also_steps) as u64);
     let also: Vec<Run<'_>> = also_train
         .iter()
         .map(|r| Ok((Scene::load(&r.scene)?, r.scene.as_path(), r.steps)))
