@@ -113,7 +113,10 @@ fn read_meshes(meshes: &[MeshObstacle]) -> Result<Vec<deform_contact::Surface>, 
             let flat = surface
                 .positions
                 .iter()
-                .flat_map(|p| (p + offset).iter().copied().collect::<Vec<_>>())
+                .flat_map(|p| {
+                    let q = p + offset;
+                    [q.x, q.y, q.z]
+                })
                 .collect();
             Ok((flat, surface.triangles))
         })

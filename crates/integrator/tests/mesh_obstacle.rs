@@ -32,6 +32,15 @@ const SPIKE: &str = "# a spike\nv 0.037 0.031 0.06\nv 0.017 0.011 0\nv 0.057 0.0
                      f 2 5 4 3\n";
 
 fn sim(mesh: &TetMesh, spike: &std::path::Path, policy: &str) -> Integrator {
+    sim_with_offset(mesh, spike, policy, [0.0; 3])
+}
+
+fn sim_with_offset(
+    mesh: &TetMesh,
+    spike: &std::path::Path,
+    policy: &str,
+    offset: [f64; 3],
+) -> Integrator {
     let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e5, nu: 0.4))")
         .unwrap()
         .build()
@@ -55,7 +64,7 @@ fn sim(mesh: &TetMesh, spike: &std::path::Path, policy: &str) -> Integrator {
             }],
             meshes: vec![MeshObstacle {
                 file: spike.to_owned(),
-                offset: [0.0; 3],
+                offset,
             }],
             ..Default::default()
         })
@@ -181,6 +190,12 @@ fn a_cube_placed_on_a_spike_is_refused_by_name() {
     let e = sim.contact_at(&sim.rest_state().x).unwrap().unwrap_err();
     let text = e.to_string();
     assert!(text.contains("mesh obstacle 0"), "{text}");
+    // Moved 10 cm sideways by its offset, the spike is clear of the cube.
+    let moved = sim_with_offset(&mesh, &path, "Fixed(Direct())", [0.0, 0.1, 0.0]);
+    let spike = &moved.contact().unwrap().mesh_obstacles()[0];
+    assert_eq!(&spike.0[..3], &[0.037, 0.131, 0.06]);
+    let summary = moved.contact_at(&moved.rest_state().x).unwrap().unwrap();
+    assert_eq!(summary.active, 0);
 }
 
 #[test]
