@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::surface_contact::SelfContact;
-use crate::{Barrier, FrictionSpec, Obstacle, Surface, SurfacePair};
+use crate::{Barrier, FrictionSpec, Obstacle, ObstacleMotion, Surface, SurfacePair};
 
 /// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -34,6 +34,9 @@ pub struct ContactSpec {
     /// body's surface, frictionless).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub meshes: Vec<MeshObstacle>,
+    /// Obstacles that move (by index into `obstacles`; the others stay).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub motions: Vec<ObstacleMotion>,
 }
 
 /// A fixed triangle-mesh obstacle as a scene names it; the integrator reads the file.
@@ -175,6 +178,12 @@ pub struct ContactModel {
     surface: Option<SelfContact>,
     /// Fixed triangle-mesh obstacles (flat positions, triangles).
     meshes: Vec<Surface>,
+    /// The obstacles where they start (`obstacles` is where they are at the current step's
+    /// end), and how those that move do.
+    rest_obstacles: Vec<Obstacle>,
+    motions: Vec<ObstacleMotion>,
+    /// Each obstacle's displacement over the current step.
+    shifts: Vec<Vector3<f64>>,
 }
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
@@ -208,12 +217,15 @@ impl ContactModel {
             }
         }
         Ok(Self {
-            obstacles,
             barrier,
             vertices,
             friction: None,
             surface: None,
             meshes: Vec::new(),
+            rest_obstacles: obstacles.clone(),
+            motions: Vec::new(),
+            shifts: vec![Vector3::zeros(); obstacles.len()],
+            obstacles,
         })
     }
 
@@ -295,6 +307,80 @@ impl ContactModel {
         let mu = spec.coefficients(self.obstacles.len())?;
         self.friction = Some((mu, spec.velocity_threshold));
         Ok(self)
+    }
+
+    /// The same potential with obstacles that move as `motions` say (at most one motion per
+    /// obstacle), placed where they are at time 0.
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] naming a malformed motion (`motions[1]`).
+    pub fn with_motions(mut self, motions: Vec<ObstacleMotion>) -> Result<Self, ContactError> {
+        for (i, m) in motions.iter().enumerate() {
+            let invalid = |reason| ContactError::Invalid {
+                field: format!("motions[{i}]"),
+                reason,
+            };
+            m.check(self.obstacles.len()).map_err(invalid)?;
+            if motions[..i].iter().any(|o| o.obstacle == m.obstacle) {
+                return Err(invalid(format!("obstacle {} moves twice", m.obstacle)));
+            }
+        }
+        self.motions = motions;
+        self.set_step(0.0, 0.0);
+        Ok(self)
+    }
+
+    /// Places the moving obstacles for a step from time `t0` to `t1`: where they are at
+    /// `t1` (Newton solves for the state there), remembering how far they moved since `t0`
+    /// (for [`ContactModel::carry`], [`ContactModel::first_step_bound`] and friction).
+    pub fn set_step(&mut self, t0: f64, t1: f64) {
+        for m in &self.motions {
+            let (from, to) = (m.offset(t0), m.offset(t1));
+            self.obstacles[m.obstacle] = self.rest_obstacles[m.obstacle].translated(&to);
+            self.shifts[m.obstacle] = to - from;
+        }
+    }
+
+    /// How the obstacles move.
+    pub fn motions(&self) -> &[ObstacleMotion] {
+        &self.motions
+    }
+
+    /// Obstacle `i`'s displacement over the current step.
+    pub(crate) fn shift(&self, i: usize) -> Vector3<f64> {
+        self.shifts[i]
+    }
+
+    /// Whether an obstacle moves during the current step.
+    pub fn moving(&self) -> bool {
+        self.shifts.iter().any(|d| *d != Vector3::zeros())
+    }
+
+    /// Makes the step's first displacement `dx` (from `x` at the step's start) clear of the
+    /// obstacles that move: a surface vertex of `movable` that an obstacle would come too
+    /// close to on the path relative to it (the obstacle where it was, the vertex moving by
+    /// `dx` less the obstacle's displacement) goes along that path only as far as is safe and
+    /// moves with the obstacle from there. Its gap then stays above a fifth of what it was.
+    pub fn carry(&self, x: &[f64], dx: &mut [f64], movable: impl Fn(usize) -> bool) {
+        for &v in self.vertices.iter().filter(|&&v| movable(v)) {
+            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+            for (o, shift) in self.obstacles.iter().zip(&self.shifts) {
+                if *shift == Vector3::zeros() {
+                    continue;
+                }
+                let before = o.translated(&-shift);
+                let d = before.distance(&p);
+                let mut dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
+                if !(d > 0.0) {
+                    continue;
+                }
+                let s = before.time_of_approach(&p, &(dp - shift), 2.0 * STEP_MARGIN * d);
+                if s < 1.0 {
+                    dp = dp * s + shift * (1.0 - s);
+                    dx[3 * v..3 * v + 3].copy_from_slice(dp.as_slice());
+                }
+            }
+        }
     }
 
     /// The same potential with the barrier's stiffness `kappa` (everything else, surfaces
@@ -411,14 +497,29 @@ impl ContactModel {
     /// detection for a linear path (positions linear in the step length, as in Newton's line
     /// search).
     pub fn step_bound(&self, x: &[f64], dx: &[f64]) -> f64 {
+        self.bound(x, dx, false)
+    }
+
+    /// [`ContactModel::step_bound`] for a step's first displacement `dx` from `x`, the state
+    /// at the step's start: an obstacle that moves during the step is taken where it was,
+    /// and each vertex's path relative to it (its displacement less the obstacle's).
+    pub fn first_step_bound(&self, x: &[f64], dx: &[f64]) -> f64 {
+        self.bound(x, dx, true)
+    }
+
+    fn bound(&self, x: &[f64], dx: &[f64], relative: bool) -> f64 {
         let mut bound = 1.0f64;
         for &v in &self.vertices {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
             let dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
-            if dp == Vector3::zeros() {
-                continue;
-            }
-            for o in &self.obstacles {
+            for (o, shift) in self.obstacles.iter().zip(&self.shifts) {
+                let (o, dp) = match relative && *shift != Vector3::zeros() {
+                    true => (&o.translated(&-shift), dp - shift),
+                    false => (o, dp),
+                };
+                if dp == Vector3::zeros() {
+                    continue;
+                }
                 let d = o.distance(&p);
                 if d > 0.0 {
                     bound = bound.min(o.time_of_approach(&p, &dp, STEP_MARGIN * d));

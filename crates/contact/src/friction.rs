@@ -41,7 +41,8 @@ pub struct FrictionPair {
     pub limit: f64,
     /// The tangent basis at the start of the step (orthonormal columns).
     pub basis: Matrix3x2<f64>,
-    /// The vertex's position at the start of the step.
+    /// Where the vertex would be at the step's end if it stuck to the obstacle: its position at
+    /// the start, moved as the obstacle moves during the step.
     pub start: Vector3<f64>,
 }
 
@@ -120,6 +121,10 @@ impl ContactModel {
         for &v in self.vertices() {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
             for (i, (o, &m)) in self.obstacles().iter().zip(mu).enumerate() {
+                // Where the obstacle was at the step's start: a vertex that sticks to a
+                // moving obstacle moves with it.
+                let shift = self.shift(i);
+                let o = o.translated(&-shift);
                 let d = o.distance(&p);
                 if m == 0.0 || !(d > 0.0 && d < b.dhat) {
                     continue;
@@ -130,7 +135,7 @@ impl ContactModel {
                     obstacle: i,
                     limit: m * -b.first(d),
                     basis: tangent_basis(&n),
-                    start: p,
+                    start: p + shift,
                 });
             }
         }

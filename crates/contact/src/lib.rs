@@ -27,5 +27,5 @@ pub use contact::{
     MeshObstacle, STEP_MARGIN, VertexBlock,
 };
 pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
-pub use obstacle::{DistanceJet, Obstacle, Surface};
+pub use obstacle::{DistanceJet, Obstacle, ObstacleMotion, Surface};
 pub use surface_contact::SurfacePair;

@@ -162,6 +162,76 @@ impl Obstacle {
     }
 }
 
+impl Obstacle {
+    /// The same solid moved by `d`.
+    pub fn translated(&self, d: &Vector3<f64>) -> Obstacle {
+        let add = |a: &[f64; 3]| -> [f64; 3] { (Vector3::from(*a) + d).into() };
+        match self {
+            Obstacle::Plane { point, normal } => Obstacle::Plane {
+                point: add(point),
+                normal: *normal,
+            },
+            Obstacle::Sphere { center, radius } => Obstacle::Sphere {
+                center: add(center),
+                radius: *radius,
+            },
+            Obstacle::Box { min, max } => Obstacle::Box {
+                min: add(min),
+                max: add(max),
+            },
+        }
+    }
+}
+
+/// An obstacle that moves: translated at `velocity` from time `start` until `stop` (for
+/// ever without one), resting before and after. A scene's bodies are pressed, pushed or
+/// struck by it; friction against it acts on the velocity relative to it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObstacleMotion {
+    /// The obstacle's index in `obstacles`.
+    pub obstacle: usize,
+    /// Its velocity while it moves (m/s).
+    pub velocity: [f64; 3],
+    /// When it starts moving (s).
+    #[serde(default)]
+    pub start: f64,
+    /// When it stops (s).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop: Option<f64>,
+}
+
+impl ObstacleMotion {
+    /// How far the obstacle has moved at time `t`.
+    pub fn offset(&self, t: f64) -> Vector3<f64> {
+        let end = self.stop.map_or(t, |stop| t.min(stop));
+        Vector3::from(self.velocity) * (end - self.start).max(0.0)
+    }
+
+    /// Why the motion is malformed for `obstacles` obstacles, if it is.
+    pub fn check(&self, obstacles: usize) -> Result<(), String> {
+        if self.obstacle >= obstacles {
+            return Err(format!(
+                "obstacle {} does not exist ({obstacles} obstacles)",
+                self.obstacle
+            ));
+        }
+        if !self.velocity.iter().all(|v| v.is_finite()) || !self.start.is_finite() {
+            return Err(format!(
+                "velocity {:?} and start {} must be finite",
+                self.velocity, self.start
+            ));
+        }
+        match self.stop {
+            Some(stop) if !(stop >= self.start && stop.is_finite()) => Err(format!(
+                "stop {stop} must be finite and not before start {}",
+                self.start
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
 /// A triangle surface: flat `3V` positions and vertex triples, normals outward.
 pub type Surface = (Vec<f64>, Vec<[usize; 3]>);
 

@@ -55,6 +55,7 @@ impl Contact {
         let mut model =
             ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
                 .map_err(invalid)?;
+        model = model.with_motions(spec.motions.clone()).map_err(invalid)?;
         if let Some(friction) = &spec.friction {
             model = model.with_friction(friction).map_err(invalid)?;
         }

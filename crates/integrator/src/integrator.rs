@@ -1092,10 +1092,34 @@ impl Integrator {
             return;
         };
         let dx: Vec<f64> = u.iter().map(|v| dt * v).collect();
+        if c.model.moving() {
+            return self.carried_velocity(&c.model, state, dt, u);
+        }
         let bound = c.model.step_bound(&state.x, &dx);
         if bound < 1.0 {
             for &i in self.dofs.free_dofs() {
                 u[i] *= bound;
+            }
+        }
+    }
+
+    /// [`Integrator::feasible_velocity`] while obstacles move: vertices they would come too
+    /// close to move with them ([`ContactModel::carry`]); if the rest of the path still
+    /// comes too close to something, the free velocities are scaled down and carried
+    /// again, and at worst the free vertices only move with the obstacles.
+    fn carried_velocity(&self, model: &ContactModel, state: &State, dt: f64, u: &mut [f64]) {
+        let v0: Vec<f64> = u.to_vec();
+        for scale in [1.0, 0.5, 0.0] {
+            let mut dx: Vec<f64> = v0.iter().map(|v| dt * v).collect();
+            for &i in self.dofs.free_dofs() {
+                dx[i] *= scale;
+            }
+            model.carry(&state.x, &mut dx, |v| !self.dofs.is_constrained(v));
+            if scale == 0.0 || model.first_step_bound(&state.x, &dx) >= 1.0 {
+                for &i in self.dofs.free_dofs() {
+                    u[i] = dx[i] / dt;
+                }
+                return;
             }
         }
     }
@@ -1207,9 +1231,15 @@ impl Integrator {
         }
     }
 
-    /// Lags contact's friction at the start `state` of a dynamic solve (none when static).
+    /// Places contact's moving obstacles for a solve from `state` (where they are at its
+    /// end) and lags its friction at `state` (none when static).
     fn lag_friction(&mut self, state: &State, mode: Mode) {
         if let Some(c) = self.contact.as_mut() {
+            let t1 = match mode {
+                Mode::Dynamic { dt } => state.t + dt,
+                Mode::Static => state.t,
+            };
+            c.model.set_step(state.t, t1);
             c.lag = match mode {
                 Mode::Dynamic { dt } => c.model.lag_friction(&state.x, dt),
                 Mode::Static => Default::default(),

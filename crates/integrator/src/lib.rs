@@ -52,7 +52,7 @@ pub use conditions::{Conditions, Load, LoadForce, LoadSpec};
 pub use deform_assembly::MaterialField;
 pub use deform_contact::{
     Barrier, ContactError, ContactModel, ContactSpec, ContactSummary, FrictionLag, FrictionPair,
-    FrictionSpec, MeshObstacle, Obstacle,
+    FrictionSpec, MeshObstacle, Obstacle, ObstacleMotion,
 };
 pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};
 pub use deform_mesh::TetMesh;
