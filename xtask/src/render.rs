@@ -6,7 +6,7 @@ use std::path::Path;
 
 use anyhow::Result;
 use deform_learn::experiment::coarsen::{CoarseModel, CoarsenReport};
-use deform_learn::experiment::fit_material::FitMaterialReport;
+use deform_learn::experiment::fit_material::{ContactParameters, FitMaterialReport};
 use deform_learn::experiment::select_model::{ROUNDING_LEVEL, SelectModelReport};
 use deform_learn::experiment::select_solver::{CaseReport, Key, SelectSolverReport};
 use deform_learn::experiment::story::{StoryModel, StoryReport, TIME_REPEATS};
@@ -60,6 +60,29 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     Ok(md)
 }
 
+/// Contact's parameters in a material fit: the scene's and stage 1's, with their relative
+/// differences.
+fn contact_parameters(c: &ContactParameters, md: &mut String) -> Result<()> {
+    md.push_str("\nContact's parameters (stage 1 fits them with the material):\n\n| parameter | scene | equation error | difference |\n|---|---|---|---|\n");
+    let row = |md: &mut String, name: String, (scene, fit): (f64, Option<f64>)| {
+        let (fit, diff) = match fit {
+            Some(f) if scene != 0.0 => (
+                format!("{f:.5e}"),
+                format!("{:.3} %", 100.0 * (f - scene).abs() / scene),
+            ),
+            Some(f) => (format!("{f:.5e}"), "-".into()),
+            None => ("not fitted".into(), "-".into()),
+        };
+        writeln!(md, "| {name} | {scene:.5e} | {fit} | {diff} |")
+    };
+    row(md, "kappa (N/m)".into(), c.kappa)?;
+    for (i, mu) in c.friction.iter().enumerate() {
+        row(md, format!("mu, obstacle {i}"), *mu)?;
+    }
+    md.push('\n');
+    Ok(())
+}
+
 fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
     if let Some(why) = &r.stage1_unusable {
         writeln!(md, "The stage-1 estimate is unusable: {why}.\n")?;
@@ -106,6 +129,9 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
             100.0 * dnu
         )?;
     }
+    if let Some(c) = &r.contact {
+        contact_parameters(c, md)?;
+    }
     let errors: Vec<String> = r
         .rollouts
         .iter()
@@ -113,10 +139,13 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
         .collect();
     writeln!(
         md,
-        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}. Fitted / {} parameters: {:.3}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
+        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}. Fitted / {} parameters: {}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
         errors.join(", "),
         if r.truth_known() { "true" } else { "scene's" },
-        r.rollout_ratio()
+        match r.rollout_ratio() {
+            ratio if ratio.is_nan() => "- (the true parameters reproduce the data exactly)".into(),
+            ratio => format!("{ratio:.3}"),
+        }
     )?;
     Ok(())
 }

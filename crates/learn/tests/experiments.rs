@@ -83,6 +83,40 @@ fn fit_material_reports_the_recorded_figures() {
     }
 }
 
+/// The bundled contact fit: from clean trajectories of the cube thrown at the ground, the
+/// material, the barrier's stiffness and the ground's friction within 1 % (issue 41), and
+/// no friction on the frictionless ball.
+#[test]
+fn the_contact_fit_recovers_material_stiffness_and_friction() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/experiments/fit_material_contact.ron");
+    let e = Experiment::load(&path).unwrap();
+    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
+        panic!("task")
+    };
+    assert!(
+        r.young_error() < 0.01 && r.poisson_error() < 0.01,
+        "{:?}",
+        r.rows
+    );
+    let c = r.contact.expect("the scene has contact");
+    let close = |(scene, fit): (f64, Option<f64>)| {
+        fit.is_some_and(|f| (f - scene).abs() <= 0.01 * scene.abs().max(1e-3))
+    };
+    assert!(close(c.kappa), "kappa {:?}", c.kappa);
+    assert_eq!(c.friction.len(), 2);
+    assert!(
+        close(c.friction[0]) && c.friction[0].0 == 0.3,
+        "{:?}",
+        c.friction
+    );
+    assert!(
+        close(c.friction[1]) && c.friction[1].0 == 0.0,
+        "{:?}",
+        c.friction
+    );
+}
+
 #[test]
 fn select_model_reports_the_recorded_figures() {
     let TaskReport::SelectModel(r) = report("select_model").task else {

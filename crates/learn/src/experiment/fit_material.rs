@@ -75,6 +75,39 @@ pub struct FitMaterialReport {
     /// Mean test rollout error per recorded state with the true, stage-1 and fitted
     /// parameters.
     pub rollouts: Vec<Series>,
+    /// Contact's parameters, in a scene with contact: the scene's and stage 1's.
+    #[serde(default)]
+    pub contact: Option<ContactParameters>,
+}
+
+/// Contact's parameters as the scene has them (the truth with generated data) and as
+/// stage 1 fitted them (`None` where it did not: contact the data never touch, friction
+/// not asked for).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContactParameters {
+    /// The barrier's stiffness (N/m): the scene's, stage 1's.
+    pub kappa: (f64, Option<f64>),
+    /// Each obstacle's coefficient of friction: the scene's (0 without friction), stage
+    /// 1's.
+    pub friction: Vec<(f64, Option<f64>)>,
+}
+
+impl ContactParameters {
+    /// The scene's contact against stage 1's `fit`.
+    fn of(
+        sim: &deform_integrator::Integrator,
+        fit: Option<&crate::EquationErrorFit>,
+    ) -> Option<Self> {
+        let model = sim.contact()?;
+        let scene_mu = |i: usize| model.friction().map_or(0.0, |(mu, _)| mu[i]);
+        let fitted_mu = |i: usize| fit.and_then(|f| f.friction.get(i).copied());
+        Some(Self {
+            kappa: (model.barrier().kappa, fit.and_then(|f| f.kappa)),
+            friction: (0..model.obstacles().len())
+                .map(|i| (scene_mu(i), fitted_mu(i)))
+                .collect(),
+        })
+    }
 }
 
 impl FitMaterialReport {
@@ -104,10 +137,15 @@ impl FitMaterialReport {
         self.errors(self.rows.len() - 1).1
     }
 
-    /// Mean rollout error of the fitted parameters over the true parameters'.
+    /// Mean rollout error of the fitted parameters over the true parameters'; NaN when the
+    /// true parameters reproduce the data exactly (clean data made by deform), where no
+    /// ratio means anything.
     pub fn rollout_ratio(&self) -> f64 {
-        mean_error(&self.rollouts[2].values)
-            / mean_error(&self.rollouts[0].values).max(f64::MIN_POSITIVE)
+        let truth = mean_error(&self.rollouts[0].values);
+        match truth > 0.0 {
+            true => mean_error(&self.rollouts[2].values) / truth,
+            false => f64::NAN,
+        }
     }
 }
 
@@ -190,6 +228,7 @@ pub fn run(
         stage1_unusable,
         unstable: None,
         rollouts: Vec::new(),
+        contact: ContactParameters::of(&cx.built.integrator, stage1.as_ref()),
     };
     if let Some(options) = output_error {
         let mut sim = cx.built.integrator;

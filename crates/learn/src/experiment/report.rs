@@ -192,10 +192,15 @@ impl ExperimentReport {
     pub fn headline(&self) -> String {
         match &self.task {
             TaskReport::FitMaterial(r) if r.truth_known() => format!(
-                "E off by {:.3} %, nu by {:.3} %; rollout error fitted / true {:.3}",
+                "E off by {:.3} %, nu by {:.3} %; {}",
                 100.0 * r.young_error(),
                 100.0 * r.poisson_error(),
-                r.rollout_ratio()
+                match r.rollout_ratio() {
+                    ratio if ratio.is_nan() => {
+                        "the true parameters reproduce the data exactly".to_owned()
+                    }
+                    ratio => format!("rollout error fitted / true {ratio:.3}"),
+                }
             ),
             TaskReport::FitMaterial(r) => {
                 let last = r.rows.last().expect("a guess and an estimate");
