@@ -23,7 +23,8 @@ pub struct ContactSpec {
     /// matrix, the stiffness with which the material holds one vertex in place.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub kappa: Option<f64>,
-    /// Coulomb friction against the obstacles (none by default: they are frictionless).
+    /// Coulomb friction against the obstacles, analytic and mesh (none by default: they are
+    /// frictionless).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub friction: Option<FrictionSpec>,
     /// Whether the body's boundary surface also stays apart from itself (point-triangle and
@@ -31,7 +32,7 @@ pub struct ContactSpec {
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub self_contact: bool,
     /// Fixed triangle-mesh obstacles (point-triangle and edge-edge barriers against the
-    /// body's surface, frictionless).
+    /// body's surface; friction counts them after `obstacles`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub meshes: Vec<MeshObstacle>,
     /// Obstacles that move (by index into `obstacles`; the others stay).
@@ -250,8 +251,9 @@ impl ContactModel {
     /// The same potential with fixed triangle-mesh obstacles `meshes` (each flat positions
     /// and triangles) that the body's surface `triangles` (vertex indices into `rest`, flat
     /// `3N`) stays apart from: point-triangle and edge-edge barriers between the body's
-    /// primitives and the meshes', the same as self-contact's (which stays as it was). The
-    /// meshes are frictionless.
+    /// primitives and the meshes', the same as self-contact's (which stays as it was).
+    /// Friction against them, as against the analytic obstacles, comes after
+    /// ([`ContactModel::with_friction`]).
     ///
     /// # Errors
     /// [`ContactError::Invalid`] naming a malformed triangle or a non-finite position
@@ -262,6 +264,12 @@ impl ContactModel {
         rest: &[f64],
         meshes: Vec<Surface>,
     ) -> Result<Self, ContactError> {
+        if self.friction.is_some() {
+            return Err(ContactError::Invalid {
+                field: "meshes".into(),
+                reason: "give mesh obstacles before friction (its coefficients count them)".into(),
+            });
+        }
         let self_pairs = self.surface.as_ref().is_some_and(SelfContact::self_pairs);
         self.surface = Some(SelfContact::with_meshes(
             triangles, rest, self_pairs, &meshes,
@@ -299,14 +307,26 @@ impl ContactModel {
         &self.meshes
     }
 
-    /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]).
+    /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]):
+    /// one coefficient for every obstacle, or one for each, the analytic obstacles first
+    /// and then the mesh obstacles (give the meshes first).
     ///
     /// # Errors
     /// [`ContactError::Invalid`] naming a bad coefficient or threshold.
     pub fn with_friction(mut self, spec: &FrictionSpec) -> Result<Self, ContactError> {
-        let mu = spec.coefficients(self.obstacles.len())?;
+        let mu = spec.coefficients(self.frictional())?;
         self.friction = Some((mu, spec.velocity_threshold));
         Ok(self)
+    }
+
+    /// How many obstacles friction acts against: the analytic ones, then the meshes.
+    pub fn frictional(&self) -> usize {
+        self.obstacles.len() + self.meshes.len()
+    }
+
+    /// The body's surface in contact with itself or with meshes, when modelled.
+    pub(crate) fn surface(&self) -> Option<&SelfContact> {
+        self.surface.as_ref()
     }
 
     /// The same potential with obstacles that move as `motions` say (at most one motion per

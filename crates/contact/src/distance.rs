@@ -120,6 +120,57 @@ fn point_segment_form(points: &[Vector3<f64>; 4], i: usize, j: usize, k: usize) 
     }
 }
 
+/// The closest points of `form` on `x` as weights of the four points: `sum w_k x_k` is the
+/// vector from the closest point of the second primitive to that of the first (its norm is
+/// the distance); weights of points the form does not use are 0.
+pub(crate) fn closest_weights(form: Form, x: &[Vector3<f64>; 4]) -> [f64; 4] {
+    let mut w = [0.0; 4];
+    // `t` along `a -> b` of the point nearest `p` (clamped to the segment).
+    let along = |p: &Vector3<f64>, a: &Vector3<f64>, b: &Vector3<f64>| {
+        let e = b - a;
+        ((p - a).dot(&e) / e.norm_squared().max(f64::MIN_POSITIVE)).clamp(0.0, 1.0)
+    };
+    match form {
+        Form::PointPoint(i, j) => {
+            w[i] = 1.0;
+            w[j] = -1.0;
+        }
+        Form::PointLine(i, j, k) => {
+            let t = along(&x[i], &x[j], &x[k]);
+            w[i] = 1.0;
+            w[j] = -(1.0 - t);
+            w[k] = -t;
+        }
+        Form::PointPlane(i, j, k, l) => {
+            // Barycentric coordinates of the projection (the form is chosen only when it
+            // falls inside the triangle).
+            let (e1, e2, q) = (x[k] - x[j], x[l] - x[j], x[i] - x[j]);
+            let (a, b, c) = (e1.dot(&e1), e1.dot(&e2), e2.dot(&e2));
+            let (d, e) = (e1.dot(&q), e2.dot(&q));
+            let det = (a * c - b * b).max(f64::MIN_POSITIVE);
+            let (u, v) = ((c * d - b * e) / det, (a * e - b * d) / det);
+            w[i] = 1.0;
+            w[j] = -(1.0 - u - v);
+            w[k] = -u;
+            w[l] = -v;
+        }
+        Form::LineLine(i, j, k, l) => {
+            // The interior closest points of two non-parallel lines.
+            let (d1, d2, r) = (x[j] - x[i], x[l] - x[k], x[i] - x[k]);
+            let (a, b, c) = (d1.dot(&d1), d1.dot(&d2), d2.dot(&d2));
+            let (d, e) = (d1.dot(&r), d2.dot(&r));
+            let det = (a * c - b * b).max(f64::MIN_POSITIVE);
+            let s = ((b * e - c * d) / det).clamp(0.0, 1.0);
+            let t = ((a * e - b * d) / det).clamp(0.0, 1.0);
+            w[i] = 1.0 - s;
+            w[j] = s;
+            w[k] = -(1.0 - t);
+            w[l] = -t;
+        }
+    }
+    w
+}
+
 /// The squared distance of `form` on `points`.
 pub(crate) fn squared(form: Form, x: &[Vector3<f64>; 4]) -> f64 {
     match form {
@@ -177,6 +228,38 @@ pub(crate) fn mollifier(x: &[JetPoint; 4], eps: f64) -> Jet {
     }
     let r = c.value / eps;
     c.map((2.0 - r) * r, (2.0 - 2.0 * r) / eps, -2.0 / (eps * eps))
+}
+
+#[cfg(test)]
+mod closest_tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// The weighted sum of the closest points has the pair's distance as its norm, and
+        /// the weights on each primitive are a convex combination.
+        #[test]
+        fn closest_weights_give_the_distance(c in prop::array::uniform12(-1.0f64..1.0), edges in any::<bool>()) {
+            let x: [Vector3<f64>; 4] = std::array::from_fn(|k| Vector3::new(c[3 * k], c[3 * k + 1], c[3 * k + 2]));
+            let (d, form) = if edges {
+                edge_edge(&x[0], &x[1], &x[2], &x[3])
+            } else {
+                point_triangle(&x[0], &x[1], &x[2], &x[3])
+            };
+            // Non-degenerate primitives apart (random points can make a sliver triangle or
+            // two almost parallel edges, which contact never measures without its mollifier).
+            let area = (x[2] - x[1]).cross(&(x[3] - x[1])).norm();
+            let turn = (x[1] - x[0]).cross(&(x[3] - x[2])).norm();
+            prop_assume!(d > 1e-3 && if edges { turn > 1e-2 } else { area > 1e-2 });
+            let w = closest_weights(form, &x);
+            let v: Vector3<f64> = (0..4).map(|k| x[k] * w[k]).sum();
+            prop_assert!((v.norm() - d).abs() <= 1e-9 * (1.0 + d), "{} {d} {form:?}", v.norm());
+            let first = if edges { w[0] + w[1] } else { w[0] };
+            // (Which primitive is "first" depends on the form: the sign may flip.)
+            prop_assert!((first.abs() - 1.0).abs() < 1e-12 && (w.iter().sum::<f64>()).abs() < 1e-12);
+            prop_assert!(w.iter().all(|w| (-1.0 - 1e-12..=1.0 + 1e-12).contains(w)));
+        }
+    }
 }
 
 #[cfg(test)]

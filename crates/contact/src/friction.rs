@@ -30,20 +30,34 @@ fn default_threshold() -> f64 {
     1e-3
 }
 
-/// One vertex-obstacle pair's lagged friction.
+/// One contact pair's lagged friction: a vertex against an analytic obstacle, or a
+/// primitive of the body's surface against one of a mesh obstacle's.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrictionPair {
-    /// The vertex.
-    pub vertex: usize,
-    /// The obstacle's index.
+    /// The body's vertices of the pair with their weights in its contact point: one vertex
+    /// of weight 1 against an analytic obstacle; the closest points' barycentric weights
+    /// against a mesh (the obstacle's own points are fixed and left out).
+    pub vertices: Vec<(usize, f64)>,
+    /// The obstacle's index among those friction acts against: the analytic obstacles,
+    /// then the mesh obstacles.
     pub obstacle: usize,
     /// `mu lambda`: the friction force when sliding (N).
     pub limit: f64,
     /// The tangent basis at the start of the step (orthonormal columns).
     pub basis: Matrix3x2<f64>,
-    /// Where the vertex would be at the step's end if it stuck to the obstacle: its position at
-    /// the start, moved as the obstacle moves during the step.
+    /// Where the weighted contact point would be at the step's end if it stuck to the
+    /// obstacle: its position at the start, moved as the obstacle moves during the step.
     pub start: Vector3<f64>,
+}
+
+impl FrictionPair {
+    /// The weighted contact point at `x`.
+    fn point(&self, x: &[f64]) -> Vector3<f64> {
+        self.vertices
+            .iter()
+            .map(|&(v, w)| Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]) * w)
+            .sum()
+    }
 }
 
 /// The friction of a step, lagged at its start.
@@ -131,13 +145,17 @@ impl ContactModel {
                 }
                 let n = o.jet(&p).gradient;
                 pairs.push(FrictionPair {
-                    vertex: v,
+                    vertices: vec![(v, 1.0)],
                     obstacle: i,
                     limit: m * -b.first(d),
                     basis: tangent_basis(&n),
                     start: p + shift,
                 });
             }
+        }
+        if let Some(surface) = self.surface() {
+            let meshes = &mu[self.obstacles().len()..];
+            surface.friction_pairs(x, b, meshes, self.obstacles().len(), &mut pairs);
         }
         FrictionLag {
             pairs,
@@ -146,8 +164,9 @@ impl ContactModel {
     }
 
     /// The friction potential of `lag` at positions `x`: returns its energy, adds its forces
-    /// to `forces` and appends its Hessian's vertex blocks (positive semidefinite as they
-    /// are) to `hessian`.
+    /// to `forces` and appends its Hessian's blocks (positive semidefinite as they are: each
+    /// pair's is `w w^T` times a PSD 3x3) to `hessian`, between vertices for pairs against
+    /// a mesh.
     pub fn add_friction(
         &self,
         lag: &FrictionLag,
@@ -158,9 +177,7 @@ impl ContactModel {
         let eps = lag.threshold;
         let mut energy = 0.0;
         for pair in &lag.pairs {
-            let v = pair.vertex;
-            let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
-            let u: Vector2<f64> = pair.basis.transpose() * (p - pair.start);
+            let u: Vector2<f64> = pair.basis.transpose() * (pair.point(x) - pair.start);
             let s = u.norm();
             energy += pair.limit * f0(s, eps);
             // `grad_u = limit phi(s) u` with `phi = f1(s) / s` (finite at 0: 2 / eps).
@@ -169,10 +186,14 @@ impl ContactModel {
             } else {
                 (2.0 / eps - s / (eps * eps), -1.0 / (eps * eps))
             };
+            // The contact point is `sum w_v x_v`: vertex `v` gets `w_v` of its force, and
+            // `w_a w_b` of its Hessian in block `(a, b)`.
             if let Some(f) = forces.as_deref_mut() {
                 let g = pair.basis * (u * (pair.limit * phi));
-                for k in 0..3 {
-                    f[3 * v + k] -= g[k];
+                for &(v, w) in &pair.vertices {
+                    for k in 0..3 {
+                        f[3 * v + k] -= w * g[k];
+                    }
                 }
             }
             if let Some(h) = hessian.as_deref_mut() {
@@ -181,7 +202,14 @@ impl ContactModel {
                     h2 += u * u.transpose() * (dphi / s);
                 }
                 let block: Matrix3<f64> = pair.basis * h2 * pair.basis.transpose() * pair.limit;
-                h.vertex.push((v, block));
+                for &(a, wa) in &pair.vertices {
+                    for &(b, wb) in &pair.vertices {
+                        match a == b {
+                            true => h.vertex.push((a, block * (wa * wb))),
+                            false => h.coupling.push((a, b, block * (wa * wb))),
+                        }
+                    }
+                }
             }
         }
         energy
@@ -189,7 +217,7 @@ impl ContactModel {
 }
 
 /// Two orthonormal vectors orthogonal to the unit vector `n`, as columns.
-fn tangent_basis(n: &Vector3<f64>) -> Matrix3x2<f64> {
+pub(crate) fn tangent_basis(n: &Vector3<f64>) -> Matrix3x2<f64> {
     let helper = if n.x.abs() < 0.9 {
         Vector3::x()
     } else {

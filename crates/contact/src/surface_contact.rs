@@ -9,7 +9,7 @@ use nalgebra::{SMatrix, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::bvh::{Aabb, Bvh};
-use crate::distance::{Form, edge_edge, mollifier, point_triangle, squared_jet};
+use crate::distance::{Form, closest_weights, edge_edge, mollifier, point_triangle, squared_jet};
 use crate::jet::{Jet, variables};
 use crate::{Barrier, ContactError, ContactHessian, ContactSummary, STEP_MARGIN};
 
@@ -243,7 +243,7 @@ impl SelfContact {
         let Some(&v) = vertices.iter().find(|&&v| v >= self.body) else {
             return ContactError::SelfContact { pair, distance };
         };
-        let mesh = self.mesh_starts.partition_point(|&s| s <= v - self.body) - 1;
+        let mesh = self.mesh_of(v);
         let first = self.body + self.mesh_starts[mesh];
         let local = |i: usize| if i >= self.body { i - first } else { i };
         let pair = match pair {
@@ -323,6 +323,60 @@ impl SelfContact {
         match c {
             Candidate::PointTriangle(..) => point_triangle(&p[0], &p[1], &p[2], &p[3]),
             Candidate::EdgeEdge(..) => edge_edge(&p[0], &p[1], &p[2], &p[3]),
+        }
+    }
+
+    /// The mesh obstacle that fixed vertex `v` belongs to.
+    fn mesh_of(&self, v: usize) -> usize {
+        self.mesh_starts.partition_point(|&s| s <= v - self.body) - 1
+    }
+
+    /// Appends the lagged friction of the pairs between the body and the mesh obstacles
+    /// within `dhat` at `x` (the start of a step) to `pairs`: each pair's contact point is
+    /// its closest points' weighted sum, its normal force `-b'(d)` (times the mollifier on
+    /// edge pairs), its coefficient `mu[mesh]`, numbered `first + mesh` among the obstacles
+    /// friction acts against.
+    pub(crate) fn friction_pairs(
+        &self,
+        x: &[f64],
+        barrier: Barrier,
+        mu: &[f64],
+        first: usize,
+        pairs: &mut Vec<crate::FrictionPair>,
+    ) {
+        for c in self.candidates(x, None, barrier.dhat) {
+            let indices = self.indices(c);
+            let Some(&fixed) = indices.iter().find(|&&v| v >= self.body) else {
+                continue;
+            };
+            let mesh = self.mesh_of(fixed);
+            let p = self.points(c, x);
+            let (d, form) = self.distance(c, &p);
+            if mu[mesh] == 0.0 || !(d > 0.0 && d < barrier.dhat) {
+                continue;
+            }
+            let w = closest_weights(form, &p);
+            let gap: Vector3<f64> = (0..4).map(|k| p[k] * w[k]).sum();
+            let force = -barrier.first(d)
+                * match c {
+                    Candidate::PointTriangle(..) => 1.0,
+                    Candidate::EdgeEdge(e0, e1) => {
+                        let eps = MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1];
+                        mollifier(&variables(&p), eps).value
+                    }
+                };
+            let vertices: Vec<(usize, f64)> = (0..4)
+                .filter(|&k| indices[k] < self.body && w[k] != 0.0)
+                .map(|k| (indices[k], w[k]))
+                .collect();
+            let start = vertices.iter().map(|&(v, wv)| point(x, v) * wv).sum();
+            pairs.push(crate::FrictionPair {
+                vertices,
+                obstacle: first + mesh,
+                limit: mu[mesh] * force,
+                basis: crate::friction::tangent_basis(&(gap / d)),
+                start,
+            });
         }
     }
 

@@ -206,3 +206,66 @@ proptest! {
         prop_assert!(work <= 0.0, "friction did work {work}");
     }
 }
+
+proptest! {
+    /// Friction against a triangle-mesh obstacle (a tetrahedron whose apex edge crosses
+    /// over a fixed tetrahedron's top edge, near its top face): forces are minus the
+    /// potential's gradient and the blocks, vertex and coupling, its Hessian; no force on
+    /// the fixed mesh.
+    #[test]
+    fn mesh_friction_matches_differences(
+        jitter in proptest::array::uniform12(-0.003f64..0.003),
+        slide in proptest::collection::vec(-1.0f64..1.0, 12),
+        far in proptest::bool::ANY,
+    ) {
+        let faces = vec![[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]];
+        let fixed = vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0];
+        let mut start = vec![0.5, -0.3, 0.03, 0.5, 0.3, 0.03, 0.9, 0.0, 0.7, 0.1, 0.1, 0.8];
+        for (x, j) in start.iter_mut().zip(jitter) {
+            *x += j;
+        }
+        let barrier = Barrier { dhat: 0.1, kappa: 10.0 };
+        let m = ContactModel::new(vec![], barrier, vec![0, 1, 2, 3])
+            .unwrap()
+            .with_mesh_obstacles(faces.clone(), &start, vec![(fixed, faces)])
+            .unwrap()
+            .with_friction(&deform_contact::FrictionSpec { mu: vec![0.4], velocity_threshold: 1e-3 })
+            .unwrap();
+        let dt = 0.01;
+        let lag = m.lag_friction(&start, dt);
+        prop_assert!(lag.pairs.iter().any(|p| p.vertices.len() > 1), "{:?}", lag.pairs.len());
+        let scale = if far { 1e-3 } else { 1e-5 };
+        let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
+        let n = x.len();
+        let mut f = vec![0.0; n];
+        let mut blocks = ContactHessian::default();
+        m.add_friction(&lag, &x, Some(&mut f), Some(&mut blocks));
+        let mut hessian = DMatrix::zeros(n, n);
+        for (v, b) in &blocks.vertex {
+            let mut view = hessian.view_mut((3 * v, 3 * v), (3, 3));
+            view += b;
+        }
+        for (a, b, m) in &blocks.coupling {
+            let mut view = hessian.view_mut((3 * a, 3 * b), (3, 3));
+            view += m;
+        }
+        prop_assert!((&hessian - hessian.transpose()).amax() <= 1e-9 * hessian.amax());
+        let h = 1e-4 * scale.min(1e-3 * dt);
+        let energy = |y: &[f64]| m.add_friction(&lag, y, None, None);
+        for i in 0..n {
+            let (mut a, mut b) = (x.clone(), x.clone());
+            a[i] += h;
+            b[i] -= h;
+            let g = -(energy(&a) - energy(&b)) / (2.0 * h);
+            prop_assert!((g - f[i]).abs() <= 1e-5 * (1.0 + f[i].abs()), "force {i}: {g} {}", f[i]);
+            let (mut fa, mut fb) = (vec![0.0; n], vec![0.0; n]);
+            m.add_friction(&lag, &a, Some(&mut fa), None);
+            m.add_friction(&lag, &b, Some(&mut fb), None);
+            for j in 0..n {
+                let d = -(fa[j] - fb[j]) / (2.0 * h);
+                prop_assert!((d - hessian[(j, i)]).abs() <= 1e-3 * hessian.amax().max(1e-12),
+                    "hessian ({j}, {i}): {d} {}", hessian[(j, i)]);
+            }
+        }
+    }
+}

@@ -56,9 +56,6 @@ impl Contact {
             ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
                 .map_err(invalid)?;
         model = model.with_motions(spec.motions.clone()).map_err(invalid)?;
-        if let Some(friction) = &spec.friction {
-            model = model.with_friction(friction).map_err(invalid)?;
-        }
         let rest = mesh.rest_positions_flat();
         if spec.self_contact {
             model = model
@@ -70,6 +67,10 @@ impl Contact {
             model = model
                 .with_mesh_obstacles(deform_mesh::topology::boundary_faces(mesh), &rest, meshes)
                 .map_err(invalid)?;
+        }
+        // After the meshes: its coefficients count them.
+        if let Some(friction) = &spec.friction {
+            model = model.with_friction(friction).map_err(invalid)?;
         }
         Ok(Self {
             model,

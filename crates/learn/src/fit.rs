@@ -575,7 +575,7 @@ impl ContactForces {
 
     /// Its columns: `kappa`, then `mu kappa` per obstacle when friction is fitted.
     fn unknowns(&self) -> usize {
-        1 + self.friction.as_ref().map_or(0, |f| f.obstacles().len())
+        1 + self.friction.as_ref().map_or(0, |f| f.frictional())
     }
 
     /// Appends the step's contact columns (from `first`) to the rows of the free DOFs: the
@@ -598,7 +598,7 @@ impl ContactForces {
             .add_friction(&lag, x1, Some(&mut columns[0]), None);
         if let Some(friction) = &self.friction {
             let lag = friction.lag_friction(x0, dt);
-            for o in 0..friction.obstacles().len() {
+            for o in 0..friction.frictional() {
                 let part = deform_integrator::FrictionLag {
                     pairs: lag
                         .pairs

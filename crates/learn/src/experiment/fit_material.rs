@@ -103,7 +103,7 @@ impl ContactParameters {
         let fitted_mu = |i: usize| fit.and_then(|f| f.friction.get(i).copied());
         Some(Self {
             kappa: (model.barrier().kappa, fit.and_then(|f| f.kappa)),
-            friction: (0..model.obstacles().len())
+            friction: (0..model.frictional())
                 .map(|i| (scene_mu(i), fitted_mu(i)))
                 .collect(),
         })
