@@ -482,6 +482,21 @@ fn the_coarse_fits_are_a_library_function_with_the_experiments_figures() {
         assert_eq!((m.options.alpha, m.options.gamma), row.damping);
     }
     assert_eq!(fits.regularisation, r.cases[0].regularisation);
+    // The weights' fits run side by side or, on one thread, one after another: the same
+    // bits either way.
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| fit_coarse_models(&coarse_data, &experiment.scene, &settings, &mut NoProgress))
+        .unwrap();
+    assert_eq!(one.regularisation, fits.regularisation);
+    for (a, b) in one.models.iter().zip(&fits.models) {
+        assert_eq!(
+            a.fit.as_ref().map(|f| f.losses),
+            b.fit.as_ref().map(|f| f.losses)
+        );
+    }
     let dir = tempfile::tempdir().unwrap();
     let files = fits
         .save(&coarse_data.meta.scene, "mine", dir.path())

@@ -795,7 +795,8 @@ impl PerElement<'_> {
     /// Every weight's fit, in the order of the weights. They are independent: the first
     /// runs in `sim` with the observer, each other one in a thread of its own with an
     /// integrator built from the data's scene, so the results do not depend on how many
-    /// run at once.
+    /// run at once. On one thread (`RAYON_NUM_THREADS=1`) they run one after another, each
+    /// in an integrator of its own as well.
     fn fit_every_weight(
         &self,
         sim: &mut Integrator,
@@ -808,15 +809,21 @@ impl PerElement<'_> {
             .regularisation
             .split_first()
             .expect("validated: at least one weight");
+        let fit_alone = |w: f64| -> Result<WeightFit, LearnError> {
+            let mut sim = data.meta.scene.build(origin)?.integrator;
+            self.fit(&mut sim, w, &mut super::NoProgress)
+        };
+        if rayon::current_num_threads() < 2 {
+            let mut fits = vec![self.fit(sim, first, observer)?];
+            for &w in rest {
+                fits.push(fit_alone(w)?);
+            }
+            return Ok(fits);
+        }
         std::thread::scope(|scope| {
             let others: Vec<_> = rest
                 .iter()
-                .map(|&w| {
-                    scope.spawn(move || {
-                        let mut sim = data.meta.scene.build(origin)?.integrator;
-                        self.fit(&mut sim, w, &mut super::NoProgress)
-                    })
-                })
+                .map(|&w| scope.spawn(move || fit_alone(w)))
                 .collect();
             let mut fits = vec![self.fit(sim, first, observer)?];
             for handle in others {
