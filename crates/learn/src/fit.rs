@@ -553,6 +553,14 @@ impl ContactForces {
                 false => Ok(None),
             };
         };
+        if !model.motions().is_empty() {
+            // The columns would need each step's obstacle poses, which the data's steps do
+            // not carry yet: refused rather than fitted against obstacles in the wrong place.
+            return Err(FitError::Invalid(
+                "contact.motions: fits of scenes with moving obstacles are not supported yet"
+                    .into(),
+            ));
+        }
         let invalid = |e: deform_integrator::ContactError| FitError::Invalid(e.to_string());
         // The scene's whole potential (obstacles, mesh obstacles, self-contact, friction) at
         // unit stiffness.

@@ -1747,3 +1747,34 @@ fn equation_error_fits_moduli_from_trajectories_against_a_mesh_obstacle() {
         fit.kappa
     );
 }
+
+/// A scene whose obstacle moves is refused by the equation-error fit, naming the field,
+/// rather than fitted against the obstacle where it started.
+#[test]
+fn equation_error_refuses_moving_obstacles_by_name() {
+    let text = r#"Scene(
+        name: "lid",
+        mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.01))),
+        material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+        density: 1000.0,
+        contact: Some((
+            obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))],
+            motions: [(obstacle: 0, velocity: (0.0, 0.0, 0.01))],
+        )),
+        steps: 1,
+    )"#;
+    let scene: Scene = ron::from_str(text).unwrap();
+    let data = generate(
+        &scene,
+        Path::new("test"),
+        &DatasetSpec {
+            split: (1.0, 0.0),
+            ..DatasetSpec::new(1, 3, 1)
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    let sim = scene.build(Path::new("test")).unwrap().integrator;
+    let e = fit_equation_error(&sim, &data.split(Split::Train), Default::default()).unwrap_err();
+    assert!(e.to_string().contains("contact.motions"), "{e}");
+}
