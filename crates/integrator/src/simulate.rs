@@ -1,7 +1,9 @@
 //! Running a scene file end to end, as `cargo xtask simulate` does: the run executor with
 //! ParaView frames (`frame_*.vtu` and `series.pvd`), a per-step CSV (`steps.csv`: Newton
 //! and linear iterations, residuals, energies, flops, wall time, a tracked vertex) and a
-//! `summary.txt`, every file written atomically.
+//! `summary.txt`, every file written atomically; with contact, `obstacles.vtu` (where the
+//! obstacles start) and, when some move, `obstacles_*.vtu` in `obstacles.pvd` beside the
+//! frames.
 
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -108,6 +110,7 @@ pub fn simulate(
             mesh: &mesh,
             every: scene.output.every,
             pvd: Pvd::new(out.join("series.pvd")),
+            obstacles: MovingObstacles::new(&out, &mesh, &sim, state.t),
         },
         error: None,
         user: observer,
@@ -162,24 +165,69 @@ pub fn simulate(
 }
 
 /// The obstacles' surfaces in `obstacles.vtu`, to open in ParaView beside the frames (a
-/// plane as a square three times the body's size).
+/// plane as a square three times the body's size), where they are at the start.
 fn write_obstacles(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Result<(), SimulateError> {
     let Some(contact) = sim.contact() else {
         return Ok(());
     };
+    let path = out.join("obstacles.vtu");
+    write_obstacle_surfaces(&path, contact, contact.obstacles(), extent(mesh))
+}
+
+/// The size of a plane's square: three times the body's.
+fn extent(mesh: &TetMesh) -> f64 {
     let (lo, hi) = mesh.bounding_box();
+    3.0 * (hi - lo).norm()
+}
+
+/// `obstacles` (analytic, where they are) and `contact`'s meshes as triangles in `path`.
+fn write_obstacle_surfaces(
+    path: &Path,
+    contact: &deform_contact::ContactModel,
+    obstacles: &[deform_contact::Obstacle],
+    extent: f64,
+) -> Result<(), SimulateError> {
     let (mut x, mut triangles) = (Vec::new(), Vec::new());
-    let analytic = contact
-        .obstacles()
-        .iter()
-        .map(|o| o.surface(3.0 * (hi - lo).norm()));
+    let analytic = obstacles.iter().map(|o| o.surface(extent));
     for (p, t) in analytic.chain(contact.mesh_obstacles().iter().cloned()) {
         let first = x.len() / 3;
         x.extend(p);
         triangles.extend(t.iter().map(|tri| tri.map(|i| i + first)));
     }
-    let path = out.join("obstacles.vtu");
-    deform_mesh::io::write_triangles(&path, &x, &triangles).map_err(|e| write_error(&path, e))
+    deform_mesh::io::write_triangles(path, &x, &triangles).map_err(|e| write_error(path, e))
+}
+
+/// Moving obstacles in frames of their own (`obstacles_*.vtu`, `obstacles.pvd`) beside the
+/// body's, where they are at each frame's time.
+struct MovingObstacles {
+    contact: deform_contact::ContactModel,
+    /// The time the obstacles are where `contact` has them.
+    t0: f64,
+    extent: f64,
+    pvd: Pvd,
+}
+
+impl MovingObstacles {
+    fn new(out: &Path, mesh: &TetMesh, sim: &Integrator, t0: f64) -> Option<Self> {
+        let contact = sim.contact().filter(|c| !c.motions().is_empty())?;
+        Some(Self {
+            contact: contact.clone(),
+            t0,
+            extent: extent(mesh),
+            pvd: Pvd::new(out.join("obstacles.pvd")),
+        })
+    }
+
+    fn write(&mut self, out: &Path, step: usize, t: f64) -> Result<(), SimulateError> {
+        let mut obstacles = self.contact.obstacles().to_vec();
+        for m in self.contact.motions() {
+            let shift = m.offset(t) - m.offset(self.t0);
+            obstacles[m.obstacle] = obstacles[m.obstacle].translated(&shift);
+        }
+        let file = out.join(format!("obstacles_{step:05}.vtu"));
+        write_obstacle_surfaces(&file, &self.contact, &obstacles, self.extent)?;
+        self.pvd.push(t, &file).map_err(|e| write_error(&file, e))
+    }
 }
 
 /// Removes what an earlier run left in `out` (frames, series, CSV, summary, and the
@@ -188,8 +236,15 @@ fn write_obstacles(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Result<(), S
 /// Removes the previous run's frames, series, CSV and summary.
 fn clear_previous_run(out: &Path) -> Result<(), SimulateError> {
     deform_fs::clear_previous_run(out, |name, is_dir| {
-        let frame = name.starts_with("frame_") && name.ends_with(".vtu");
-        let known = ["series.pvd", "steps.csv", "summary.txt", "obstacles.vtu"];
+        let frame = (name.starts_with("frame_") || name.starts_with("obstacles_"))
+            && name.ends_with(".vtu");
+        let known = [
+            "series.pvd",
+            "steps.csv",
+            "summary.txt",
+            "obstacles.vtu",
+            "obstacles.pvd",
+        ];
         !is_dir && (frame || known.contains(&name))
     })
     .map_err(fs_error)
@@ -212,6 +267,7 @@ struct Frames<'a> {
     mesh: &'a TetMesh,
     every: usize,
     pvd: Pvd,
+    obstacles: Option<MovingObstacles>,
 }
 
 impl Frames<'_> {
@@ -226,7 +282,11 @@ impl Frames<'_> {
             .map_err(|e| write_error(&file, e))?;
         self.pvd
             .push(state.t, &file)
-            .map_err(|e| write_error(&file, e))
+            .map_err(|e| write_error(&file, e))?;
+        match &mut self.obstacles {
+            Some(o) => o.write(self.out, step, state.t),
+            None => Ok(()),
+        }
     }
 }
 

@@ -193,3 +193,52 @@ fn a_rerun_leaves_only_its_own_files() {
     let csv = std::fs::read_to_string(out.join("steps.csv")).unwrap();
     assert_eq!(csv.lines().count(), 3);
 }
+
+/// Moving obstacles get frames of their own beside the body's (`obstacles_*.vtu` in
+/// `obstacles.pvd`, where they are at each frame's time); still ones only `obstacles.vtu`.
+#[test]
+fn moving_obstacles_are_written_where_they_are_at_each_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, motions: &str| {
+        let path = dir.path().join(format!("{name}.ron"));
+        std::fs::write(
+            &path,
+            format!(
+                r#"Scene(
+                    name: "{name}",
+                    mesh: Beam(1),
+                    material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+                    density: 1000.0,
+                    constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
+                    contact: Some((
+                        obstacles: [Sphere(center: (0.8, 0.125, -0.3), radius: 0.1)],
+                        motions: [{motions}],
+                    )),
+                    integrator: (dt: 0.01),
+                    steps: 4,
+                    output: (every: 2),
+                )"#
+            ),
+        )
+        .unwrap();
+        path
+    };
+    let out = dir.path().join("moving");
+    let moving = write("moving", "(obstacle: 0, velocity: (0.0, 0.0, 0.5))");
+    simulate(&moving, None, Some(&out), &mut NoObserver).unwrap();
+    let pvd = std::fs::read_to_string(out.join("obstacles.pvd")).unwrap();
+    for frame in [
+        "obstacles_00000.vtu",
+        "obstacles_00002.vtu",
+        "obstacles_00004.vtu",
+    ] {
+        assert!(pvd.contains(frame), "{pvd}");
+    }
+    let read = |f: &str| std::fs::read(out.join(f)).unwrap();
+    assert_ne!(read("obstacles_00000.vtu"), read("obstacles_00004.vtu"));
+    assert_eq!(read("obstacles_00000.vtu"), read("obstacles.vtu"));
+    let still_out = dir.path().join("still");
+    simulate(&write("still", ""), None, Some(&still_out), &mut NoObserver).unwrap();
+    assert!(still_out.join("obstacles.vtu").exists());
+    assert!(!still_out.join("obstacles.pvd").exists());
+}
