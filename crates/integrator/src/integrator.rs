@@ -1091,10 +1091,10 @@ impl Integrator {
         let Some(c) = &self.contact else {
             return;
         };
-        let dx: Vec<f64> = u.iter().map(|v| dt * v).collect();
         if c.model.moving() {
             return self.carried_velocity(&c.model, state, dt, u);
         }
+        let dx: Vec<f64> = u.iter().map(|v| dt * v).collect();
         let bound = c.model.step_bound(&state.x, &dx);
         if bound < 1.0 {
             for &i in self.dofs.free_dofs() {

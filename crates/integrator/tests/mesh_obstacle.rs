@@ -6,11 +6,14 @@
 
 use deform_assembly::MaterialField;
 use deform_integrator::{
-    ContactSpec, Integrator, IntegratorOptions, MeshObstacle, Obstacle, PolicySpec, State,
+    ContactSpec, Integrator, IntegratorOptions, MeshObstacle, Obstacle, PolicySpec,
 };
 use deform_materials::MaterialSpec;
 use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
+mod common;
+
+use common::{crosses, total_energy};
 use nalgebra::Vector3;
 
 /// A 10 cm cube of 2 x 2 x 2 cells, its bottom `height` above the ground.
@@ -72,20 +75,6 @@ fn sim_with_offset(
         .unwrap()
 }
 
-/// Whether the segment `p q` crosses the triangle `t` (closed), exactly up to rounding.
-fn crosses(p: Vector3<f64>, q: Vector3<f64>, t: [Vector3<f64>; 3]) -> bool {
-    let n = (t[1] - t[0]).cross(&(t[2] - t[0]));
-    let (sp, sq) = ((p - t[0]).dot(&n), (q - t[0]).dot(&n));
-    if sp * sq > 0.0 || sp == sq {
-        return false;
-    }
-    let x = p + (q - p) * (sp / (sp - sq));
-    (0..3).all(|i| {
-        let (a, b) = (t[i], t[(i + 1) % 3]);
-        (b - a).cross(&(x - a)).dot(&n) >= 0.0
-    })
-}
-
 fn edges(triangles: &[[usize; 3]]) -> Vec<[usize; 2]> {
     let mut e: Vec<[usize; 2]> = triangles
         .iter()
@@ -110,35 +99,6 @@ fn surfaces_cross(
         })
     };
     one_way(pa, a, pb, b) || one_way(pb, b, pa, a)
-}
-
-/// Kinetic, elastic, barrier and gravitational energy.
-fn total_energy(sim: &mut Integrator, s: &State) -> f64 {
-    let masses = sim.assembly().vertex_masses(sim.mass());
-    let g = Vector3::from(sim.gravity());
-    let mut elastic = 0.0;
-    sim.assembly_mut()
-        .evaluate(
-            &s.x,
-            deform_assembly::Outputs {
-                energy: Some(&mut elastic),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-    let barrier = sim
-        .contact()
-        .unwrap()
-        .evaluate(&s.x, None, None)
-        .unwrap()
-        .energy;
-    let mut other = 0.0;
-    for (v, m) in masses.iter().enumerate() {
-        let (x, u) = (&s.x[3 * v..3 * v + 3], &s.v[3 * v..3 * v + 3]);
-        other += 0.5 * m * u.iter().map(|u| u * u).sum::<f64>();
-        other -= m * (g.x * x[0] + g.y * x[1] + g.z * x[2]);
-    }
-    elastic + barrier + other
 }
 
 #[test]

@@ -8,6 +8,9 @@ use deform_integrator::{ContactSpec, Integrator, IntegratorOptions, Obstacle, Po
 use deform_materials::MaterialSpec;
 use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
+mod common;
+
+use common::{crosses, total_energy};
 use nalgebra::Vector3;
 
 /// Two 10 cm cubes of 2 x 2 x 2 cells in one mesh: the lower one 1 mm above the ground, the
@@ -73,22 +76,6 @@ fn thrown(sim: &Integrator, mesh: &TetMesh, speed: f64) -> State {
     s
 }
 
-/// Whether the segment `p q` crosses the triangle `t` (closed), exactly up to rounding:
-/// the segment's end points lie on opposite sides of the triangle's plane and the crossing
-/// point lies inside the triangle.
-fn crosses(p: Vector3<f64>, q: Vector3<f64>, t: [Vector3<f64>; 3]) -> bool {
-    let n = (t[1] - t[0]).cross(&(t[2] - t[0]));
-    let (sp, sq) = ((p - t[0]).dot(&n), (q - t[0]).dot(&n));
-    if sp * sq > 0.0 || sp == sq {
-        return false;
-    }
-    let x = p + (q - p) * (sp / (sp - sq));
-    (0..3).all(|i| {
-        let (a, b) = (t[i], t[(i + 1) % 3]);
-        (b - a).cross(&(x - a)).dot(&n) >= 0.0
-    })
-}
-
 /// The first surface edge crossing a surface triangle that shares no vertex with it.
 fn intersection(mesh: &TetMesh, x: &[f64]) -> Option<([usize; 2], [usize; 3])> {
     let faces = deform_mesh::topology::boundary_faces(mesh);
@@ -111,35 +98,6 @@ fn intersection(mesh: &TetMesh, x: &[f64]) -> Option<([usize; 2], [usize; 3])> {
         }
     }
     None
-}
-
-/// Kinetic, elastic, barrier and gravitational energy.
-fn total_energy(sim: &mut Integrator, s: &State) -> f64 {
-    let masses = sim.assembly().vertex_masses(sim.mass());
-    let g = Vector3::from(sim.gravity());
-    let mut elastic = 0.0;
-    sim.assembly_mut()
-        .evaluate(
-            &s.x,
-            deform_assembly::Outputs {
-                energy: Some(&mut elastic),
-                ..Default::default()
-            },
-        )
-        .unwrap();
-    let barrier = sim
-        .contact()
-        .unwrap()
-        .evaluate(&s.x, None, None)
-        .unwrap()
-        .energy;
-    let mut other = 0.0;
-    for (v, m) in masses.iter().enumerate() {
-        let (x, u) = (&s.x[3 * v..3 * v + 3], &s.v[3 * v..3 * v + 3]);
-        other += 0.5 * m * u.iter().map(|u| u * u).sum::<f64>();
-        other -= m * (g.x * x[0] + g.y * x[1] + g.z * x[2]);
-    }
-    elastic + barrier + other
 }
 
 #[test]
