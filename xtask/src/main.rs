@@ -42,14 +42,17 @@ enum Task {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    let result = match cli.task {
+    // On a worker of the global pool: the serial parts between parallel loops then run on a
+    // thread that also runs those loops, instead of handing every loop to another core and
+    // waiting (on one thread, every loop moved the work, and its cache, to another core).
+    let result = rayon::scope(|_| match cli.task {
         Task::Mesh(task) => mesh::run(task),
         Task::Simulate(args) => simulate::run(args),
         Task::Bench(task) => bench::run(task),
         Task::Demo(args) => demo::run(args),
         Task::Experiment(args) => experiment::run(args).map(|_| ()),
         Task::Test(args) => test::run(args),
-    };
+    });
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

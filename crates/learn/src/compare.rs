@@ -86,6 +86,14 @@ impl std::fmt::Display for Choice {
     }
 }
 
+/// A policy and the change it makes to the scenes' Newton options.
+pub struct Contestant<'a> {
+    /// Makes the policy (once per run).
+    pub make: &'a (dyn Fn() -> Box<dyn SolverPolicy> + Sync),
+    /// Changes the scenes' integrator options first.
+    pub options: &'a (dyn Fn(&mut IntegratorOptions) + Sync),
+}
+
 /// Runs `make`'s policy `repeats` times on every run of `case`, with the scenes' Newton
 /// options changed by `options` first.
 ///
@@ -99,73 +107,153 @@ pub fn measure(
     weights: WorkWeights,
     repeats: usize,
 ) -> Result<Measured, LearnError> {
-    let mut row = Measured {
+    let passes = (0..repeats.max(1))
+        .map(|repeat| pass(case, references, make, options, weights, repeat == 0))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Measured::of_passes(passes))
+}
+
+/// [`measure`] for every contestant. On problems below
+/// [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free DOFs the runs (every contestant's repeats)
+/// go side by side, one per thread on a pool of one thread, so their times are one core's
+/// as on one thread; the work, flops and accuracy are the same bits either way. `progress`
+/// sees each finished repeat.
+///
+/// # Errors
+/// A scene that does not build.
+pub fn measure_all(
+    case: &Case<'_>,
+    references: &[Reference],
+    contestants: &[Contestant<'_>],
+    weights: WorkWeights,
+    repeats: usize,
+    progress: &mut dyn FnMut(),
+) -> Result<Vec<Measured>, LearnError> {
+    let repeats = repeats.max(1);
+    let jobs = contestants.len() * repeats;
+    let run = |_: &mut (), k: usize, done: &mut dyn FnMut(())| {
+        let (c, repeat) = (&contestants[k / repeats], k % repeats);
+        let ran = pass(case, references, c.make, c.options, weights, repeat == 0);
+        done(());
+        ran
+    };
+    let mut free = 0;
+    for (scene, origin) in &case.runs {
+        free = free.max(scene.build(origin)?.integrator.dofs().num_free());
+    }
+    let mut passes = if crate::lanes::worth_it(jobs, free) {
+        let mut lanes = vec![(); rayon::current_num_threads().min(jobs)];
+        crate::lanes::side_by_side(&mut lanes, jobs, &run, &mut |_, ()| progress())?
+    } else {
+        (0..jobs)
+            .map(|k| run(&mut (), k, &mut |()| progress()))
+            .collect::<Result<Vec<_>, _>>()?
+    }
+    .into_iter();
+    Ok((0..contestants.len())
+        .map(|_| Measured::of_passes(passes.by_ref().take(repeats).collect()))
+        .collect())
+}
+
+/// One run of a policy over every run of a case.
+struct Pass {
+    flops: f64,
+    work: f64,
+    seconds: f64,
+    step_seconds: f64,
+    newton: usize,
+    linear: usize,
+    fallbacks: usize,
+    error: f64,
+    failed: bool,
+    /// Per step and per Newton iteration, when kept.
+    per_step: Vec<(f64, usize)>,
+    choices: Vec<Choice>,
+}
+
+/// `make`'s policy once over every run of `case`; `keep` keeps the per-step figures and
+/// choices.
+fn pass(
+    case: &Case<'_>,
+    references: &[Reference],
+    make: &dyn Fn() -> Box<dyn SolverPolicy>,
+    options: &dyn Fn(&mut IntegratorOptions),
+    weights: WorkWeights,
+    keep: bool,
+) -> Result<Pass, LearnError> {
+    let mut out = Pass {
         flops: 0.0,
         work: 0.0,
         seconds: 0.0,
         step_seconds: 0.0,
         newton: 0,
         linear: 0,
-        error: 0.0,
         fallbacks: 0,
+        error: 0.0,
         failed: false,
-        deterministic: true,
         per_step: Vec::new(),
         choices: Vec::new(),
     };
-    let (mut times, mut step_times) = (Vec::new(), Vec::new());
-    for repeat in 0..repeats.max(1) {
-        let (mut flops, mut seconds, mut step_seconds) = (0.0, 0.0, 0.0);
-        for ((scene, origin), reference) in case.runs.iter().zip(references) {
-            let mut scene = scene.clone();
-            options(&mut scene.integrator);
-            let mut built = scene.build(origin)?;
-            built.integrator.set_policy(make());
-            let mut n = 0;
-            let mut error = 0.0f64;
-            let run = RunOptions::steps(reference.steps()).with_weights(weights);
-            let summary = built.integrator.run(
-                &mut built.state,
-                &if repeat == 0 {
-                    run.keeping_reports()
-                } else {
-                    run
-                },
-                &mut OnStep(|_: &StepReport, s: &State| {
-                    error = error.max(reference.error(n, &s.x));
-                    n += 1;
-                }),
-            );
-            row.failed |= summary.failed();
-            flops += summary.flops as f64;
-            seconds += summary.solver_seconds;
-            step_seconds += summary.step_seconds;
-            if repeat == 0 {
-                row.work += summary.work;
-                row.newton += summary.newton_iterations;
-                row.linear += summary.linear_iterations;
-                row.fallbacks += summary.fallbacks;
-                row.error = row.error.max(error);
-                for r in &summary.reports {
-                    row.per_step.push((r.work(weights), r.newton_iterations()));
-                    row.choices.extend(r.iterations.iter().map(|i| Choice {
-                        solver: i.solver.clone(),
-                        fallback: i.fallback,
-                    }));
-                }
-            }
+    for ((scene, origin), reference) in case.runs.iter().zip(references) {
+        let mut scene = scene.clone();
+        options(&mut scene.integrator);
+        let mut built = scene.build(origin)?;
+        built.integrator.set_policy(make());
+        let mut n = 0;
+        let mut error = 0.0f64;
+        let run = RunOptions::steps(reference.steps()).with_weights(weights);
+        let summary = built.integrator.run(
+            &mut built.state,
+            &if keep { run.keeping_reports() } else { run },
+            &mut OnStep(|_: &StepReport, s: &State| {
+                error = error.max(reference.error(n, &s.x));
+                n += 1;
+            }),
+        );
+        out.failed |= summary.failed();
+        out.flops += summary.flops as f64;
+        out.seconds += summary.solver_seconds;
+        out.step_seconds += summary.step_seconds;
+        out.work += summary.work;
+        out.newton += summary.newton_iterations;
+        out.linear += summary.linear_iterations;
+        out.fallbacks += summary.fallbacks;
+        out.error = out.error.max(error);
+        for r in &summary.reports {
+            out.per_step.push((r.work(weights), r.newton_iterations()));
+            out.choices.extend(r.iterations.iter().map(|i| Choice {
+                solver: i.solver.clone(),
+                fallback: i.fallback,
+            }));
         }
-        if repeat == 0 {
-            row.flops = flops;
-        } else if flops != row.flops {
-            row.deterministic = false;
-        }
-        times.push(seconds);
-        step_times.push(step_seconds);
     }
-    row.seconds = median(times);
-    row.step_seconds = median(step_times);
-    Ok(row)
+    Ok(out)
+}
+
+impl Measured {
+    /// The first pass's counts and accuracy, the median times over all passes, and whether
+    /// every pass did the first one's flops.
+    fn of_passes(passes: Vec<Pass>) -> Self {
+        let times = passes.iter().map(|p| p.seconds).collect();
+        let step_times = passes.iter().map(|p| p.step_seconds).collect();
+        let deterministic = passes.iter().all(|p| p.flops == passes[0].flops);
+        let failed = passes.iter().any(|p| p.failed);
+        let first = passes.into_iter().next().expect("at least one repeat");
+        Measured {
+            flops: first.flops,
+            work: first.work,
+            seconds: median(times),
+            step_seconds: median(step_times),
+            newton: first.newton,
+            linear: first.linear,
+            error: first.error,
+            fallbacks: first.fallbacks,
+            failed,
+            deterministic,
+            per_step: first.per_step,
+            choices: first.choices,
+        }
+    }
 }
 
 /// The median of `v` (the upper one of an even count); `v` is not empty.

@@ -431,10 +431,9 @@ fn simulate_one(
 }
 
 /// Every trajectory of `starts`, in order. Below
-/// [`crate::output::SIDE_BY_SIDE_MAX_DOFS`] free DOFs they run side by side, one thread
-/// each taking the next trajectory not yet taken (each has its own integrator, so the bits
-/// do not depend on the thread count); `progress` is called on this thread. After a failure
-/// no new trajectory starts, and every earlier one has: the error is the first in order.
+/// [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free DOFs they run side by side
+/// ([`crate::lanes::side_by_side`]; each has its own integrator, so the bits do not depend
+/// on the thread count); `progress` is called on this thread.
 fn simulate_all(
     scene: &Scene,
     origin: &Path,
@@ -442,50 +441,20 @@ fn simulate_all(
     steps: usize,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<Vec<Trajectory>, DatasetError> {
-    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-    let threads = rayon::current_num_threads().min(starts.len());
     let small = || -> Result<bool, DatasetError> {
         let free = scene.build(origin)?.integrator.dofs().num_free();
-        Ok(free <= crate::output::SIDE_BY_SIDE_MAX_DOFS)
+        Ok(crate::lanes::worth_it(starts.len(), free))
     };
-    if threads < 2 || !small()? {
+    if starts.len() < 2 || !small()? {
         return (starts.iter().enumerate())
             .map(|job| simulate_one(scene, origin, job, steps, &mut |s| progress(job.0, s)))
             .collect();
     }
-    enum Message {
-        Step(usize, usize),
-        Done(usize, Box<Result<Trajectory, DatasetError>>),
-    }
-    let (next, failed) = (AtomicUsize::new(0), AtomicBool::new(false));
-    let (sender, receiver) = std::sync::mpsc::channel();
-    let mut done: Vec<Option<Result<Trajectory, DatasetError>>> =
-        (0..starts.len()).map(|_| None).collect();
-    std::thread::scope(|scope| {
-        for _ in 0..threads {
-            let sender = sender.clone();
-            let (next, failed) = (&next, &failed);
-            scope.spawn(move || {
-                while !failed.load(Ordering::SeqCst) {
-                    let k = next.fetch_add(1, Ordering::SeqCst);
-                    let Some(start) = starts.get(k) else { break };
-                    let mut step = |s| drop(sender.send(Message::Step(k, s)));
-                    let made = simulate_one(scene, origin, (k, start), steps, &mut step);
-                    failed.fetch_or(made.is_err(), Ordering::SeqCst);
-                    drop(sender.send(Message::Done(k, Box::new(made))));
-                }
-            });
-        }
-        drop(sender);
-        for message in receiver {
-            match message {
-                Message::Step(k, s) => progress(k, s),
-                Message::Done(k, made) => done[k] = Some(*made),
-            }
-        }
-    });
-    // The trajectories that ran, up to the first failure.
-    done.into_iter().map_while(|d| d).collect()
+    let mut lanes = vec![(); rayon::current_num_threads().min(starts.len())];
+    let run = |_: &mut (), k: usize, step: &mut dyn FnMut(usize)| {
+        simulate_one(scene, origin, (k, &starts[k]), steps, step)
+    };
+    crate::lanes::side_by_side(&mut lanes, starts.len(), &run, progress)
 }
 
 impl Dataset {

@@ -22,6 +22,7 @@ mod error;
 pub mod experiment;
 pub mod fit;
 pub mod import;
+mod lanes;
 pub mod observe;
 pub mod output;
 /// `.npy` arrays (re-exported from `deform-fs`, where the integrator reads coefficient fields).

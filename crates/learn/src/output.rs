@@ -565,13 +565,13 @@ impl<'a> OutputError<'a> {
     }
 
     /// Whether `jobs` rollouts run side by side: with more than one thread and one rollout,
-    /// a problem below [`SIDE_BY_SIDE_MAX_DOFS`] and a policy that forks. The lanes (one
+    /// a problem below [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] and a policy that forks. The lanes (one
     /// per thread, forks of `sim`) then hold coefficients `c`.
     fn ready_lanes(&self, sim: &Integrator, c: &[f64], jobs: usize) -> Result<bool, FitError> {
-        let threads = rayon::current_num_threads().min(jobs);
-        if threads < 2 || sim.dofs().num_free() > SIDE_BY_SIDE_MAX_DOFS {
+        if !crate::lanes::worth_it(jobs, sim.dofs().num_free()) {
             return Ok(false);
         }
+        let threads = rayon::current_num_threads().min(jobs);
         let mut lanes = self.lanes.borrow_mut();
         while lanes.len() < threads {
             let Some(fork) = sim.fork() else {
@@ -743,11 +743,6 @@ fn seen_vertices(t: &Trajectory, vertices: usize) -> Vec<bool> {
     seen
 }
 
-/// Free DOFs below which a loss evaluation runs its rollouts side by side, one per thread
-/// (each on its own copy of the integrator); larger problems run them one by one and use
-/// the threads inside each step (assembly, factorisation), where they pay off.
-pub(crate) const SIDE_BY_SIDE_MAX_DOFS: usize = 20_000;
-
 /// One thread's integrator (a fork of the objective's) and adjoint solver, kept between
 /// evaluations.
 struct Lane {
@@ -800,37 +795,24 @@ impl Pass<'_> {
             .collect()
     }
 
-    /// The rollouts side by side, one lane per thread taking the next rollout not yet
-    /// taken. Every rollout starts from a restarted integrator, so which lane runs it does
-    /// not change its bits; after a failure no new rollout starts, and every earlier one
-    /// has started, so the error returned is the first in rollout order, as one by one.
+    /// The rollouts side by side ([`crate::lanes::side_by_side`]). Every rollout starts
+    /// from a restarted integrator, so which lane runs it does not change its bits.
     fn side_by_side(
         &self,
         trajectories: &[&Trajectory],
         jobs: &[Job],
         lanes: &mut [Lane],
     ) -> Result<Vec<RolloutTerms>, FitError> {
-        use rayon::iter::{IntoParallelRefMutIterator, ParallelIterator};
-        use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering as Atomic};
-        let (next, failed) = (AtomicUsize::new(0), AtomicBool::new(false));
-        let mut done: Vec<(usize, Result<RolloutTerms, FitError>)> = lanes
-            .par_iter_mut()
-            .flat_map_iter(|lane| {
-                let mut adjoint = None;
-                let mut out = Vec::new();
-                while !failed.load(Atomic::SeqCst) {
-                    let r = next.fetch_add(1, Atomic::SeqCst);
-                    let Some(&job) = jobs.get(r) else { break };
-                    let (sim, solver) = (&mut lane.sim, &mut lane.solver);
-                    let ran = self.rollout(trajectories, (r, job), sim, solver, &mut adjoint);
-                    failed.fetch_or(ran.is_err(), Atomic::SeqCst);
-                    out.push((r, ran));
-                }
-                out
-            })
-            .collect();
-        done.sort_by_key(|(r, _)| *r);
-        done.into_iter().map(|(_, terms)| terms).collect()
+        // Each lane makes the adjoint's matrices at its first rollout.
+        let mut lanes: Vec<(&mut Lane, Option<Adjoint>)> =
+            lanes.iter_mut().map(|lane| (lane, None)).collect();
+        let run = |(lane, adjoint): &mut (&mut Lane, Option<Adjoint>),
+                   r: usize,
+                   _: &mut dyn FnMut(())| {
+            let (sim, solver) = (&mut lane.sim, &mut lane.solver);
+            self.rollout(trajectories, (r, jobs[r]), sim, solver, adjoint)
+        };
+        crate::lanes::side_by_side(&mut lanes, jobs.len(), &run, &mut |_, ()| {})
     }
 
     /// Rollout `r` of `job` from a restarted integrator (so that its bits do not depend on

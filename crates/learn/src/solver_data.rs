@@ -217,7 +217,9 @@ pub fn collect(
 pub type Run<'a> = (Scene, &'a Path, usize);
 
 /// Logs several simulations into one dataset (its metadata names the first scene);
-/// `progress` sees each finished step.
+/// `progress` sees each finished step. Below [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free
+/// DOFs the simulations run side by side ([`crate::lanes::side_by_side`]); the logged
+/// flops and iterations are the same bits either way, the logged seconds one core's.
 ///
 /// # Errors
 /// [`DatasetError`] as [`collect`]; `Inconsistent` when `runs` is empty.
@@ -226,18 +228,31 @@ pub fn collect_runs(
     candidates: &[SolverSpec],
     mut progress: impl FnMut(usize),
 ) -> Result<SolverDataset, DatasetError> {
-    let mut all: Option<SolverDataset> = None;
-    for (scene, origin, steps) in runs {
-        let d = collect(scene, origin, candidates, *steps, &mut progress)?;
-        match &mut all {
-            None => all = Some(d),
-            Some(a) => {
-                a.features.extend(d.features);
-                a.outcomes.extend(d.outcomes);
-            }
-        }
+    let log = |_: &mut (), k: usize, step: &mut dyn FnMut(usize)| {
+        let (scene, origin, steps) = &runs[k];
+        collect(scene, origin, candidates, *steps, step)
+    };
+    let mut free = 0;
+    for (scene, origin, _) in runs {
+        free = free.max(scene.build(origin)?.integrator.dofs().num_free());
     }
-    all.ok_or_else(|| DatasetError::Inconsistent("no simulation to log".into()))
+    let logs = if crate::lanes::worth_it(runs.len(), free) {
+        let mut lanes = vec![(); rayon::current_num_threads().min(runs.len())];
+        crate::lanes::side_by_side(&mut lanes, runs.len(), &log, &mut |_, s| progress(s))?
+    } else {
+        (0..runs.len())
+            .map(|k| log(&mut (), k, &mut progress))
+            .collect::<Result<Vec<_>, _>>()?
+    };
+    let mut logs = logs.into_iter();
+    let mut all = logs
+        .next()
+        .ok_or_else(|| DatasetError::Inconsistent("no simulation to log".into()))?;
+    for d in logs {
+        all.features.extend(d.features);
+        all.outcomes.extend(d.outcomes);
+    }
+    Ok(all)
 }
 
 impl SolverDataset {

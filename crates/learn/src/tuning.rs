@@ -365,6 +365,16 @@ pub struct Tuning {
     pub max_iterations: u64,
 }
 
+impl Tuning {
+    /// The most cost evaluations it can make: the simplex's vertices, then per Nelder-Mead
+    /// iteration a reflection, an expansion or a contraction, and a shrink of the other
+    /// vertices. Progress bars count against it.
+    pub fn max_evaluations(&self) -> u64 {
+        let n = self.range.len() as u64;
+        n + 1 + self.max_iterations * (n + 2)
+    }
+}
+
 /// Tunes the log10 of the parameters of the policy `make` builds, for the least total work
 /// on `runs` (scene, folder of its paths, steps) within `tuning.accuracy` of the direct
 /// solver's trajectories (see [`reference_scene`]). Every evaluation is returned in

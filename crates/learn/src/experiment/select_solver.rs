@@ -13,7 +13,7 @@ use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
 use super::{Context, ExperimentObserver, Stage, Task};
-use crate::compare::{Case, Measured, measure};
+use crate::compare::{Case, Contestant, Measured, measure_all};
 use crate::dataset::Split;
 use crate::error::LearnError;
 use crate::policy::{LearnedPolicy, PolicyOptions};
@@ -377,30 +377,42 @@ pub fn run(
         (cases.len() * (contenders.len() * repeats + 1)) as u64,
     );
     let mut reports = Vec::new();
+    let learned = &learned;
+    let policies: Vec<_> = contenders
+        .iter()
+        .map(|c| move || c.policy(learned))
+        .collect();
+    let settings: Vec<_> = contenders
+        .iter()
+        .map(|c| {
+            let settings = c.settings();
+            move |o: &mut IntegratorOptions| {
+                if let Some(s) = settings {
+                    s.apply(o);
+                }
+            }
+        })
+        .collect();
+    let contestants: Vec<Contestant<'_>> = (policies.iter().zip(&settings))
+        .map(|(make, options)| Contestant { make, options })
+        .collect();
     for case in &cases {
         let references = case.references()?;
         observer.advance(1);
-        let mut rows = Vec::new();
-        for contender in &contenders {
-            let settings = contender.settings();
-            let measured = measure(
-                case,
-                &references,
-                &|| contender.policy(&learned),
-                &|o| {
-                    if let Some(s) = settings {
-                        s.apply(o);
-                    }
-                },
-                *weights,
-                repeats,
-            )?;
-            observer.advance(repeats as u64);
-            rows.push(PolicyRow {
-                contender: contender.clone(),
+        let measured = measure_all(
+            case,
+            &references,
+            &contestants,
+            *weights,
+            repeats,
+            &mut || observer.advance(1),
+        )?;
+        let rows = (contenders.iter().zip(measured))
+            .map(|(c, measured)| PolicyRow {
+                contender: c.clone(),
                 measured,
-            });
-        }
+            })
+            .collect();
         reports.push(CaseReport {
             label: case.label.clone(),
             rows,
@@ -464,7 +476,7 @@ fn tune_learned(
         .collect();
     observer.start(
         Stage::Tune,
-        projections.len() as u64 * (t.max_iterations + 3) * runs.len() as u64,
+        projections.len() as u64 * tuning.max_evaluations() * runs.len() as u64,
     );
     let mut best: Option<PolicyTuning> = None;
     let mut samples = Vec::new();

@@ -416,7 +416,15 @@ fn tune_forcing(
     max_iterations: u64,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<TuningResult, LearnError> {
-    observer.start(Stage::Tune, max_iterations);
+    let tuning = Tuning {
+        start: vec![vec![-1.0], vec![-3.0]],
+        range: vec![(-8.0, -0.3)],
+        weights,
+        fallback: true,
+        accuracy,
+        max_iterations,
+    };
+    observer.start(Stage::Tune, tuning.max_evaluations());
     let gamma = DEFAULT_FORCING.1;
     let advance = std::cell::RefCell::new(&mut *observer);
     let make = |p: &[f64], _: &mut IntegratorOptions| -> Option<Box<dyn SolverPolicy>> {
@@ -425,18 +433,7 @@ fn tune_forcing(
             policy.with_forcing(Some((10f64.powf(p[0]), gamma))),
         ))
     };
-    let tuning = tune_policy(
-        std::slice::from_ref(run),
-        &make,
-        &Tuning {
-            start: vec![vec![-1.0], vec![-3.0]],
-            range: vec![(-8.0, -0.3)],
-            weights,
-            fallback: true,
-            accuracy,
-            max_iterations,
-        },
-    )?;
+    let tuning = tune_policy(std::slice::from_ref(run), &make, &tuning)?;
     observer.finish();
     Ok(tuning)
 }
