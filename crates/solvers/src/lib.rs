@@ -43,6 +43,7 @@ mod amg;
 mod blocks;
 mod direct;
 mod error;
+mod ic0;
 mod iterative;
 mod operator;
 mod ordering;

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use crate::amg::{Amg, AmgSmoother};
 
 use crate::direct::{Cholesky, Indefinite, Precision};
+use crate::ic0::{self, Ic0};
 use crate::operator::{LinearOperator, for_each_entry, positive_diagonal};
 use crate::ordering::Ordering;
 use crate::{LinearSolver, SolverError};
@@ -75,7 +76,7 @@ pub(crate) enum Preconditioner {
         diag: Vec<f64>,
     },
     Ic0 {
-        l: LowerCsr,
+        l: Box<Ic0>,
         shift: f64,
     },
     /// A Cholesky factor and how many `factorize` calls have reused it.
@@ -88,14 +89,6 @@ pub(crate) enum Preconditioner {
         amg: Box<Amg>,
         age: usize,
     },
-}
-
-/// Lower-triangular CSR factor, diagonal last in each row.
-#[derive(Debug, Clone)]
-pub(crate) struct LowerCsr {
-    indptr: Vec<usize>,
-    indices: Vec<usize>,
-    data: Vec<f64>,
 }
 
 impl Preconditioner {
@@ -152,9 +145,17 @@ impl Preconditioner {
                 let mut shift = 0.0;
                 let mut flops = 0;
                 loop {
-                    flops += ic0_flops(&indptr, indices);
-                    match ic0(n, &indptr, indices, data, shift) {
-                        Ok(l) => break (Preconditioner::Ic0 { l, shift }, flops),
+                    flops += ic0::flops(&indptr, indices);
+                    match Ic0::new(&indptr, indices, data, shift) {
+                        Ok(l) => {
+                            break (
+                                Preconditioner::Ic0 {
+                                    l: Box::new(l),
+                                    shift,
+                                },
+                                flops,
+                            );
+                        }
                         Err(e) if shift >= 1e3 => return Err(e),
                         Err(_) => shift = if shift == 0.0 { 1e-3 } else { shift * 10.0 },
                     }
@@ -247,26 +248,7 @@ impl Preconditioner {
                     .expect("a held factor solves vectors of its size");
             }
             Preconditioner::Amg { amg, .. } => amg.apply(r, z),
-            Preconditioner::Ic0 { l, .. } => {
-                // L y = r (forward), then L^T z = y (backward, column sweep over L's rows).
-                let n = l.indptr.len() - 1;
-                for i in 0..n {
-                    let (start, end) = (l.indptr[i], l.indptr[i + 1]);
-                    let mut acc = r[i];
-                    for k in start..end - 1 {
-                        acc -= l.data[k] * z[l.indices[k]];
-                    }
-                    z[i] = acc / l.data[end - 1];
-                }
-                for i in (0..n).rev() {
-                    let (start, end) = (l.indptr[i], l.indptr[i + 1]);
-                    z[i] /= l.data[end - 1];
-                    let zi = z[i];
-                    for k in start..end - 1 {
-                        z[l.indices[k]] -= l.data[k] * zi;
-                    }
-                }
-            }
+            Preconditioner::Ic0 { l, .. } => l.apply(r, z),
         }
     }
 
@@ -277,7 +259,7 @@ impl Preconditioner {
             Preconditioner::Jacobi(_) => n as u64,
             Preconditioner::BlockJacobi(_) => 5 * n as u64,
             Preconditioner::Ssor { .. } => a.apply_flops() + 4 * n as u64,
-            Preconditioner::Ic0 { l, .. } => 4 * l.indices.len() as u64,
+            Preconditioner::Ic0 { l, .. } => 4 * l.nnz() as u64,
             Preconditioner::Cholesky { factor, .. } => factor.solve_flops(),
             Preconditioner::Amg { amg, .. } => amg.flops(),
         }
@@ -303,86 +285,4 @@ impl Preconditioner {
             _ => 0.0,
         }
     }
-}
-
-/// Flops of one IC(0) factorisation: each row's sparse dot products, bounded by the square
-/// of its lower length.
-fn ic0_flops(indptr: &[usize], indices: &[usize]) -> u64 {
-    (0..indptr.len() - 1)
-        .map(|i| {
-            let lower = indices[indptr[i]..indptr[i + 1]]
-                .iter()
-                .filter(|&&j| j < i)
-                .count() as u64;
-            lower * lower + 2 * lower + 1
-        })
-        .sum()
-}
-
-/// Zero-fill incomplete Cholesky of the lower triangle of a symmetric CSR matrix
-/// (full storage, sorted columns), of `A + shift diag(A)`.
-fn ic0(
-    n: usize,
-    indptr: &[usize],
-    indices: &[usize],
-    data: &[f64],
-    shift: f64,
-) -> Result<LowerCsr, SolverError> {
-    let mut lp = Vec::with_capacity(n + 1);
-    let mut li = Vec::new();
-    let mut lv: Vec<f64> = Vec::new();
-    lp.push(0);
-    for i in 0..n {
-        let row_start = li.len();
-        let mut diag = None;
-        for k in indptr[i]..indptr[i + 1] {
-            let j = indices[k];
-            if j < i {
-                li.push(j);
-                lv.push(data[k]);
-            } else if j == i {
-                diag = Some(data[k] * (1.0 + shift));
-            }
-        }
-        let mut d = diag.ok_or(SolverError::NotPositiveDefinite {
-            pivot: i,
-            value: 0.0,
-            spent: None,
-        })?;
-        // L_ij = (A_ij - sum_{m<j} L_im L_jm) / L_jj for j in the pattern, in column order.
-        for a in row_start..li.len() {
-            let j = li[a];
-            let (js, je) = (lp[j], lp[j + 1]);
-            let mut s = lv[a];
-            let (mut p, mut q) = (row_start, js);
-            while p < a && q < je - 1 {
-                match li[p].cmp(&li[q]) {
-                    std::cmp::Ordering::Less => p += 1,
-                    std::cmp::Ordering::Greater => q += 1,
-                    std::cmp::Ordering::Equal => {
-                        s -= lv[p] * lv[q];
-                        p += 1;
-                        q += 1;
-                    }
-                }
-            }
-            lv[a] = s / lv[je - 1];
-            d -= lv[a] * lv[a];
-        }
-        if !(d > 0.0) {
-            return Err(SolverError::NotPositiveDefinite {
-                pivot: i,
-                value: d,
-                spent: None,
-            });
-        }
-        li.push(i);
-        lv.push(d.sqrt());
-        lp.push(li.len());
-    }
-    Ok(LowerCsr {
-        indptr: lp,
-        indices: li,
-        data: lv,
-    })
 }
