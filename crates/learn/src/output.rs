@@ -1655,8 +1655,10 @@ fn minimise(objective: &OutputError<'_>, initial: &[f64]) -> Result<OutputErrorF
             }
         }
     };
-    // Leave the best coefficients in the integrator (outside the evaluation budget).
+    // Leave the best coefficients in the integrator (outside the evaluation budget and
+    // unseen by `progress`, whose bar counts the budget).
     *objective.evaluations.borrow_mut() = 0;
+    *objective.progress.borrow_mut() = Box::new(|_, _| {});
     objective.evaluate(&coefficients)?;
     let iterations = records.lock().expect("not poisoned").clone();
     Ok(OutputErrorFit {
@@ -1836,9 +1838,15 @@ mod tests {
                 ..Default::default()
             };
             // Off the data's model (mu and lambda doubled), so the first steps make progress.
-            let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
+            let seen = std::cell::Cell::new(0);
+            let count = |_, _| seen.set(seen.get() + 1);
+            let objective = OutputError::new(&mut sim, &train, options, count).unwrap();
             let start: Vec<f64> = objective.uniform_start().iter().map(|c| 2.0 * c).collect();
             let fit = minimise(&objective, &start).unwrap();
+            // Progress bars count the budget: the final evaluation at the best point, outside
+            // it, is not reported.
+            assert_eq!(seen.get(), fit.evaluations);
+            assert!(seen.get() <= budget);
             assert!(fit.loss < fit.initial_loss);
             let expected = if patience == 0 {
                 Termination::Budget { evaluations: 3 }
