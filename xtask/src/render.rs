@@ -76,8 +76,13 @@ fn contact_parameters(c: &ContactParameters, md: &mut String) -> Result<()> {
         writeln!(md, "| {name} | {scene:.5e} | {fit} | {diff} |")
     };
     row(md, "kappa (N/m)".into(), c.kappa)?;
+    let own = c.self_contact.then(|| c.friction.len() - 1);
     for (i, mu) in c.friction.iter().enumerate() {
-        row(md, format!("mu, obstacle {i}"), *mu)?;
+        let name = match own == Some(i) {
+            true => "mu, self-contact".to_owned(),
+            false => format!("mu, obstacle {i}"),
+        };
+        row(md, name, *mu)?;
     }
     md.push('\n');
     Ok(())

@@ -242,6 +242,12 @@ impl ContactModel {
         triangles: Vec<[usize; 3]>,
         rest: &[f64],
     ) -> Result<Self, ContactError> {
+        if self.friction.is_some() {
+            return Err(ContactError::Invalid {
+                field: "self_contact".into(),
+                reason: "give self-contact before friction (its coefficients count it)".into(),
+            });
+        }
         let surface = SelfContact::with_meshes(triangles, rest, true, &self.meshes)?;
         surface.check_separated(rest, self.barrier.dhat)?;
         self.surface = Some(surface);
@@ -309,19 +315,33 @@ impl ContactModel {
 
     /// The same potential with friction as `spec` says ([`ContactModel::lag_friction`]):
     /// one coefficient for every obstacle, or one for each, the analytic obstacles first
-    /// and then the mesh obstacles (give the meshes first).
+    /// and then the mesh obstacles; with self-contact, the body's own surface gets
+    /// [`FrictionSpec::self_coefficient`] (give the meshes and self-contact first).
     ///
     /// # Errors
     /// [`ContactError::Invalid`] naming a bad coefficient or threshold.
     pub fn with_friction(mut self, spec: &FrictionSpec) -> Result<Self, ContactError> {
-        let mu = spec.coefficients(self.frictional())?;
+        let obstacles = self.obstacles.len() + self.meshes.len();
+        let mut mu = spec.coefficients(obstacles)?;
+        match self.surface.as_ref().is_some_and(SelfContact::self_pairs) {
+            true => mu.push(spec.self_coefficient()),
+            false if spec.self_mu.is_some() => {
+                return Err(ContactError::Invalid {
+                    field: "friction.self_mu".into(),
+                    reason: "given without self_contact".into(),
+                });
+            }
+            false => {}
+        }
         self.friction = Some((mu, spec.velocity_threshold));
         Ok(self)
     }
 
-    /// How many obstacles friction acts against: the analytic ones, then the meshes.
+    /// How many obstacles friction acts against: the analytic ones, then the meshes, then
+    /// the body's own surface when it is in self-contact.
     pub fn frictional(&self) -> usize {
-        self.obstacles.len() + self.meshes.len()
+        let own = self.surface.as_ref().is_some_and(SelfContact::self_pairs);
+        self.obstacles.len() + self.meshes.len() + usize::from(own)
     }
 
     /// The body's surface in contact with itself or with meshes, when modelled.

@@ -24,8 +24,14 @@ pub(crate) enum Form {
 }
 
 /// Below this `|u x v|^2 / (|u|^2 |v|^2)` (the squared sine of the angle) two edges count as
-/// parallel and their distance is taken at an endpoint, where it is attained anyway.
-const PARALLEL: f64 = 1e-20;
+/// parallel and their distance is taken at an endpoint (where it is attained for exactly
+/// parallel edges, and within `1e-5` of an edge's length of it below the threshold). Edges
+/// parallel up to rounding (two face diagonals of a grid whose cells are `1.0 / 10` by
+/// `0.3 / 3`) have a squared sine near `1e-16`: above a smaller threshold their lines'
+/// closest points came from a singular system, and coplanar ones got distance 0. Edge pairs
+/// this close to parallel carry a mollifier of about `1e-7` on their barrier, so the switch
+/// to an endpoint moves no force that matters.
+const PARALLEL: f64 = 1e-10;
 
 /// The distance from `p` to the triangle `abc` (closed), and its form on `[p, a, b, c]`.
 pub(crate) fn point_triangle(
@@ -283,6 +289,21 @@ mod tests {
             }
         }
         best
+    }
+
+    /// Two face diagonals of a grid, parallel up to rounding and coplanar, are their true
+    /// distance apart (they were 0 apart when rounding passed for an angle).
+    #[test]
+    fn edges_parallel_up_to_rounding_are_their_true_distance_apart() {
+        let (hx, hy) = (1.0 / 10.0, 0.3 / 3.0);
+        let at = |i: f64, j: f64| Vector3::new(-0.1 + i * hx, -0.1 + j * hy, -0.05);
+        let (a0, a1, b0, b1) = (at(2.0, 2.0), at(3.0, 3.0), at(3.0, 1.0), at(4.0, 2.0));
+        let (u, v) = (a1 - a0, b1 - b0);
+        // Parallel, but not to the old test's rounding (its squared sine, 1e-16).
+        let sine2 = 1.0 - u.dot(&v).powi(2) / (u.norm_squared() * v.norm_squared());
+        assert!(sine2 > 1e-20, "{sine2}");
+        let (d, _) = edge_edge(&a0, &a1, &b0, &b1);
+        assert!((d - 0.1 * 2f64.sqrt()).abs() < 1e-12, "{d}");
     }
 
     proptest! {

@@ -24,6 +24,10 @@ pub struct FrictionSpec {
     /// `eps_v`); 1e-3 m/s by default.
     #[serde(default = "default_threshold")]
     pub velocity_threshold: f64,
+    /// The coefficient between two parts of the body's own surface, with self-contact; by
+    /// default `mu`'s when it gives one for all, else 0 (frictionless).
+    #[serde(default)]
+    pub self_mu: Option<f64>,
 }
 
 fn default_threshold() -> f64 {
@@ -36,10 +40,13 @@ fn default_threshold() -> f64 {
 pub struct FrictionPair {
     /// The body's vertices of the pair with their weights in its contact point: one vertex
     /// of weight 1 against an analytic obstacle; the closest points' barycentric weights
-    /// against a mesh (the obstacle's own points are fixed and left out).
+    /// against a mesh (the obstacle's own points are fixed and left out); between two parts
+    /// of the body's surface, all four vertices with the signed weights whose sum is the
+    /// gap between the closest points, so the "point" is that gap and its tangential change
+    /// is the two sides' relative slip.
     pub vertices: Vec<(usize, f64)>,
     /// The obstacle's index among those friction acts against: the analytic obstacles,
-    /// then the mesh obstacles.
+    /// then the mesh obstacles, then the body's own surface (with self-contact).
     pub obstacle: usize,
     /// `mu lambda`: the friction force when sliding (N).
     pub limit: f64,
@@ -90,6 +97,9 @@ impl FrictionSpec {
                 format!("{} must be positive and finite", self.velocity_threshold),
             ));
         }
+        if let Some(m) = self.self_mu.filter(|m| !(m.is_finite() && *m >= 0.0)) {
+            return Err(invalid("self_mu", format!("{m} must be finite and >= 0")));
+        }
         match self.mu.len() {
             1 => Ok(vec![self.mu[0]; obstacles]),
             n if n == obstacles => Ok(self.mu.clone()),
@@ -97,6 +107,16 @@ impl FrictionSpec {
                 "mu",
                 format!("{n} coefficients for {obstacles} obstacles (give one, or one each)"),
             )),
+        }
+    }
+
+    /// The coefficient between parts of the body's own surface (see
+    /// [`FrictionSpec::self_mu`]).
+    pub fn self_coefficient(&self) -> f64 {
+        match (self.self_mu, self.mu.as_slice()) {
+            (Some(m), _) => m,
+            (None, [m]) => *m,
+            (None, _) => 0.0,
         }
     }
 }

@@ -331,11 +331,12 @@ impl SelfContact {
         self.mesh_starts.partition_point(|&s| s <= v - self.body) - 1
     }
 
-    /// Appends the lagged friction of the pairs between the body and the mesh obstacles
-    /// within `dhat` at `x` (the start of a step) to `pairs`: each pair's contact point is
-    /// its closest points' weighted sum, its normal force `-b'(d)` (times the mollifier on
-    /// edge pairs), its coefficient `mu[mesh]`, numbered `first + mesh` among the obstacles
-    /// friction acts against.
+    /// Appends the lagged friction of the surface pairs within `dhat` at `x` (the start of
+    /// a step) to `pairs`: each pair's contact point is its closest points' weighted sum
+    /// (the gap between them for a pair of the body's own), its normal force `-b'(d)`
+    /// (times the mollifier on edge pairs). `mu` holds the meshes' coefficients, then the
+    /// body's own surface's when it is in self-contact; they are numbered from `first` among
+    /// the obstacles friction acts against.
     pub(crate) fn friction_pairs(
         &self,
         x: &[f64],
@@ -344,15 +345,17 @@ impl SelfContact {
         first: usize,
         pairs: &mut Vec<crate::FrictionPair>,
     ) {
+        let own = self.mesh_starts.len();
         for c in self.candidates(x, None, barrier.dhat) {
             let indices = self.indices(c);
-            let Some(&fixed) = indices.iter().find(|&&v| v >= self.body) else {
-                continue;
+            let obstacle = match indices.iter().find(|&&v| v >= self.body) {
+                Some(&fixed) => self.mesh_of(fixed),
+                None => own,
             };
-            let mesh = self.mesh_of(fixed);
             let p = self.points(c, x);
             let (d, form) = self.distance(c, &p);
-            if mu[mesh] == 0.0 || !(d > 0.0 && d < barrier.dhat) {
+            let coefficient = mu.get(obstacle).copied().unwrap_or(0.0);
+            if coefficient == 0.0 || !(d > 0.0 && d < barrier.dhat) {
                 continue;
             }
             let w = closest_weights(form, &p);
@@ -372,8 +375,8 @@ impl SelfContact {
             let start = vertices.iter().map(|&(v, wv)| point(x, v) * wv).sum();
             pairs.push(crate::FrictionPair {
                 vertices,
-                obstacle: first + mesh,
-                limit: mu[mesh] * force,
+                obstacle: first + obstacle,
+                limit: coefficient * force,
                 basis: crate::friction::tangent_basis(&(gap / d)),
                 start,
             });

@@ -4,6 +4,7 @@
 use deform_contact::{Barrier, ContactError, ContactHessian, ContactModel, Obstacle, STEP_MARGIN};
 use nalgebra::{DMatrix, Vector3};
 use proptest::prelude::*;
+use proptest::test_runner::TestCaseError;
 
 fn model() -> ContactModel {
     let obstacles = vec![
@@ -163,7 +164,7 @@ proptest! {
         slide in proptest::collection::vec(-1.0f64..1.0, 12),
         far in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3 };
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
         let m = model().with_friction(&spec).unwrap();
         let start = positions(t);
         let dt = 0.01;
@@ -229,43 +230,108 @@ proptest! {
             .unwrap()
             .with_mesh_obstacles(faces.clone(), &start, vec![(fixed, faces)])
             .unwrap()
-            .with_friction(&deform_contact::FrictionSpec { mu: vec![0.4], velocity_threshold: 1e-3 })
+            .with_friction(&deform_contact::FrictionSpec { mu: vec![0.4], velocity_threshold: 1e-3, self_mu: None })
             .unwrap();
         let dt = 0.01;
         let lag = m.lag_friction(&start, dt);
         prop_assert!(lag.pairs.iter().any(|p| p.vertices.len() > 1), "{:?}", lag.pairs.len());
         let scale = if far { 1e-3 } else { 1e-5 };
         let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
-        let n = x.len();
-        let mut f = vec![0.0; n];
-        let mut blocks = ContactHessian::default();
-        m.add_friction(&lag, &x, Some(&mut f), Some(&mut blocks));
-        let mut hessian = DMatrix::zeros(n, n);
-        for (v, b) in &blocks.vertex {
-            let mut view = hessian.view_mut((3 * v, 3 * v), (3, 3));
-            view += b;
+        friction_matches_differences(&m, &lag, &x, 1e-4 * scale.min(1e-3 * dt))?;
+    }
+}
+
+/// `m`'s friction of `lag` at `x` against central differences of step `h`: forces are minus
+/// the potential's gradient, the blocks (vertex and coupling) its symmetric Hessian; the
+/// forces.
+fn friction_matches_differences(
+    m: &ContactModel,
+    lag: &deform_contact::FrictionLag,
+    x: &[f64],
+    h: f64,
+) -> Result<Vec<f64>, TestCaseError> {
+    let n = x.len();
+    let mut f = vec![0.0; n];
+    let mut blocks = ContactHessian::default();
+    m.add_friction(lag, x, Some(&mut f), Some(&mut blocks));
+    let mut hessian = DMatrix::zeros(n, n);
+    for (v, b) in &blocks.vertex {
+        let mut view = hessian.view_mut((3 * v, 3 * v), (3, 3));
+        view += b;
+    }
+    for (a, b, m) in &blocks.coupling {
+        let mut view = hessian.view_mut((3 * a, 3 * b), (3, 3));
+        view += m;
+    }
+    prop_assert!((&hessian - hessian.transpose()).amax() <= 1e-9 * hessian.amax());
+    let energy = |y: &[f64]| m.add_friction(lag, y, None, None);
+    for i in 0..n {
+        let (mut a, mut b) = (x.to_vec(), x.to_vec());
+        a[i] += h;
+        b[i] -= h;
+        let g = -(energy(&a) - energy(&b)) / (2.0 * h);
+        prop_assert!(
+            (g - f[i]).abs() <= 1e-5 * (1.0 + f[i].abs()),
+            "force {i}: {g} {}",
+            f[i]
+        );
+        let (mut fa, mut fb) = (vec![0.0; n], vec![0.0; n]);
+        m.add_friction(lag, &a, Some(&mut fa), None);
+        m.add_friction(lag, &b, Some(&mut fb), None);
+        for j in 0..n {
+            let d = -(fa[j] - fb[j]) / (2.0 * h);
+            prop_assert!(
+                (d - hessian[(j, i)]).abs() <= 1e-3 * hessian.amax().max(1e-12),
+                "hessian ({j}, {i}): {d} {}",
+                hessian[(j, i)]
+            );
         }
-        for (a, b, m) in &blocks.coupling {
-            let mut view = hessian.view_mut((3 * a, 3 * b), (3, 3));
-            view += m;
+    }
+    Ok(f)
+}
+
+proptest! {
+    /// Friction between two parts of the body's own surface (the mesh test's two
+    /// tetrahedra, both the body's, apart at rest): forces and blocks match differences
+    /// on all eight vertices, and the pair's forces sum to zero (momentum is kept).
+    #[test]
+    fn self_friction_matches_differences(
+        jitter in proptest::array::uniform12(-0.003f64..0.003),
+        slide in proptest::collection::vec(-1.0f64..1.0, 24),
+        far in proptest::bool::ANY,
+    ) {
+        let tet = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]];
+        let faces: Vec<[usize; 3]> = tet.iter().chain(&tet.map(|t| t.map(|v| v + 4))).copied().collect();
+        let lower = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0];
+        let mut start = vec![0.5, -0.3, 0.03, 0.5, 0.3, 0.03, 0.9, 0.0, 0.7, 0.1, 0.1, 0.8];
+        for (x, j) in start.iter_mut().zip(jitter) {
+            *x += j;
         }
-        prop_assert!((&hessian - hessian.transpose()).amax() <= 1e-9 * hessian.amax());
-        let h = 1e-4 * scale.min(1e-3 * dt);
-        let energy = |y: &[f64]| m.add_friction(&lag, y, None, None);
-        for i in 0..n {
-            let (mut a, mut b) = (x.clone(), x.clone());
-            a[i] += h;
-            b[i] -= h;
-            let g = -(energy(&a) - energy(&b)) / (2.0 * h);
-            prop_assert!((g - f[i]).abs() <= 1e-5 * (1.0 + f[i].abs()), "force {i}: {g} {}", f[i]);
-            let (mut fa, mut fb) = (vec![0.0; n], vec![0.0; n]);
-            m.add_friction(&lag, &a, Some(&mut fa), None);
-            m.add_friction(&lag, &b, Some(&mut fb), None);
-            for j in 0..n {
-                let d = -(fa[j] - fb[j]) / (2.0 * h);
-                prop_assert!((d - hessian[(j, i)]).abs() <= 1e-3 * hessian.amax().max(1e-12),
-                    "hessian ({j}, {i}): {d} {}", hessian[(j, i)]);
-            }
+        start.extend(lower);
+        // At rest the upper tetrahedron is far above: self-contact refuses primitives
+        // closer than dhat at rest.
+        let rest: Vec<f64> = start.iter().enumerate().map(|(i, x)| x + if i < 12 && i % 3 == 2 { 10.0 } else { 0.0 }).collect();
+        let barrier = Barrier { dhat: 0.1, kappa: 10.0 };
+        let spec = deform_contact::FrictionSpec { mu: vec![], velocity_threshold: 1e-3, self_mu: Some(0.4) };
+        let m = ContactModel::new(vec![], barrier, (0..8).collect())
+            .unwrap()
+            .with_self_contact(faces, &rest)
+            .unwrap()
+            .with_friction(&spec)
+            .unwrap();
+        prop_assert_eq!(m.frictional(), 1);
+        let dt = 0.01;
+        let lag = m.lag_friction(&start, dt);
+        prop_assert!(lag.pairs.iter().any(|p| p.vertices.len() > 2), "{:?}", lag.pairs.len());
+        prop_assert!(lag.pairs.iter().all(|p| p.obstacle == 0));
+        let scale = if far { 1e-3 } else { 1e-5 };
+        let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
+        let f = friction_matches_differences(&m, &lag, &x, 1e-4 * scale.min(1e-3 * dt))?;
+        let size = f.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        prop_assert!(size > 0.0);
+        for k in 0..3 {
+            let total: f64 = f.iter().skip(k).step_by(3).sum();
+            prop_assert!(total.abs() <= 1e-12 * size, "net force {k}: {total}");
         }
     }
 }

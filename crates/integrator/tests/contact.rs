@@ -298,6 +298,7 @@ fn incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
         friction: Some(deform_integrator::FrictionSpec {
             mu: vec![mu],
             velocity_threshold: 1e-3,
+            self_mu: None,
         }),
         ..Default::default()
     };
@@ -405,6 +406,7 @@ fn friction_on_a_mesh_incline_slides_or_sticks_as_coulomb_says() {
         friction: Some(deform_integrator::FrictionSpec {
             mu: vec![mu],
             velocity_threshold: 1e-3,
+            self_mu: None,
         }),
         ..Default::default()
     };

@@ -124,6 +124,7 @@ fn a_sliding_ground_drags_a_cube_along_by_friction() {
         friction: Some(FrictionSpec {
             mu: vec![0.5],
             velocity_threshold: 1e-3,
+            self_mu: None,
         }),
         ..Default::default()
     };

@@ -572,6 +572,7 @@ impl ContactForces {
                 let spec = deform_integrator::FrictionSpec {
                     mu: vec![1.0],
                     velocity_threshold: eps,
+                    self_mu: None,
                 };
                 let frictionless = unit.without_friction();
                 let friction = frictionless.clone().with_friction(&spec).map_err(invalid)?;

@@ -88,8 +88,10 @@ pub struct ContactParameters {
     /// The barrier's stiffness (N/m): the scene's, stage 1's.
     pub kappa: (f64, Option<f64>),
     /// Each obstacle's coefficient of friction: the scene's (0 without friction), stage
-    /// 1's.
+    /// 1's; the analytic obstacles, the mesh obstacles, then the body's own surface.
     pub friction: Vec<(f64, Option<f64>)>,
+    /// Whether the last coefficient is the body's own surface's (self-contact).
+    pub self_contact: bool,
 }
 
 impl ContactParameters {
@@ -106,6 +108,7 @@ impl ContactParameters {
             friction: (0..model.frictional())
                 .map(|i| (scene_mu(i), fitted_mu(i)))
                 .collect(),
+            self_contact: model.self_contact_surface().is_some(),
         })
     }
 }
