@@ -1683,6 +1683,88 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
     assert!(without.relative_residual > 10.0 * fit.relative_residual.max(1e-12));
 }
 
+/// A cube on a clamped slab of the same mesh (read from a `.msh`), gravity tilted by 30
+/// degrees, self-contact with friction between the two: the equation error has a column for
+/// the body's own surface's coefficient and recovers it with the Lame pair and the barrier.
+#[test]
+fn equation_error_fits_self_contact_friction() {
+    let grid = |cells, size, origin| {
+        deform_mesh::generate::BoxGrid {
+            cells,
+            size,
+            origin,
+            split: Default::default(),
+        }
+        .build()
+        .unwrap()
+    };
+    let slab = grid([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]);
+    let cube = grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 2e-3]);
+    let n = slab.num_vertices();
+    let rest = [slab.rest_positions(), cube.rest_positions()].concat();
+    let tets = (slab.tets().iter().copied())
+        .chain(cube.tets().iter().map(|t| t.map(|v| v + n)))
+        .collect();
+    let mesh = deform_mesh::TetMesh::try_new(rest, tets).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("slab_and_cube.msh");
+    deform_mesh::io::write(&file, &mesh).unwrap();
+    let text = format!(
+        r#"Scene(
+        name: "slab",
+        mesh: File({:?}),
+        material: NeoHookean(Young(e: 1e5, nu: 0.4)),
+        density: 1000.0,
+        constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, -1.0)))],
+        contact: Some((obstacles: [], self_contact: true, friction: Some((mu: [], self_mu: Some(0.3))))),
+        integrator: (dt: 0.005, gravity: (4.905, 0.0, -8.4957), newton: (rel: 1e-11, abs: 1e-13)),
+        steps: 1,
+    )"#,
+        file.display().to_string()
+    );
+    let truth: Scene = ron::from_str(&text).unwrap();
+    let data = generate(
+        &truth,
+        Path::new("test"),
+        &DatasetSpec {
+            variations: Variations {
+                speed: 0.2,
+                spin: 0.0,
+                stretch: 0.0,
+                rest: false,
+            },
+            split: (1.0, 0.0),
+            ..DatasetSpec::new(2, 40, 7)
+        },
+        |_, _| {},
+    )
+    .unwrap();
+    let mut guess = truth.clone();
+    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
+    guess.contact.as_mut().unwrap().friction = None;
+    let sim = guess.build(Path::new("test")).unwrap().integrator;
+    let options = EquationErrorOptions {
+        friction: true,
+        ..Default::default()
+    };
+    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
+    let lame = lame_of(&fit, 0).unwrap();
+    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
+    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
+    assert!(
+        relative(lame.lambda, lambda) < 0.01,
+        "lambda {} against {lambda}",
+        lame.lambda
+    );
+    // One frictional "obstacle": the body's own surface.
+    assert_eq!(fit.friction.len(), 1);
+    assert!(
+        relative(fit.friction[0], 0.3) < 0.01,
+        "friction {:?}",
+        fit.friction
+    );
+}
+
 /// A cube dropped onto a spike, a triangle-mesh obstacle read from an `.obj` file: the
 /// equation error has the mesh's contact forces (its pairs with the cube's surface) in its
 /// barrier column, so it recovers the Lame pair and the barrier's stiffness.
