@@ -413,7 +413,8 @@ fn equation_error(
                 *bi -= dt * gi;
             }
             if let Some(c) = &contact {
-                c.add(x0, x1, dt, &mut rows, (free, first_mu))
+                let t0 = t.start_time + step as f64 * dt;
+                c.add((t0, x0), x1, dt, &mut rows, (free, first_mu))
                     .map_err(|reason| FitError::Data {
                         index: ti,
                         reason: format!("step {}: {reason}", step + 1),
@@ -553,14 +554,6 @@ impl ContactForces {
                 false => Ok(None),
             };
         };
-        if !model.motions().is_empty() {
-            // The columns would need each step's obstacle poses, which the data's steps do
-            // not carry yet: refused rather than fitted against obstacles in the wrong place.
-            return Err(FitError::Invalid(
-                "contact.motions: fits of scenes with moving obstacles are not supported yet"
-                    .into(),
-            ));
-        }
         let invalid = |e: deform_integrator::ContactError| FitError::Invalid(e.to_string());
         // The scene's whole potential (obstacles, mesh obstacles, self-contact, friction) at
         // unit stiffness.
@@ -592,20 +585,21 @@ impl ContactForces {
     /// friction at unit `mu` and `kappa`, lagged at `x0`.
     fn add(
         &self,
-        x0: &[f64],
+        (t0, x0): (f64, &[f64]),
         x1: &[f64],
         dt: f64,
         rows: &mut [Vec<(usize, f64)>],
         (free, first): (&[usize], usize),
     ) -> Result<(), String> {
+        let placed = |m| placed_for_step(m, t0, t0 + dt);
+        let barrier = placed(&self.barrier);
         let mut columns = vec![vec![0.0; x1.len()]];
-        self.barrier
+        barrier
             .evaluate(x1, Some(&mut columns[0]), None)
             .map_err(|e| e.to_string())?;
-        let lag = self.barrier.lag_friction(x0, dt);
-        self.barrier
-            .add_friction(&lag, x1, Some(&mut columns[0]), None);
-        if let Some(friction) = &self.friction {
+        let lag = barrier.lag_friction(x0, dt);
+        barrier.add_friction(&lag, x1, Some(&mut columns[0]), None);
+        if let Some(friction) = self.friction.as_ref().map(placed) {
             let lag = friction.lag_friction(x0, dt);
             for o in 0..friction.frictional() {
                 let part = deform_integrator::FrictionLag {
@@ -631,6 +625,22 @@ impl ContactForces {
         }
         Ok(())
     }
+}
+
+/// `m` with its moving obstacles where the integrator had them for the step from `t0` to
+/// `t1`: at its end, their friction lagged where they were at its start (`m` itself when
+/// nothing moves).
+fn placed_for_step(
+    m: &deform_integrator::ContactModel,
+    t0: f64,
+    t1: f64,
+) -> std::borrow::Cow<'_, deform_integrator::ContactModel> {
+    if m.motions().is_empty() {
+        return std::borrow::Cow::Borrowed(m);
+    }
+    let mut m = m.clone();
+    m.set_step(t0, t1);
+    std::borrow::Cow::Owned(m)
 }
 
 /// Solves the SPD system `G y = h` (Cholesky, or `None` if singular).
