@@ -376,8 +376,30 @@ pub fn run(
         Stage::Policies,
         (cases.len() * (contenders.len() * repeats + 1)) as u64,
     );
+    let reports = measure_cases(&cases, &contenders, &learned, (*weights, repeats), observer)?;
+    observer.finish();
+    Ok(SelectSolverReport {
+        candidates: candidates.clone(),
+        weights: *weights,
+        repeats,
+        logged: logged.len(),
+        training_trajectories: train,
+        also_train: also_train.len(),
+        tuning,
+        cases: reports,
+    })
+}
+
+/// Every contender on every case (`repeats` timed runs each, side by side on small
+/// problems; see [`measure_all`]), one progress tick per reference and per run.
+fn measure_cases(
+    cases: &[Case<'_>],
+    contenders: &[Contender],
+    learned: &LearnedPolicy,
+    (weights, repeats): (WorkWeights, usize),
+    observer: &mut dyn ExperimentObserver,
+) -> Result<Vec<CaseReport>, LearnError> {
     let mut reports = Vec::new();
-    let learned = &learned;
     let policies: Vec<_> = contenders
         .iter()
         .map(|c| move || c.policy(learned))
@@ -396,14 +418,14 @@ pub fn run(
     let contestants: Vec<Contestant<'_>> = (policies.iter().zip(&settings))
         .map(|(make, options)| Contestant { make, options })
         .collect();
-    for case in &cases {
+    for case in cases {
         let references = case.references()?;
         observer.advance(1);
         let measured = measure_all(
             case,
             &references,
             &contestants,
-            *weights,
+            weights,
             repeats,
             &mut || observer.advance(1),
         )?;
@@ -418,17 +440,7 @@ pub fn run(
             rows,
         });
     }
-    observer.finish();
-    Ok(SelectSolverReport {
-        candidates: candidates.clone(),
-        weights: *weights,
-        repeats,
-        logged: logged.len(),
-        training_trajectories: train,
-        also_train: also_train.len(),
-        tuning,
-        cases: reports,
-    })
+    Ok(reports)
 }
 
 /// The baselines: every fixed candidate, the Eisenstat-Walker rule on the first iterative
