@@ -437,10 +437,9 @@ fn the_readme_contact_field_and_the_bundled_scene_parse() {
     let spec = spec.unwrap();
     assert_eq!((spec.obstacles.len(), spec.meshes.len()), (2, 1));
     assert_eq!(spec.motions.len(), 1);
-    assert_eq!(
-        spec.friction.unwrap().coefficients(3).unwrap(),
-        vec![0.5, 0.2, 0.4]
-    );
+    let friction = spec.friction.unwrap();
+    assert_eq!(friction.coefficients(3).unwrap(), vec![0.5, 0.2, 0.4]);
+    assert_eq!(friction.self_coefficient(), 0.3);
     let path = root.join("assets/scenes/torus_drop.ron");
     let scene = deform_integrator::Scene::load(&path).unwrap();
     let built = scene.build(&path).unwrap();
