@@ -51,8 +51,8 @@ pub use conditions::{Conditions, Load, LoadForce, LoadSpec};
 /// What building an [`Integrator`] takes, re-exported from the crates below.
 pub use deform_assembly::MaterialField;
 pub use deform_contact::{
-    Barrier, ContactError, ContactModel, ContactSpec, ContactSummary, FrictionLag, FrictionPair,
-    FrictionSpec, MeshObstacle, Obstacle, ObstacleMotion,
+    Barrier, ContactError, ContactHessian, ContactModel, ContactSpec, ContactSummary, FrictionLag,
+    FrictionPair, FrictionSpec, MeshObstacle, Obstacle, ObstacleMotion,
 };
 pub use deform_materials::{Lame, MaterialSpec, Model, Moduli};
 pub use deform_mesh::TetMesh;

@@ -260,12 +260,13 @@ pub enum FitError {
     Optimiser(String),
 }
 
-/// Fits do not model contact yet (its forces in the equation error, its Hessian in the
-/// adjoint): a scene with obstacles is refused rather than fitted without them.
-pub(crate) fn refuse_contact(sim: &Integrator) -> Result<(), FitError> {
-    match sim.contact() {
+/// The output-error adjoint has the barrier's Hessian but not yet friction's (whose lag
+/// also depends on the step's start): a scene with friction is refused rather than fitted
+/// with a wrong gradient.
+pub(crate) fn refuse_friction(sim: &Integrator) -> Result<(), FitError> {
+    match sim.contact().and_then(|c| c.friction()) {
         Some(_) => Err(FitError::Invalid(
-            "fits of scenes with contact are not supported yet: the fit would leave out the contact forces".into(),
+            "contact.friction: output-error fits through friction are not supported yet (through the barrier they are)".into(),
         )),
         None => Ok(()),
     }
@@ -630,7 +631,7 @@ impl ContactForces {
 /// `m` with its moving obstacles where the integrator had them for the step from `t0` to
 /// `t1`: at its end, their friction lagged where they were at its start (`m` itself when
 /// nothing moves).
-fn placed_for_step(
+pub(crate) fn placed_for_step(
     m: &deform_integrator::ContactModel,
     t0: f64,
     t1: f64,

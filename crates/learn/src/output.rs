@@ -255,7 +255,7 @@ impl<'a> OutputError<'a> {
         options: OutputErrorOptions,
         progress: impl FnMut(usize, f64) + 'a,
     ) -> Result<Self, FitError> {
-        crate::fit::refuse_contact(sim)?;
+        crate::fit::refuse_friction(sim)?;
         let MaterialField::Uniform(base) = sim.assembly().materials() else {
             return Err(FitError::Invalid(
                 "the output-error fit needs a uniform material".into(),
@@ -1084,6 +1084,25 @@ impl Adjoint {
                     &mut self.reduced,
                 )
                 .map_err(fail)?;
+            // The barrier's Hessian at the step's end, in Newton's matrix as the integrator
+            // puts it there (couplings of self-contact and mesh pairs on a wider pattern).
+            let contact = contact_hessian(sim, &r.states[k], next).map_err(|e| FitError::Data {
+                index: ti,
+                reason: format!("step {}: contact: {e}", start + k + 1),
+            })?;
+            let coupled = match &contact {
+                Some(h) => {
+                    self.reduced
+                        .add_vertex_blocks(dofs, &h.vertex, dt * dt)
+                        .map_err(fail)?;
+                    (!h.coupling.is_empty())
+                        .then(|| self.reduced.with_couplings(dofs, &h.coupling, dt * dt))
+                        .transpose()
+                        .map_err(fail)?
+                }
+                None => None,
+            };
+            let matrix = coupled.as_ref().unwrap_or(&self.reduced.matrix);
             // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
             let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
             let mut g_free = vec![0.0; dofs.num_free()];
@@ -1093,10 +1112,10 @@ impl Adjoint {
                 step: start + k,
                 source,
             };
-            solver.factorize(&self.reduced.matrix).map_err(solve_fail)?;
+            solver.factorize(matrix).map_err(solve_fail)?;
             let mut lambda_free = vec![0.0; g_free.len()];
             solver
-                .solve(&self.reduced.matrix, &g_free, &mut lambda_free)
+                .solve(matrix, &g_free, &mut lambda_free)
                 .map_err(solve_fail)?;
             let mut lambda = vec![0.0; n];
             dofs.scatter(&lambda_free, &mut lambda).map_err(fail)?;
@@ -1154,6 +1173,9 @@ impl Adjoint {
                     *k += gamma * h;
                 }
             }
+            if let Some(h) = &contact {
+                add_contact_product(h, &lambda, &mut k_lambda);
+            }
             let mut m_lambda = vec![0.0; n];
             sim.assembly()
                 .mass_apply(&self.mass, &lambda, &mut m_lambda)
@@ -1170,6 +1192,35 @@ impl Adjoint {
             }
         }
         Ok((adj_x, adj_v))
+    }
+}
+
+/// The contact potential's Hessian blocks at the end `to` of a step from `from` (moving
+/// obstacles where the integrator had them), or `None` without contact.
+fn contact_hessian(
+    sim: &Integrator,
+    from: &State,
+    to: &State,
+) -> Result<Option<deform_integrator::ContactHessian>, deform_integrator::ContactError> {
+    let Some(model) = sim.contact() else {
+        return Ok(None);
+    };
+    let model = crate::fit::placed_for_step(model, from.t, to.t);
+    let mut h = deform_integrator::ContactHessian::default();
+    model.evaluate(&to.x, None, Some(&mut h))?;
+    Ok(Some(h))
+}
+
+/// `y += H w` for the contact Hessian's blocks `h`.
+fn add_contact_product(h: &deform_integrator::ContactHessian, w: &[f64], y: &mut [f64]) {
+    let at = |v: usize| nalgebra::Vector3::new(w[3 * v], w[3 * v + 1], w[3 * v + 2]);
+    let blocks = (h.vertex.iter().map(|(v, b)| (*v, *v, b)))
+        .chain(h.coupling.iter().map(|(a, b, m)| (*a, *b, m)));
+    for (a, b, m) in blocks {
+        let p = m * at(b);
+        for d in 0..3 {
+            y[3 * a + d] += p[d];
+        }
     }
 }
 
