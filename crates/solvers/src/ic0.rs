@@ -194,22 +194,42 @@ fn factor_row(lower: &Rows, i: usize, out: &mut [f64]) -> Result<(), SolverError
 
 /// The factorisation in place on `lower` (A's lower triangle and shifted diagonal), level
 /// by level; a wide level's rows side by side into `buffer`, then written back.
+///
+/// A failed pivot is reported as the row-by-row algorithm would: the lowest failing row.
+/// The rows below it do not depend on it, so after a failure the levels go on with the
+/// lower rows only, and the report does not depend on the schedule (nor on the threads).
 fn factorise(
     schedule: &[usize],
     levels: &[usize],
     lower: &mut Rows,
     buffer: &mut Vec<f64>,
 ) -> Result<(), SolverError> {
-    let mut row = Vec::new();
-    let mut starts = Vec::new();
+    let (mut row, mut starts, mut kept) = (Vec::new(), Vec::new(), Vec::new());
+    let mut failed: Option<(usize, SolverError)> = None;
     for level in levels.windows(2) {
-        let rows = &schedule[level[0]..level[1]];
+        let mut rows = &schedule[level[0]..level[1]];
+        if let Some((first, _)) = &failed {
+            kept.clear();
+            kept.extend(rows.iter().copied().filter(|i| i < first));
+            rows = &kept;
+        }
+        let lowest = |errors: Vec<(usize, SolverError)>, failed: &mut Option<_>| {
+            for (i, e) in errors {
+                if failed.as_ref().is_none_or(|(f, _)| i < *f) {
+                    *failed = Some((i, e));
+                }
+            }
+        };
         if rows.len() < PARALLEL_MIN_ROWS {
             for &i in rows {
                 row.resize(lower.range(i).len(), 0.0);
-                factor_row(lower, i, &mut row)?;
-                let k = lower.range(i);
-                lower.data[k].copy_from_slice(&row);
+                match factor_row(lower, i, &mut row) {
+                    Ok(()) => {
+                        let k = lower.range(i);
+                        lower.data[k].copy_from_slice(&row);
+                    }
+                    Err(e) => lowest(vec![(i, e)], &mut failed),
+                }
             }
             continue;
         }
@@ -221,17 +241,17 @@ fn factorise(
         buffer.resize(starts[rows.len()], 0.0);
         let read: &Rows = lower;
         let outs = rows_mut(&mut buffer[..starts[rows.len()]], &starts);
-        let results: Vec<Result<(), SolverError>> = (outs.into_par_iter().zip(rows.par_iter()))
+        let errors: Vec<(usize, SolverError)> = (outs.into_par_iter().zip(rows.par_iter()))
             .with_min_len(ROWS_PER_TASK)
-            .map(|(out, &i)| factor_row(read, i, out))
+            .filter_map(|(out, &i)| factor_row(read, i, out).err().map(|e| (i, e)))
             .collect();
-        results.into_iter().collect::<Result<(), _>>()?;
+        lowest(errors, &mut failed);
         for (t, &i) in rows.iter().enumerate() {
             let k = lower.range(i);
             lower.data[k].copy_from_slice(&buffer[starts[t]..starts[t + 1]]);
         }
     }
-    Ok(())
+    failed.map_or(Ok(()), |(_, e)| Err(e))
 }
 
 /// `data` split into its rows by `indptr` (which starts at 0).
@@ -430,7 +450,35 @@ mod tests {
         dv[k] = -1.0;
         assert!(matches!(
             Ic0::new(&ip, &ix, &dv, 0.0),
-            Err(SolverError::NotPositiveDefinite { .. })
+            Err(SolverError::NotPositiveDefinite { pivot: 20, .. })
         ));
+    }
+
+    /// Two failing pivots, the lower one in a later level than the higher one: the report
+    /// names the lower on any thread count, as the row-by-row algorithm does.
+    #[test]
+    fn the_lowest_failing_pivot_is_reported_on_any_thread_count() {
+        let m = 30;
+        let (ip, ix, mut dv) = grid(m, 0.0);
+        let id = |x: usize, y: usize, z: usize| (z * m + y) * m + x;
+        // A row's level is x + y + z: the lower row (899) is at level 58, the higher
+        // (930) at level 2, so the level schedule meets the higher one first.
+        let (low, high) = (id(29, 29, 0), id(0, 1, 1));
+        assert!(low < high);
+        for i in [low, high] {
+            let k = (ip[i]..ip[i + 1]).find(|&k| ix[k] == i).unwrap();
+            dv[k] = -1.0;
+        }
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let result = pool.install(|| Ic0::new(&ip, &ix, &dv, 0.0));
+            assert!(
+                matches!(result, Err(SolverError::NotPositiveDefinite { pivot, .. }) if pivot == low),
+                "{threads} threads: {result:?}"
+            );
+        }
     }
 }
