@@ -1043,6 +1043,33 @@ impl Adjoint {
         Ok(())
     }
 
+    /// The barrier's Hessian at the end `to` of the step from `from`, added to the reduced
+    /// matrix as the integrator adds it to Newton's (`dt^2` times its blocks): the vertex
+    /// blocks in place, the couplings of self-contact and mesh pairs into a new matrix on
+    /// the wider pattern (returned). Nothing without contact.
+    fn add_contact(
+        &mut self,
+        sim: &Integrator,
+        (from, to): (&State, &State),
+        dt: f64,
+    ) -> Result<ContactTerms, String> {
+        let h = match contact_hessian(sim, from, to) {
+            Ok(Some(h)) => h,
+            Ok(None) => return Ok((None, None)),
+            Err(e) => return Err(format!("contact: {e}")),
+        };
+        let dofs = sim.dofs();
+        let text = |e: deform_assembly::AssemblyError| e.to_string();
+        self.reduced
+            .add_vertex_blocks(dofs, &h.vertex, dt * dt)
+            .map_err(text)?;
+        let coupled = (!h.coupling.is_empty())
+            .then(|| self.reduced.with_couplings(dofs, &h.coupling, dt * dt))
+            .transpose()
+            .map_err(text)?;
+        Ok((Some(h), coupled))
+    }
+
     /// Backward (adjoint) through the rollout's steps, see the module docs; adds
     /// `dL/dc` to `grad` and returns the adjoints `dL/dx`, `dL/dv` of the start state (zero
     /// on constrained DOFs).
@@ -1084,24 +1111,12 @@ impl Adjoint {
                     &mut self.reduced,
                 )
                 .map_err(fail)?;
-            // The barrier's Hessian at the step's end, in Newton's matrix as the integrator
-            // puts it there (couplings of self-contact and mesh pairs on a wider pattern).
-            let contact = contact_hessian(sim, &r.states[k], next).map_err(|e| FitError::Data {
-                index: ti,
-                reason: format!("step {}: contact: {e}", start + k + 1),
-            })?;
-            let coupled = match &contact {
-                Some(h) => {
-                    self.reduced
-                        .add_vertex_blocks(dofs, &h.vertex, dt * dt)
-                        .map_err(fail)?;
-                    (!h.coupling.is_empty())
-                        .then(|| self.reduced.with_couplings(dofs, &h.coupling, dt * dt))
-                        .transpose()
-                        .map_err(fail)?
-                }
-                None => None,
-            };
+            let (contact, coupled) =
+                self.add_contact(sim, (&r.states[k], next), dt)
+                    .map_err(|reason| FitError::Data {
+                        index: ti,
+                        reason: format!("step {}: {reason}", start + k + 1),
+                    })?;
             let matrix = coupled.as_ref().unwrap_or(&self.reduced.matrix);
             // g = dL/dv_{k+1} in total: its own term plus the path through x_{k+1}.
             let g: Vec<f64> = (0..n).map(|i| adj_v[i] + dt * adj_x[i]).collect();
@@ -1194,6 +1209,12 @@ impl Adjoint {
         Ok((adj_x, adj_v))
     }
 }
+
+/// A step's contact Hessian and, with couplings, the adjoint system on the wider pattern.
+type ContactTerms = (
+    Option<deform_integrator::ContactHessian>,
+    Option<sprs::CsMat<f64>>,
+);
 
 /// The contact potential's Hessian blocks at the end `to` of a step from `from` (moving
 /// obstacles where the integrator had them), or `None` without contact.
