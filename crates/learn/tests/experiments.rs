@@ -117,6 +117,33 @@ fn the_contact_fit_recovers_material_stiffness_and_friction() {
     );
 }
 
+/// The bundled coarse-step fit through contact runs its output-error stage (the adjoint
+/// through the barrier) on a bouncing cube: it lowers the loss, lands within 5 % of the
+/// moduli (the equation error at the coarse step is 15 % off) and rolls out as well as the
+/// true moduli do.
+#[test]
+fn the_coarse_step_fit_goes_through_contact() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../assets/experiments/coarse_dt_contact.ron");
+    let e = Experiment::load(&path).unwrap();
+    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
+        panic!("task")
+    };
+    let fit = r.output_error.as_ref().expect("the output-error stage ran");
+    assert!(
+        fit.loss < fit.initial_loss,
+        "{} -> {}",
+        fit.initial_loss,
+        fit.loss
+    );
+    assert!(
+        r.young_error() < 0.05 && r.poisson_error() < 0.05,
+        "{:?}",
+        r.rows
+    );
+    assert!(r.rollout_ratio() <= 1.01, "{}", r.rollout_ratio());
+}
+
 #[test]
 fn select_model_reports_the_recorded_figures() {
     let TaskReport::SelectModel(r) = report("select_model").task else {
