@@ -335,3 +335,33 @@ proptest! {
         }
     }
 }
+
+/// `self_mu` without self-contact, a negative one, and self-contact given after friction are
+/// refused, each naming its field.
+#[test]
+fn bad_self_contact_friction_is_refused_by_field() {
+    let spec = |self_mu| deform_contact::FrictionSpec {
+        mu: vec![0.3],
+        velocity_threshold: 1e-3,
+        self_mu,
+    };
+    let field = |e: ContactError| match e {
+        ContactError::Invalid { field, .. } => field,
+        other => panic!("{other:?}"),
+    };
+    let e = model().with_friction(&spec(Some(0.2))).err().unwrap();
+    assert_eq!(field(e), "friction.self_mu");
+    let e = model().with_friction(&spec(Some(-0.2))).err().unwrap();
+    assert_eq!(field(e), "friction.self_mu");
+    let far = [
+        0.0, 0.0, 10.0, 1.0, 0.0, 10.0, 0.0, 1.0, 10.0, 0.0, 0.0, 11.0,
+    ];
+    let faces = vec![[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]];
+    let e = model()
+        .with_friction(&spec(None))
+        .unwrap()
+        .with_self_contact(faces, &far)
+        .err()
+        .unwrap();
+    assert_eq!(field(e), "self_contact");
+}
