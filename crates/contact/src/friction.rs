@@ -236,6 +236,69 @@ impl ContactModel {
     }
 }
 
+impl ContactModel {
+    /// `out += (df/dx0)^T w`, with `f` the friction forces at `x1` lagged at `x0` by `lag`:
+    /// how they change with the step's start through the lag (normal force `-mu b'(d)`,
+    /// tangent plane, start point). The adjoint of a step needs it beside the Hessian in
+    /// `x1`. A pair's force is `-L phi(|q|) q` with `q = P (x1 - start)` and the tangent
+    /// projector `P = I - n n^T` (the basis enters only through `P`), so with `h = phi I +
+    /// phi'(|q|) q q^T / |q|` the three paths are `L h P` (the start point), `mu b''(d) phi
+    /// q n^T` (the normal force) and `-L h Q` with `Q = -((n . d) H + n (H d)^T)` (the
+    /// normal's turn, `H` the distance's Hessian, `d = x1 - start`).
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] for a pair against a mesh obstacle or the body's own
+    /// surface (whose lag also moves its closest points' weights): not supported yet.
+    pub fn add_friction_start_vjp(
+        &self,
+        lag: &FrictionLag,
+        (x0, x1): (&[f64], &[f64]),
+        w: &[f64],
+        out: &mut [f64],
+    ) -> Result<(), ContactError> {
+        let Some((mu, _)) = self.friction() else {
+            return Ok(());
+        };
+        let (b, eps) = (self.barrier(), lag.threshold);
+        let at = |x: &[f64], v: usize| Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
+        for pair in &lag.pairs {
+            let (&[(v, _)], true) = (
+                pair.vertices.as_slice(),
+                pair.obstacle < self.obstacles().len(),
+            ) else {
+                return Err(ContactError::Invalid {
+                    field: "friction".into(),
+                    reason: "the start derivative of friction against meshes or the body's own surface is not supported yet".into(),
+                });
+            };
+            let o = self.obstacles()[pair.obstacle].translated(&-self.shift(pair.obstacle));
+            let jet = o.jet(&at(x0, v));
+            let (n, hd) = (jet.gradient, jet.hessian);
+            let d = at(x1, v) - pair.start;
+            let p = Matrix3::identity() - n * n.transpose();
+            let q = p * d;
+            let s = q.norm();
+            let (phi, dphi) = if s >= eps {
+                (1.0 / s, -1.0 / (s * s))
+            } else {
+                (2.0 / eps - s / (eps * eps), -1.0 / (eps * eps))
+            };
+            let mut h = Matrix3::identity() * phi;
+            if s > 0.0 {
+                h += q * q.transpose() * (dphi / s);
+            }
+            let turn = -(hd * n.dot(&d) + n * (hd * d).transpose());
+            let normal = q * n.transpose() * (mu[pair.obstacle] * b.second(jet.distance) * phi);
+            let jacobian = h * (p - turn) * pair.limit + normal;
+            let y = jacobian.transpose() * at(w, v);
+            for k in 0..3 {
+                out[3 * v + k] += y[k];
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Two orthonormal vectors orthogonal to the unit vector `n`, as columns.
 pub(crate) fn tangent_basis(n: &Vector3<f64>) -> Matrix3x2<f64> {
     let helper = if n.x.abs() < 0.9 {

@@ -365,3 +365,50 @@ fn bad_self_contact_friction_is_refused_by_field() {
         .unwrap();
     assert_eq!(field(e), "self_contact");
 }
+
+proptest! {
+    /// The friction forces at `x1` lagged at `x0` change with `x0` as
+    /// `add_friction_start_vjp` says (against central differences of `w . f` in `x0`, the
+    /// lag recomputed): through the start points, the normal forces and, on the sphere,
+    /// the tangent planes' turn; below and above the smoothing threshold.
+    #[test]
+    fn friction_start_derivative_matches_differences(
+        t in proptest::array::uniform12(-1.0f64..1.0),
+        slide in proptest::collection::vec(-1.0f64..1.0, 12),
+        w in proptest::collection::vec(-1.0f64..1.0, 12),
+        far in proptest::bool::ANY,
+    ) {
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
+        let m = model().with_friction(&spec).unwrap();
+        let x0 = positions(t);
+        let dt = 0.01;
+        let scale = if far { 1e-3 } else { 1e-5 };
+        let x1: Vec<f64> = x0.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();
+        let lag = m.lag_friction(&x0, dt);
+        prop_assert!(lag.pairs.len() >= 3);
+        // Away from the smoothing's kinks, where differences are not derivatives: at eps
+        // (f0 is C^1 there) and at no slip (the force has a |u| u term).
+        for p in &lag.pairs {
+            let v = p.vertices[0].0;
+            let slip = p.basis.transpose() * (Vector3::new(x1[3 * v], x1[3 * v + 1], x1[3 * v + 2]) - p.start);
+            let r = slip.norm() / lag.threshold;
+            prop_assume!(r > 0.1 && (r - 1.0).abs() > 0.01);
+        }
+        let mut vjp = vec![0.0; x0.len()];
+        m.add_friction_start_vjp(&lag, (&x0, &x1), &w, &mut vjp).unwrap();
+        let g = |y0: &[f64]| {
+            let mut f = vec![0.0; y0.len()];
+            m.add_friction(&m.lag_friction(y0, dt), &x1, Some(&mut f), None);
+            f.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let h = 1e-9;
+        for i in 0..x0.len() {
+            let (mut a, mut b) = (x0.clone(), x0.clone());
+            a[i] += h;
+            b[i] -= h;
+            let fd = (g(&a) - g(&b)) / (2.0 * h);
+            prop_assert!((fd - vjp[i]).abs() <= 1e-4 + 1e-5 * fd.abs(),
+                "{i}: differences {fd}, derivative {}", vjp[i]);
+        }
+    }
+}
