@@ -1043,23 +1043,25 @@ impl Adjoint {
         Ok(())
     }
 
-    /// The barrier's Hessian at the end `to` of the step from `from`, added to the reduced
-    /// matrix as the integrator adds it to Newton's (`dt^2` times its blocks): the vertex
-    /// blocks in place, the couplings of self-contact and mesh pairs into a new matrix on
-    /// the wider pattern (returned). Nothing without contact.
-    fn add_contact(
+    /// The contact potential's Hessian at the end `to` of the step from `from` (the barrier's
+    /// and friction's, lagged at `from`), added to the reduced matrix as the integrator adds
+    /// it to Newton's (`dt^2` times its blocks): the vertex blocks in place, the couplings of
+    /// self-contact and mesh pairs into a new matrix on the wider pattern (returned).
+    /// Nothing without contact.
+    fn add_contact<'s>(
         &mut self,
-        sim: &Integrator,
+        sim: &'s Integrator,
         (from, to): (&State, &State),
         dt: f64,
-    ) -> Result<ContactTerms, String> {
-        let h = match contact_hessian(sim, from, to) {
-            Ok(Some(h)) => h,
+    ) -> Result<ContactTerms<'s>, String> {
+        let c = match step_contact(sim, (from, to), dt) {
+            Ok(Some(c)) => c,
             Ok(None) => return Ok((None, None)),
             Err(e) => return Err(format!("contact: {e}")),
         };
         let dofs = sim.dofs();
         let text = |e: deform_assembly::AssemblyError| e.to_string();
+        let h = &c.hessian;
         self.reduced
             .add_vertex_blocks(dofs, &h.vertex, dt * dt)
             .map_err(text)?;
@@ -1067,7 +1069,7 @@ impl Adjoint {
             .then(|| self.reduced.with_couplings(dofs, &h.coupling, dt * dt))
             .transpose()
             .map_err(text)?;
-        Ok((Some(h), coupled))
+        Ok((Some(c), coupled))
     }
 
     /// Backward (adjoint) through the rollout's steps, see the module docs; adds
@@ -1188,15 +1190,24 @@ impl Adjoint {
                     *k += gamma * h;
                 }
             }
-            if let Some(h) = &contact {
-                add_contact_product(h, &lambda, &mut k_lambda);
+            // Friction's lag makes the step's forces depend on its start as well.
+            let mut lag_term = vec![0.0; n];
+            if let Some(c) = &contact {
+                add_contact_product(&c.hessian, &lambda, &mut k_lambda);
+                let ends = (r.states[k].x.as_slice(), next.x.as_slice());
+                (c.model
+                    .add_friction_start_vjp(&c.lag, ends, &lambda, &mut lag_term))
+                .map_err(|e| FitError::Data {
+                    index: ti,
+                    reason: format!("step {}: contact: {e}", start + k + 1),
+                })?;
             }
             let mut m_lambda = vec![0.0; n];
             sim.assembly()
                 .mass_apply(&self.mass, &lambda, &mut m_lambda)
                 .map_err(fail)?;
             for i in 0..n {
-                adj_x[i] = r.dl_dx[k][i] + adj_x[i] - dt * k_lambda[i];
+                adj_x[i] = r.dl_dx[k][i] + adj_x[i] - dt * k_lambda[i] + dt * lag_term[i];
                 adj_v[i] = r.dl_dv[k][i] + m_lambda[i];
             }
             for v in sim.dofs().constrained_vertices() {
@@ -1210,26 +1221,37 @@ impl Adjoint {
     }
 }
 
-/// A step's contact Hessian and, with couplings, the adjoint system on the wider pattern.
-type ContactTerms = (
-    Option<deform_integrator::ContactHessian>,
-    Option<sprs::CsMat<f64>>,
-);
+/// A step's contact and, with couplings, the adjoint system on the wider pattern.
+type ContactTerms<'s> = (Option<StepContact<'s>>, Option<sprs::CsMat<f64>>);
 
-/// The contact potential's Hessian blocks at the end `to` of a step from `from` (moving
-/// obstacles where the integrator had them), or `None` without contact.
-fn contact_hessian(
-    sim: &Integrator,
-    from: &State,
-    to: &State,
-) -> Result<Option<deform_integrator::ContactHessian>, deform_integrator::ContactError> {
+/// The contact of one step of a rollout: the potential as the integrator placed it, the
+/// friction lagged at the step's start, the Hessian at its end.
+struct StepContact<'s> {
+    model: std::borrow::Cow<'s, deform_integrator::ContactModel>,
+    lag: deform_integrator::FrictionLag,
+    hessian: deform_integrator::ContactHessian,
+}
+
+/// [`StepContact`] of the step from `from` to `to` (moving obstacles where the integrator
+/// had them), or `None` without contact.
+fn step_contact<'s>(
+    sim: &'s Integrator,
+    (from, to): (&State, &State),
+    dt: f64,
+) -> Result<Option<StepContact<'s>>, deform_integrator::ContactError> {
     let Some(model) = sim.contact() else {
         return Ok(None);
     };
     let model = crate::fit::placed_for_step(model, from.t, to.t);
-    let mut h = deform_integrator::ContactHessian::default();
-    model.evaluate(&to.x, None, Some(&mut h))?;
-    Ok(Some(h))
+    let mut hessian = deform_integrator::ContactHessian::default();
+    model.evaluate(&to.x, None, Some(&mut hessian))?;
+    let lag = model.lag_friction(&from.x, dt);
+    model.add_friction(&lag, &to.x, None, Some(&mut hessian));
+    Ok(Some(StepContact {
+        model,
+        lag,
+        hessian,
+    }))
 }
 
 /// `y += H w` for the contact Hessian's blocks `h`.

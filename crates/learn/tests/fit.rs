@@ -475,22 +475,23 @@ fn output_error_gradient_equals_finite_differences() {
     }
 }
 
-/// A cube dropped on the ground (frictionless barrier contact): the output error's adjoint
-/// has the barrier's Hessian in its system (a plane's is exact, so nothing is projected)
-/// and its gradient matches differences of the loss over rollouts through the impact.
-/// Without it the gradient is off by far more than the tolerance.
-#[test]
-fn output_error_gradient_through_the_barrier_equals_finite_differences() {
-    let text = r#"Scene(
+/// A cube on the ground, thrown at random velocities: its output error's gradient through
+/// the contact matches differences of the loss over 12-step rollouts through the impacts,
+/// and the fit from 1.3x the coefficients comes back within 1 %. `contact` and `gravity`
+/// are the scene's fields.
+fn output_error_through_contact(contact: &str, gravity: &str) {
+    let text = format!(
+        r#"Scene(
         name: "drop",
         mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.001))),
         material: NeoHookean(Young(e: 1e5, nu: 0.4)),
         density: 1000.0,
-        contact: Some((obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))])),
-        integrator: (dt: 0.005, newton: (rel: 1e-12, abs: 1e-14)),
+        contact: Some({contact}),
+        integrator: (dt: 0.005, gravity: {gravity}, newton: (rel: 1e-12, abs: 1e-14)),
         steps: 1,
-    )"#;
-    let truth: Scene = ron::from_str(text).unwrap();
+    )"#
+    );
+    let truth: Scene = ron::from_str(&text).unwrap();
     let data = generate(
         &truth,
         Path::new("test"),
@@ -535,7 +536,6 @@ fn output_error_gradient_through_the_barrier_equals_finite_differences() {
             grad[j]
         );
     }
-    // And the fit through the impact finds the data's model from 1.3x its coefficients.
     let truth_c = objective.uniform_start();
     drop(objective);
     let fit =
@@ -549,10 +549,32 @@ fn output_error_gradient_through_the_barrier_equals_finite_differences() {
     }
 }
 
-/// Output-error fits through friction are refused by name (the adjoint does not have the
-/// lag's dependence on the step's start yet) rather than fitted with a wrong gradient.
+/// Through the barrier alone (a frictionless ground): the adjoint system has the barrier's
+/// Hessian (a plane's is exact, nothing is projected). Without it the gradient was 3.5x
+/// off.
 #[test]
-fn output_error_refuses_friction_by_name() {
+fn output_error_gradient_through_the_barrier_equals_finite_differences() {
+    output_error_through_contact(
+        "(obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))])",
+        "(0.0, 0.0, -9.81)",
+    );
+}
+
+/// Through friction too (mu 0.3, gravity tilted by 30 degrees, so the cube slides): the
+/// adjoint has friction's Hessian and the lag's dependence on each step's start.
+#[test]
+fn output_error_gradient_through_friction_equals_finite_differences() {
+    output_error_through_contact(
+        "(obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))], friction: Some((mu: [0.3])))",
+        "(4.905, 0.0, -8.4957)",
+    );
+}
+
+/// Output-error fits through friction against the body's own surface are refused by name
+/// (the adjoint does not have its lag's dependence on the step's start yet) rather than
+/// fitted with a wrong gradient.
+#[test]
+fn output_error_refuses_self_contact_friction_by_name() {
     let text = r#"Scene(
         name: "slide",
         mesh: Generate((cells: (1, 1, 1), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.001))),
@@ -560,6 +582,7 @@ fn output_error_refuses_friction_by_name() {
         density: 1000.0,
         contact: Some((
             obstacles: [Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, 1.0))],
+            self_contact: true,
             friction: Some((mu: [0.3])),
         )),
         steps: 1,
