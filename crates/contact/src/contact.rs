@@ -140,6 +140,17 @@ impl ContactHessian {
         self.vertex.is_empty() && self.coupling.is_empty()
     }
 
+    /// `y += scale H x`, over the vertex blocks and the blocks between vertices.
+    pub fn add_product(&self, scale: f64, x: &[f64], y: &mut [f64]) {
+        let coupled = self.coupling.iter().map(|(i, j, b)| (i, j, b));
+        for (i, j, b) in self.vertex.iter().map(|(v, b)| (v, v, b)).chain(coupled) {
+            let bx = b * nalgebra::Vector3::new(x[3 * j], x[3 * j + 1], x[3 * j + 2]) * scale;
+            for k in 0..3 {
+                y[3 * i + k] += bx[k];
+            }
+        }
+    }
+
     /// Adds the 12x12 Hessian `h` of a pair of primitives on `vertices`, block by block
     /// (blocks that are zero, and those of vertices from `movable` on, fixed obstacles', are
     /// left out).

@@ -3,7 +3,7 @@
 
 use deform_assembly::{Assembly, DofMap, ElementTangents, Mass};
 use deform_solvers::{LinearOperator, SolverError};
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Matrix3;
 
 /// `y = c_m M x + c_k K x` with `K x` from stored element tangents and the lumped (row-sum)
 /// mass, on all `3N` degrees of freedom: the Newton matrix of an unconstrained body, for
@@ -13,12 +13,8 @@ pub struct MatrixFreeNewton<'a> {
     masses: Vec<f64>,
     c_m: f64,
     c_k: f64,
-    /// Vertex blocks added to the operator (a potential on single vertices, such as
-    /// contact's Hessian) and their factor.
-    blocks: &'a [(usize, Matrix3<f64>)],
-    /// Blocks between two vertices (self-contact's Hessian), with the same factor.
-    couplings: &'a [(usize, usize, Matrix3<f64>)],
-    block_scale: f64,
+    /// Contact's Hessian added to the operator, and its factor.
+    contact: Option<(&'a deform_contact::ContactHessian, f64)>,
 }
 
 impl<'a> MatrixFreeNewton<'a> {
@@ -35,9 +31,7 @@ impl<'a> MatrixFreeNewton<'a> {
             masses: asm.vertex_masses(mass),
             c_m,
             c_k,
-            blocks: &[],
-            couplings: &[],
-            block_scale: 0.0,
+            contact: None,
         }
     }
 
@@ -48,10 +42,17 @@ impl<'a> MatrixFreeNewton<'a> {
         hessian: Option<&'a deform_contact::ContactHessian>,
         scale: f64,
     ) -> Self {
-        if let Some(h) = hessian {
-            (self.blocks, self.couplings, self.block_scale) = (&h.vertex, &h.coupling, scale);
-        }
+        self.contact = hessian.map(|h| (h, scale));
         self
+    }
+}
+
+impl MatrixFreeNewton<'_> {
+    /// Contact's vertex blocks with their factor.
+    fn vertex_blocks(&self) -> impl Iterator<Item = (usize, &Matrix3<f64>, f64)> {
+        let blocks = self.contact.map_or(&[][..], |(h, _)| &h.vertex[..]);
+        let scale = self.contact.map_or(0.0, |(_, s)| s);
+        blocks.iter().map(move |(v, b)| (*v, b, scale))
     }
 }
 
@@ -65,12 +66,8 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (i, yi) in y.iter_mut().enumerate() {
             *yi = self.c_k * *yi + self.c_m * self.masses[i / 3] * x[i];
         }
-        let coupled = self.couplings.iter().map(|(i, j, b)| (i, j, b));
-        for (i, j, b) in self.blocks.iter().map(|(v, b)| (v, v, b)).chain(coupled) {
-            let bx = b * Vector3::new(x[3 * j], x[3 * j + 1], x[3 * j + 2]) * self.block_scale;
-            for k in 0..3 {
-                y[3 * i + k] += bx[k];
-            }
+        if let Some((h, scale)) = self.contact {
+            h.add_product(scale, x, y);
         }
     }
 
@@ -79,9 +76,9 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (i, d) in out.iter_mut().enumerate() {
             *d = self.c_k * *d + self.c_m * self.masses[i / 3];
         }
-        for (v, b) in self.blocks {
+        for (v, b, scale) in self.vertex_blocks() {
             for k in 0..3 {
-                out[3 * v + k] += self.block_scale * b[(k, k)];
+                out[3 * v + k] += scale * b[(k, k)];
             }
         }
     }
@@ -91,8 +88,8 @@ impl LinearOperator for MatrixFreeNewton<'_> {
         for (b, m) in out.iter_mut().zip(&self.masses) {
             *b = *b * self.c_k + Matrix3::identity() * (self.c_m * m);
         }
-        for (v, b) in self.blocks {
-            out[*v] += b * self.block_scale;
+        for (v, b, scale) in self.vertex_blocks() {
+            out[v] += b * scale;
         }
         Ok(())
     }
@@ -100,7 +97,9 @@ impl LinearOperator for MatrixFreeNewton<'_> {
     fn apply_flops(&self) -> u64 {
         self.tangents.apply_flops()
             + 3 * self.nrows() as u64
-            + 18 * (self.blocks.len() + self.couplings.len()) as u64
+            + self
+                .contact
+                .map_or(0, |(h, _)| 18 * (h.vertex.len() + h.coupling.len()) as u64)
     }
 }
 

@@ -20,26 +20,22 @@ use nalgebra::Vector3;
 /// upper one `gap` above it and shifted by 3 cm in x and y, so that corners and edges meet
 /// faces and edges.
 fn stack(gap: f64) -> TetMesh {
-    let cube = |origin: [f64; 3]| {
-        BoxGrid {
-            cells: [2, 2, 2],
-            size: [0.1, 0.1, 0.1],
-            origin,
-            split: Default::default(),
-        }
-        .build()
+    deform_mesh::generate::boxes(&[cube([0.0, 0.0, 1e-3]), cube([0.03, 0.03, 0.101 + gap])])
         .unwrap()
-    };
-    let (a, b) = (cube([0.0, 0.0, 1e-3]), cube([0.03, 0.03, 0.101 + gap]));
-    let n = a.num_vertices();
-    let rest = [a.rest_positions(), b.rest_positions()].concat();
-    let tets = a
-        .tets()
-        .iter()
-        .copied()
-        .chain(b.tets().iter().map(|t| t.map(|v| v + n)))
-        .collect();
-    TetMesh::try_new(rest, tets).unwrap()
+}
+
+/// A 10 cm box of 2 x 2 x 2 cells at `origin`.
+fn cube(origin: [f64; 3]) -> BoxGrid {
+    box_grid([2, 2, 2], [0.1; 3], origin)
+}
+
+fn box_grid(cells: [usize; 3], size: [f64; 3], origin: [f64; 3]) -> BoxGrid {
+    BoxGrid {
+        cells,
+        size,
+        origin,
+        split: Default::default(),
+    }
 }
 
 fn sim(mesh: &TetMesh, policy: &str) -> Integrator {
@@ -203,24 +199,9 @@ fn surfaces_closer_than_dhat_at_rest_are_refused_by_name() {
 /// with gravity tilted by 30 degrees, released: how far the cube's centre of mass travels
 /// in `steps` steps with self-contact friction `mu`, and how far Coulomb says.
 fn slab_incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
-    let box_grid = |cells, size, origin| {
-        BoxGrid {
-            cells,
-            size,
-            origin,
-            split: Default::default(),
-        }
-        .build()
-        .unwrap()
-    };
     let slab = box_grid([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]);
-    let cube = box_grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 2e-3]);
-    let n = slab.num_vertices();
-    let rest = [slab.rest_positions(), cube.rest_positions()].concat();
-    let tets = (slab.tets().iter().copied())
-        .chain(cube.tets().iter().map(|t| t.map(|v| v + n)))
-        .collect();
-    let mesh = TetMesh::try_new(rest, tets).unwrap();
+    let n = slab.build().unwrap().num_vertices();
+    let mesh = deform_mesh::generate::boxes(&[slab, cube([0.0, 0.0, 2e-3])]).unwrap();
     let model = ron::from_str::<MaterialSpec>("NeoHookean(Young(e: 1e6, nu: 0.4))")
         .unwrap()
         .build()

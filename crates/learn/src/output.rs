@@ -1193,7 +1193,7 @@ impl Adjoint {
             // Friction's lag makes the step's forces depend on its start as well.
             let mut lag_term = vec![0.0; n];
             if let Some(c) = &contact {
-                add_contact_product(&c.hessian, &lambda, &mut k_lambda);
+                c.hessian.add_product(1.0, &lambda, &mut k_lambda);
                 let ends = (r.states[k].x.as_slice(), next.x.as_slice());
                 (c.model
                     .add_friction_start_vjp(&c.lag, ends, &lambda, &mut lag_term))
@@ -1252,19 +1252,6 @@ fn step_contact<'s>(
         lag,
         hessian,
     }))
-}
-
-/// `y += H w` for the contact Hessian's blocks `h`.
-fn add_contact_product(h: &deform_integrator::ContactHessian, w: &[f64], y: &mut [f64]) {
-    let at = |v: usize| nalgebra::Vector3::new(w[3 * v], w[3 * v + 1], w[3 * v + 2]);
-    let blocks = (h.vertex.iter().map(|(v, b)| (*v, *v, b)))
-        .chain(h.coupling.iter().map(|(a, b, m)| (*a, *b, m)));
-    for (a, b, m) in blocks {
-        let p = m * at(b);
-        for d in 0..3 {
-            y[3 * a + d] += p[d];
-        }
-    }
 }
 
 /// The term coefficients of a material model ([`Model::term_coefficients`]).

@@ -1728,6 +1728,55 @@ fn an_ensemble_leaves_out_models_the_data_leave_undefined() {
 
 /// A cube dropped on an incline (the ground, gravity tilted 30 degrees) with friction, from
 /// random initial velocities: the equation error recovers the Lame pair and the coefficient
+/// `trajectories` x `steps` of the contact scene `truth`, thrown at random velocities of
+/// `speed` (all for training).
+fn contact_data(truth: &Scene, speed: f64, steps: usize) -> Dataset {
+    let spec = DatasetSpec {
+        variations: Variations {
+            speed,
+            spin: 0.0,
+            stretch: 0.0,
+            rest: false,
+        },
+        split: (1.0, 0.0),
+        ..DatasetSpec::new(2, steps, 7)
+    };
+    generate(truth, Path::new("test"), &spec, |_, _| {}).unwrap()
+}
+
+/// The equation error of `data` from other moduli (E 3e5, nu 0.3) and, when `friction` is
+/// fitted, without the scene's friction: the Lame pair within 1 % of the truth's (E 1e5,
+/// nu 0.4). The fit and the model it started from.
+fn fit_contact_moduli(
+    truth: &Scene,
+    data: &Dataset,
+    friction: bool,
+) -> (
+    deform_learn::EquationErrorFit,
+    deform_integrator::Integrator,
+) {
+    let mut guess = truth.clone();
+    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
+    if friction {
+        guess.contact.as_mut().unwrap().friction = None;
+    }
+    let sim = guess.build(Path::new("test")).unwrap().integrator;
+    let options = EquationErrorOptions {
+        friction,
+        ..Default::default()
+    };
+    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
+    let lame = lame_of(&fit, 0).unwrap();
+    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
+    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
+    assert!(
+        relative(lame.lambda, lambda) < 0.01,
+        "lambda {} against {lambda}",
+        lame.lambda
+    );
+    (fit, sim)
+}
+
 /// of friction together (the barrier's forces are known: they do not depend on either).
 #[test]
 fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
@@ -1744,22 +1793,7 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
         steps: 1,
     )"#;
     let truth: Scene = ron::from_str(text).unwrap();
-    let data = generate(
-        &truth,
-        Path::new("test"),
-        &DatasetSpec {
-            variations: Variations {
-                speed: 0.5,
-                spin: 0.0,
-                stretch: 0.0,
-                rest: false,
-            },
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(2, 60, 7)
-        },
-        |_, _| {},
-    )
-    .unwrap();
+    let data = contact_data(&truth, 0.5, 60);
     // Every trajectory slid on the ground: friction is in the data.
     let touched = data
         .trajectories
@@ -1767,23 +1801,7 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
         .all(|t| t.x.last().unwrap().chunks(3).any(|p| p[2] < 2e-4));
     assert!(touched);
     // The model to fit starts from other moduli and no friction.
-    let mut guess = truth.clone();
-    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
-    guess.contact.as_mut().unwrap().friction = None;
-    let sim = guess.build(Path::new("test")).unwrap().integrator;
-    let options = EquationErrorOptions {
-        friction: true,
-        ..Default::default()
-    };
-    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
-    let lame = lame_of(&fit, 0).unwrap();
-    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
-    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
-    assert!(
-        relative(lame.lambda, lambda) < 0.01,
-        "lambda {} against {lambda}",
-        lame.lambda
-    );
+    let (fit, sim) = fit_contact_moduli(&truth, &data, true);
     // The barrier's stiffness, by default from the (true) material's rest K, is fitted too.
     let truth_sim = truth.build(Path::new("test")).unwrap().integrator;
     let kappa = truth_sim.contact().unwrap().barrier().kappa;
@@ -1808,24 +1826,17 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
 /// the body's own surface's coefficient and recovers it with the Lame pair and the barrier.
 #[test]
 fn equation_error_fits_self_contact_friction() {
-    let grid = |cells, size, origin| {
-        deform_mesh::generate::BoxGrid {
-            cells,
-            size,
-            origin,
-            split: Default::default(),
-        }
-        .build()
-        .unwrap()
+    let grid = |cells, size, origin| deform_mesh::generate::BoxGrid {
+        cells,
+        size,
+        origin,
+        split: Default::default(),
     };
-    let slab = grid([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]);
-    let cube = grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 2e-3]);
-    let n = slab.num_vertices();
-    let rest = [slab.rest_positions(), cube.rest_positions()].concat();
-    let tets = (slab.tets().iter().copied())
-        .chain(cube.tets().iter().map(|t| t.map(|v| v + n)))
-        .collect();
-    let mesh = deform_mesh::TetMesh::try_new(rest, tets).unwrap();
+    let mesh = deform_mesh::generate::boxes(&[
+        grid([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]),
+        grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 2e-3]),
+    ])
+    .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("slab_and_cube.msh");
     deform_mesh::io::write(&file, &mesh).unwrap();
@@ -1843,39 +1854,8 @@ fn equation_error_fits_self_contact_friction() {
         file.display().to_string()
     );
     let truth: Scene = ron::from_str(&text).unwrap();
-    let data = generate(
-        &truth,
-        Path::new("test"),
-        &DatasetSpec {
-            variations: Variations {
-                speed: 0.2,
-                spin: 0.0,
-                stretch: 0.0,
-                rest: false,
-            },
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(2, 40, 7)
-        },
-        |_, _| {},
-    )
-    .unwrap();
-    let mut guess = truth.clone();
-    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
-    guess.contact.as_mut().unwrap().friction = None;
-    let sim = guess.build(Path::new("test")).unwrap().integrator;
-    let options = EquationErrorOptions {
-        friction: true,
-        ..Default::default()
-    };
-    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
-    let lame = lame_of(&fit, 0).unwrap();
-    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
-    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
-    assert!(
-        relative(lame.lambda, lambda) < 0.01,
-        "lambda {} against {lambda}",
-        lame.lambda
-    );
+    let data = contact_data(&truth, 0.2, 40);
+    let (fit, _) = fit_contact_moduli(&truth, &data, true);
     // One frictional "obstacle": the body's own surface.
     assert_eq!(fit.friction.len(), 1);
     assert!(
@@ -1911,34 +1891,8 @@ fn equation_error_fits_moduli_from_trajectories_against_a_mesh_obstacle() {
         spike.display().to_string()
     );
     let truth: Scene = ron::from_str(&text).unwrap();
-    let data = generate(
-        &truth,
-        Path::new("test"),
-        &DatasetSpec {
-            variations: Variations {
-                speed: 0.05,
-                spin: 0.0,
-                stretch: 0.0,
-                rest: false,
-            },
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(2, 30, 7)
-        },
-        |_, _| {},
-    )
-    .unwrap();
-    let mut guess = truth.clone();
-    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
-    let sim = guess.build(Path::new("test")).unwrap().integrator;
-    let fit = fit_equation_error(&sim, &data.split(Split::Train), Default::default()).unwrap();
-    let lame = lame_of(&fit, 0).unwrap();
-    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
-    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
-    assert!(
-        relative(lame.lambda, lambda) < 0.01,
-        "lambda {} against {lambda}",
-        lame.lambda
-    );
+    let data = contact_data(&truth, 0.05, 30);
+    let (fit, _) = fit_contact_moduli(&truth, &data, false);
     // The data touched the spike (else the barrier's column is empty and no kappa is
     // fitted), and its stiffness is the truth's.
     let truth_sim = truth.build(Path::new("test")).unwrap().integrator;
@@ -1971,44 +1925,13 @@ fn equation_error_fits_moduli_and_friction_against_a_moving_obstacle() {
         steps: 1,
     )"#;
     let truth: Scene = ron::from_str(text).unwrap();
-    let data = generate(
-        &truth,
-        Path::new("test"),
-        &DatasetSpec {
-            variations: Variations {
-                speed: 0.05,
-                spin: 0.0,
-                stretch: 0.0,
-                rest: false,
-            },
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(2, 40, 7)
-        },
-        |_, _| {},
-    )
-    .unwrap();
+    let data = contact_data(&truth, 0.05, 40);
     // The ground dragged every cube along (its x velocity grew towards the ground's).
     for t in &data.trajectories {
         let vx = |v: &[f64]| v.chunks(3).map(|p| p[0]).sum::<f64>() / (v.len() / 3) as f64;
         assert!(vx(t.v.last().unwrap()) > vx(&t.v[0]) + 0.05);
     }
-    let mut guess = truth.clone();
-    guess.material = ron::from_str("NeoHookean(Young(e: 3e5, nu: 0.3))").unwrap();
-    guess.contact.as_mut().unwrap().friction = None;
-    let sim = guess.build(Path::new("test")).unwrap().integrator;
-    let options = EquationErrorOptions {
-        friction: true,
-        ..Default::default()
-    };
-    let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
-    let lame = lame_of(&fit, 0).unwrap();
-    let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));
-    assert!(relative(lame.mu, mu) < 0.01, "mu {} against {mu}", lame.mu);
-    assert!(
-        relative(lame.lambda, lambda) < 0.01,
-        "lambda {} against {lambda}",
-        lame.lambda
-    );
+    let (fit, _) = fit_contact_moduli(&truth, &data, true);
     let truth_sim = truth.build(Path::new("test")).unwrap().integrator;
     let kappa = truth_sim.contact().unwrap().barrier().kappa;
     assert!(

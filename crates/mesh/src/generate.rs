@@ -196,3 +196,42 @@ impl BoxGrid {
         TetMesh::try_new(rest, tets)
     }
 }
+
+/// Several boxes in one mesh, numbered one after another (the vertices and tets of
+/// `grids[1]` after all of `grids[0]`'s, and so on): one body of separate parts, such as a
+/// cube resting on a slab in self-contact. Overlapping boxes are not merged.
+///
+/// # Errors
+/// As [`BoxGrid::build`] for each box, or [`MeshError::NoElements`] for no box.
+pub fn boxes(grids: &[BoxGrid]) -> Result<TetMesh, MeshError> {
+    let (mut rest, mut tets) = (Vec::new(), Vec::new());
+    for grid in grids {
+        let mesh = grid.build()?;
+        let first = rest.len();
+        rest.extend_from_slice(mesh.rest_positions());
+        tets.extend(mesh.tets().iter().map(|t| t.map(|v| v + first)));
+    }
+    TetMesh::try_new(rest, tets)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn boxes_number_their_parts_one_after_another() {
+        let grid = |cells, origin| BoxGrid {
+            cells,
+            size: [0.1; 3],
+            origin,
+            split: Split::default(),
+        };
+        let (a, b) = (grid([1, 1, 1], [0.0; 3]), grid([2, 1, 1], [0.0, 0.0, 1.0]));
+        let mesh = boxes(&[a, b]).unwrap();
+        let (ma, mb) = (a.build().unwrap(), b.build().unwrap());
+        assert_eq!(mesh.num_vertices(), ma.num_vertices() + mb.num_vertices());
+        assert_eq!(&mesh.rest_positions()[8..], mb.rest_positions());
+        assert_eq!(mesh.tets()[6], mb.tets()[0].map(|v| v + 8));
+        assert!(matches!(boxes(&[]), Err(MeshError::NoElements)));
+    }
+}
