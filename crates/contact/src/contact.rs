@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -35,12 +35,13 @@ pub struct ContactSpec {
     /// body's surface; friction counts them after `obstacles`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub meshes: Vec<MeshObstacle>,
-    /// Obstacles that move (by index into `obstacles`; the others stay).
+    /// Obstacles that move (by index into `obstacles`, then `meshes`; the others stay).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub motions: Vec<ObstacleMotion>,
 }
 
-/// A fixed triangle-mesh obstacle as a scene names it; the integrator reads the file.
+/// A triangle-mesh obstacle as a scene names it (fixed, or moved by a motion); the
+/// integrator reads the file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshObstacle {
@@ -188,14 +189,18 @@ pub struct ContactModel {
     friction: Option<(Vec<f64>, f64)>,
     /// The surface's self-contact and its contact with `meshes`, when modelled.
     surface: Option<SelfContact>,
-    /// Fixed triangle-mesh obstacles (flat positions, triangles).
+    /// Triangle-mesh obstacles where they rest (flat positions, triangles).
     meshes: Vec<Surface>,
-    /// The obstacles where they start (`obstacles` is where they are at the current step's
-    /// end), and how those that move do.
+    /// The obstacles where they rest (`obstacles` is where they are at the current step's
+    /// end, `before` where they were at its start), and how those that move do, each with
+    /// the pivot it turns about by default.
     rest_obstacles: Vec<Obstacle>,
+    before: Vec<Obstacle>,
     motions: Vec<ObstacleMotion>,
-    /// Each obstacle's displacement over the current step.
-    shifts: Vec<Vector3<f64>>,
+    pivots: Vec<Vector3<f64>>,
+    /// Each analytic obstacle's rigid motion over the current step (from where it was at
+    /// the step's start to where it is at its end); `None` while it rests.
+    steps: Vec<Option<Isometry3<f64>>>,
 }
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
@@ -235,8 +240,10 @@ impl ContactModel {
             surface: None,
             meshes: Vec::new(),
             rest_obstacles: obstacles.clone(),
+            before: obstacles.clone(),
             motions: Vec::new(),
-            shifts: vec![Vector3::zeros(); obstacles.len()],
+            pivots: Vec::new(),
+            steps: vec![None; obstacles.len()],
             obstacles,
         })
     }
@@ -262,6 +269,8 @@ impl ContactModel {
         let surface = SelfContact::with_meshes(triangles, rest, true, &self.meshes)?;
         surface.check_separated(rest, self.barrier.dhat)?;
         self.surface = Some(surface);
+        // The surface was built with the meshes at rest: place those that move.
+        self.set_step(0.0, 0.0);
         Ok(self)
     }
 
@@ -292,6 +301,7 @@ impl ContactModel {
             triangles, rest, self_pairs, &meshes,
         )?);
         self.meshes = meshes;
+        self.set_step(0.0, 0.0);
         Ok(self)
     }
 
@@ -361,34 +371,56 @@ impl ContactModel {
     }
 
     /// The same potential with obstacles that move as `motions` say (at most one motion per
-    /// obstacle), placed where they are at time 0.
+    /// obstacle; a mesh obstacle `m` is obstacle `obstacles().len() + m`, so give the meshes
+    /// first), placed where they are at time 0.
     ///
     /// # Errors
     /// [`ContactError::Invalid`] naming a malformed motion (`motions[1]`).
     pub fn with_motions(mut self, motions: Vec<ObstacleMotion>) -> Result<Self, ContactError> {
+        let analytic = self.obstacles.len();
+        let mut pivots = Vec::with_capacity(motions.len());
         for (i, m) in motions.iter().enumerate() {
             let invalid = |reason| ContactError::Invalid {
                 field: format!("motions[{i}]"),
                 reason,
             };
-            m.check(self.obstacles.len()).map_err(invalid)?;
+            m.check(analytic + self.meshes.len()).map_err(invalid)?;
             if motions[..i].iter().any(|o| o.obstacle == m.obstacle) {
                 return Err(invalid(format!("obstacle {} moves twice", m.obstacle)));
             }
+            let centre = match m.obstacle.checked_sub(analytic) {
+                None => self.rest_obstacles[m.obstacle].centre(),
+                Some(mesh) => bounding_centre(&self.meshes[mesh].0),
+            };
+            pivots.push(centre);
         }
         self.motions = motions;
+        self.pivots = pivots;
         self.set_step(0.0, 0.0);
         Ok(self)
     }
 
     /// Places the moving obstacles for a step from time `t0` to `t1`: where they are at
-    /// `t1` (Newton solves for the state there), remembering how far they moved since `t0`
-    /// (for [`ContactModel::carry`], [`ContactModel::first_step_bound`] and friction).
+    /// `t1` (Newton solves for the state there), remembering where they were at `t0` (for
+    /// [`ContactModel::carry`], [`ContactModel::first_step_bound`] and friction).
     pub fn set_step(&mut self, t0: f64, t1: f64) {
-        for m in &self.motions {
-            let (from, to) = (m.offset(t0), m.offset(t1));
-            self.obstacles[m.obstacle] = self.rest_obstacles[m.obstacle].translated(&to);
-            self.shifts[m.obstacle] = to - from;
+        let analytic = self.obstacles.len();
+        for (m, centre) in self.motions.iter().zip(&self.pivots) {
+            let (from, to) = (m.placement(t0, centre), m.placement(t1, centre));
+            let step = (from != to).then(|| to * from.inverse());
+            match m.obstacle.checked_sub(analytic) {
+                None => {
+                    let rest = &self.rest_obstacles[m.obstacle];
+                    self.obstacles[m.obstacle] = rest.moved(&to);
+                    self.before[m.obstacle] = rest.moved(&from);
+                    self.steps[m.obstacle] = step;
+                }
+                Some(mesh) => {
+                    if let Some(surface) = self.surface.as_mut() {
+                        surface.place_mesh(mesh, &from, &to);
+                    }
+                }
+            }
         }
     }
 
@@ -397,40 +429,69 @@ impl ContactModel {
         &self.motions
     }
 
-    /// Obstacle `i`'s displacement over the current step.
-    pub(crate) fn shift(&self, i: usize) -> Vector3<f64> {
-        self.shifts[i]
+    /// The analytic obstacles and the mesh obstacles (flat positions, triangles) where they
+    /// are at time `t`: for viewing them beside the body.
+    pub fn placed_at(&self, t: f64) -> (Vec<Obstacle>, Vec<Surface>) {
+        let (mut obstacles, mut meshes) = (self.rest_obstacles.clone(), self.meshes.clone());
+        let analytic = obstacles.len();
+        for (m, centre) in self.motions.iter().zip(&self.pivots) {
+            let place = m.placement(t, centre);
+            match m.obstacle.checked_sub(analytic) {
+                None => obstacles[m.obstacle] = obstacles[m.obstacle].moved(&place),
+                Some(mesh) => {
+                    for p in meshes[mesh].0.chunks_exact_mut(3) {
+                        let q = place * Point3::new(p[0], p[1], p[2]);
+                        p.copy_from_slice(q.coords.as_slice());
+                    }
+                }
+            }
+        }
+        (obstacles, meshes)
+    }
+
+    /// Analytic obstacle `i` where it was at the current step's start.
+    pub(crate) fn before(&self, i: usize) -> &Obstacle {
+        &self.before[i]
+    }
+
+    /// Analytic obstacle `i`'s rigid motion over the current step, if it moves.
+    pub(crate) fn step_motion(&self, i: usize) -> Option<&Isometry3<f64>> {
+        self.steps[i].as_ref()
     }
 
     /// Whether an obstacle moves during the current step.
     pub fn moving(&self) -> bool {
-        self.shifts.iter().any(|d| *d != Vector3::zeros())
+        self.steps.iter().any(Option::is_some) || self.surface.as_ref().is_some_and(SelfContact::moving)
     }
 
     /// Makes the step's first displacement `dx` (from `x` at the step's start) clear of the
     /// obstacles that move: a surface vertex of `movable` that an obstacle would come too
-    /// close to on the path relative to it (the obstacle where it was, the vertex moving by
-    /// `dx` less the obstacle's displacement) goes along that path only as far as is safe and
-    /// moves with the obstacle from there. Its gap then stays above a fifth of what it was.
+    /// close to on the path relative to it (in the obstacle's frame at the step's start, a
+    /// straight path from the vertex to where `dx` takes it) goes along that path only as
+    /// far as is safe and moves with the obstacle from there. Its gap then stays above a
+    /// fifth of what it was (for a mesh obstacle, of the least of it and `dhat`).
     pub fn carry(&self, x: &[f64], dx: &mut [f64], movable: impl Fn(usize) -> bool) {
         for &v in self.vertices.iter().filter(|&&v| movable(v)) {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
-            for (o, shift) in self.obstacles.iter().zip(&self.shifts) {
-                if *shift == Vector3::zeros() {
+            for (before, step) in self.before.iter().zip(&self.steps) {
+                let Some(step) = step else {
                     continue;
-                }
-                let before = o.translated(&-shift);
+                };
                 let d = before.distance(&p);
-                let mut dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
                 if !(d > 0.0) {
                     continue;
                 }
-                let s = before.time_of_approach(&p, &(dp - shift), 2.0 * STEP_MARGIN * d);
+                let dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
+                let relative = relative_path(step, &p, &dp);
+                let s = before.time_of_approach(&p, &relative, 2.0 * STEP_MARGIN * d);
                 if s < 1.0 {
-                    dp = dp * s + shift * (1.0 - s);
+                    let dp = carried(step, &p, &relative, s);
                     dx[3 * v..3 * v + 3].copy_from_slice(dp.as_slice());
                 }
             }
+        }
+        if let Some(surface) = &self.surface {
+            surface.carry(x, dx, &movable, self.barrier.dhat);
         }
     }
 
@@ -563,10 +624,10 @@ impl ContactModel {
         for &v in &self.vertices {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
             let dp = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]);
-            for (o, shift) in self.obstacles.iter().zip(&self.shifts) {
-                let (o, dp) = match relative && *shift != Vector3::zeros() {
-                    true => (&o.translated(&-shift), dp - shift),
-                    false => (o, dp),
+            for (i, o) in self.obstacles.iter().enumerate() {
+                let (o, dp) = match (relative, &self.steps[i]) {
+                    (true, Some(step)) => (&self.before[i], relative_path(step, &p, &dp)),
+                    _ => (o, dp),
                 };
                 if dp == Vector3::zeros() {
                     continue;
@@ -580,10 +641,30 @@ impl ContactModel {
             }
         }
         if let Some(surface) = &self.surface {
-            bound = bound.min(surface.step_bound(x, dx, self.barrier.dhat));
+            bound = bound.min(surface.step_bound(x, dx, self.barrier.dhat, relative));
         }
         bound
     }
+}
+
+/// The straight path, in the frame of an obstacle that moves by `step` over a step, of a
+/// point that starts at `p` and moves by `dp`: from `p` to `step^-1 (p + dp)`.
+pub(crate) fn relative_path(step: &Isometry3<f64>, p: &Vector3<f64>, dp: &Vector3<f64>) -> Vector3<f64> {
+    step.inverse_transform_point(&Point3::from(p + dp)).coords - p
+}
+
+/// The displacement of a point from `p` that goes a fraction `s` along its path `relative`
+/// in an obstacle's frame and then moves with the obstacle (by `step`).
+pub(crate) fn carried(step: &Isometry3<f64>, p: &Vector3<f64>, relative: &Vector3<f64>, s: f64) -> Vector3<f64> {
+    (step * Point3::from(p + relative * s)).coords - p
+}
+
+/// The centre of the bounding box of flat positions.
+fn bounding_centre(x: &[f64]) -> Vector3<f64> {
+    let points = x.chunks_exact(3).map(Vector3::from_column_slice);
+    let lo = points.clone().fold(Vector3::repeat(f64::INFINITY), |a, p| a.inf(&p));
+    let hi = points.fold(Vector3::repeat(f64::NEG_INFINITY), |a, p| a.sup(&p));
+    (lo + hi) * 0.5
 }
 
 /// `m` with its negative eigenvalues set to zero.

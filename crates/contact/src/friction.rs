@@ -154,11 +154,10 @@ impl ContactModel {
         let mut pairs = Vec::new();
         for &v in self.vertices() {
             let p = Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
-            for (i, (o, &m)) in self.obstacles().iter().zip(mu).enumerate() {
+            for (i, &m) in mu[..self.obstacles().len()].iter().enumerate() {
                 // Where the obstacle was at the step's start: a vertex that sticks to a
                 // moving obstacle moves with it.
-                let shift = self.shift(i);
-                let o = o.translated(&-shift);
+                let o = self.before(i);
                 let d = o.distance(&p);
                 if m == 0.0 || !(d > 0.0 && d < b.dhat) {
                     continue;
@@ -169,7 +168,9 @@ impl ContactModel {
                     obstacle: i,
                     limit: m * -b.first(d),
                     basis: tangent_basis(&n),
-                    start: p + shift,
+                    start: self
+                        .step_motion(i)
+                        .map_or(p, |m| (m * nalgebra::Point3::from(p)).coords),
                 });
             }
         }
@@ -242,8 +243,9 @@ impl ContactModel {
     /// tangent plane, start point). The adjoint of a step needs it beside the Hessian in
     /// `x1`. A pair's force is `-L phi(|q|) q` with `q = P (x1 - start)` and the tangent
     /// projector `P = I - n n^T` (the basis enters only through `P`), so with `h = phi I +
-    /// phi'(|q|) q q^T / |q|` the three paths are `L h P` (the start point), `mu b''(d) phi
-    /// q n^T` (the normal force) and `-L h Q` with `Q = -((n . d) H + n (H d)^T)` (the
+    /// phi'(|q|) q q^T / |q|` the three paths are `L h P R` (the start point, which moves
+    /// with the obstacle: `R` its turn over the step), `mu b''(d) phi q n^T` (the normal
+    /// force) and `-L h Q` with `Q = -((n . d) H + n (H d)^T)` (the
     /// normal's turn, `H` the distance's Hessian, `d = x1 - start`).
     ///
     /// # Errors
@@ -271,8 +273,11 @@ impl ContactModel {
                     reason: "the start derivative of friction against meshes or the body's own surface is not supported yet".into(),
                 });
             };
-            let o = self.obstacles()[pair.obstacle].translated(&-self.shift(pair.obstacle));
-            let jet = o.jet(&at(x0, v));
+            let jet = self.before(pair.obstacle).jet(&at(x0, v));
+            // The start point moves with the obstacle: `d start / d x0` is its turn.
+            let turned = self
+                .step_motion(pair.obstacle)
+                .map_or(Matrix3::identity(), |m| m.rotation.to_rotation_matrix().into_inner());
             let (n, hd) = (jet.gradient, jet.hessian);
             let d = at(x1, v) - pair.start;
             let p = Matrix3::identity() - n * n.transpose();
@@ -289,7 +294,7 @@ impl ContactModel {
             }
             let turn = -(hd * n.dot(&d) + n * (hd * d).transpose());
             let normal = q * n.transpose() * (mu[pair.obstacle] * b.second(jet.distance) * phi);
-            let jacobian = h * (p - turn) * pair.limit + normal;
+            let jacobian = h * (p * turned - turn) * pair.limit + normal;
             let y = jacobian.transpose() * at(w, v);
             for k in 0..3 {
                 out[3 * v + k] += y[k];

@@ -1,6 +1,6 @@
 //! Analytic obstacles: convex solids described by their signed distance.
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// A fixed convex solid that bodies stay outside of, acting on the body's surface vertices.
@@ -34,6 +34,17 @@ pub enum Obstacle {
         min: [f64; 3],
         /// The corner of greatest coordinates (m).
         max: [f64; 3],
+    },
+    /// A solid box turned by `rotation` about its centre (a ramp, a paddle; a `Box` that an
+    /// [`ObstacleMotion`] turns becomes one).
+    OrientedBox {
+        /// Its centre (m).
+        center: [f64; 3],
+        /// Half its size along each of its own axes (m).
+        half_extents: [f64; 3],
+        /// Its turn from the world's axes as a rotation vector: the axis times the angle
+        /// (rad).
+        rotation: [f64; 3],
     },
 }
 
@@ -75,6 +86,17 @@ impl Obstacle {
                     ));
                 }
             }
+            Obstacle::OrientedBox {
+                center,
+                half_extents: h,
+                rotation,
+            } => {
+                if !finite(center) || !finite(rotation) || !h.iter().all(|v| *v > 0.0 && v.is_finite()) {
+                    return Err(format!(
+                        "an oriented box needs a finite centre and rotation and positive half extents, got {center:?}, {h:?}, {rotation:?}"
+                    ));
+                }
+            }
         }
         Ok(())
     }
@@ -98,6 +120,7 @@ impl Obstacle {
                     .map(|i| (lo[i] - p[i]).max(p[i] - hi[i]))
                     .fold(f64::NEG_INFINITY, f64::max)
             }
+            Obstacle::OrientedBox { .. } => self.jet(p).distance,
         }
     }
 
@@ -123,6 +146,23 @@ impl Obstacle {
                 }
             }
             Obstacle::Box { min, max } => box_jet(p, &Vector3::from(*min), &Vector3::from(*max)),
+            Obstacle::OrientedBox {
+                center,
+                half_extents,
+                rotation,
+            } => {
+                // The box's own frame: `q = R^T (p - c)`; the jet turns back with `R`.
+                let r = Rotation3::new(Vector3::from(*rotation));
+                let h = Vector3::from(*half_extents);
+                let q = r.inverse() * (p - Vector3::from(*center));
+                let jet = box_jet(&q, &-h, &h);
+                let r = r.into_inner();
+                DistanceJet {
+                    distance: jet.distance,
+                    gradient: r * jet.gradient,
+                    hessian: r * jet.hessian * r.transpose(),
+                }
+            }
         }
     }
 
@@ -165,34 +205,82 @@ impl Obstacle {
 impl Obstacle {
     /// The same solid moved by `d`.
     pub fn translated(&self, d: &Vector3<f64>) -> Obstacle {
-        let add = |a: &[f64; 3]| -> [f64; 3] { (Vector3::from(*a) + d).into() };
+        self.moved(&Isometry3::from_parts(Translation3::from(*d), UnitQuaternion::identity()))
+    }
+
+    /// The same solid moved rigidly by `m` (a point `p` of it goes to `m p`). An
+    /// axis-aligned box that `m` turns becomes an [`Obstacle::OrientedBox`].
+    pub fn moved(&self, m: &Isometry3<f64>) -> Obstacle {
+        let at = |a: &[f64; 3]| -> [f64; 3] { (m * nalgebra::Point3::from(*a)).coords.into() };
+        let turned = m.rotation != UnitQuaternion::identity();
         match self {
             Obstacle::Plane { point, normal } => Obstacle::Plane {
-                point: add(point),
-                normal: *normal,
+                point: at(point),
+                normal: (m.rotation * Vector3::from(*normal)).into(),
             },
             Obstacle::Sphere { center, radius } => Obstacle::Sphere {
-                center: add(center),
+                center: at(center),
                 radius: *radius,
             },
-            Obstacle::Box { min, max } => Obstacle::Box {
-                min: add(min),
-                max: add(max),
+            Obstacle::Box { min, max } if !turned => Obstacle::Box {
+                min: at(min),
+                max: at(max),
             },
+            Obstacle::Box { min, max } => {
+                let (lo, hi) = (Vector3::from(*min), Vector3::from(*max));
+                Obstacle::OrientedBox {
+                    center: ((lo + hi) * 0.5).into(),
+                    half_extents: ((hi - lo) * 0.5).into(),
+                    rotation: [0.0; 3],
+                }
+                .moved(m)
+            }
+            Obstacle::OrientedBox {
+                center,
+                half_extents,
+                rotation,
+            } => Obstacle::OrientedBox {
+                center: at(center),
+                half_extents: *half_extents,
+                rotation: (m.rotation * UnitQuaternion::new(Vector3::from(*rotation)))
+                    .scaled_axis()
+                    .into(),
+            },
+        }
+    }
+
+    /// The solid's centre (a plane's point): where a motion turns it about by default.
+    pub fn centre(&self) -> Vector3<f64> {
+        match self {
+            Obstacle::Plane { point, .. } => Vector3::from(*point),
+            Obstacle::Sphere { center, .. } | Obstacle::OrientedBox { center, .. } => {
+                Vector3::from(*center)
+            }
+            Obstacle::Box { min, max } => (Vector3::from(*min) + Vector3::from(*max)) * 0.5,
         }
     }
 }
 
-/// An obstacle that moves: translated at `velocity` from time `start` until `stop` (for
-/// ever without one), resting before and after. A scene's bodies are pressed, pushed or
-/// struck by it; friction against it acts on the velocity relative to it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// An obstacle that moves rigidly: from time `start` until `stop` (for ever without one)
+/// it translates at `velocity` and turns at `angular_velocity` about `pivot`, which moves
+/// with it; it rests before and after. A scene's bodies are pressed, pushed, struck or
+/// swept by it; friction against it acts on the velocity relative to it.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ObstacleMotion {
-    /// The obstacle's index in `obstacles`.
+    /// The obstacle's index: among `obstacles`, then among `meshes` (a mesh obstacle `m`
+    /// is `obstacles.len() + m`), as friction's coefficients count them.
     pub obstacle: usize,
     /// Its velocity while it moves (m/s).
+    #[serde(default)]
     pub velocity: [f64; 3],
+    /// Its angular velocity while it moves: the axis times the rate (rad/s).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub angular_velocity: [f64; 3],
+    /// The point it turns about, where it is at `start` (m); by default the obstacle's
+    /// centre ([`Obstacle::centre`], a mesh's bounding-box centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pivot: Option<[f64; 3]>,
     /// When it starts moving (s).
     #[serde(default)]
     pub start: f64,
@@ -201,11 +289,32 @@ pub struct ObstacleMotion {
     pub stop: Option<f64>,
 }
 
+fn is_zero(v: &[f64; 3]) -> bool {
+    *v == [0.0; 3]
+}
+
 impl ObstacleMotion {
-    /// How far the obstacle has moved at time `t`.
-    pub fn offset(&self, t: f64) -> Vector3<f64> {
+    /// How long the obstacle has moved by time `t` (s).
+    fn elapsed(&self, t: f64) -> f64 {
         let end = self.stop.map_or(t, |stop| t.min(stop));
-        Vector3::from(self.velocity) * (end - self.start).max(0.0)
+        (end - self.start).max(0.0)
+    }
+
+    /// How far the pivot has moved at time `t`.
+    pub fn offset(&self, t: f64) -> Vector3<f64> {
+        Vector3::from(self.velocity) * self.elapsed(t)
+    }
+
+    /// Where the motion has taken the obstacle at time `t`, from where it rests before
+    /// `start`: a point `p` of it is at `placement(t, c) * p`, with `c` the pivot to use
+    /// when the motion names none.
+    pub fn placement(&self, t: f64, centre: &Vector3<f64>) -> Isometry3<f64> {
+        let c = self.pivot.map_or(*centre, Vector3::from);
+        let tau = self.elapsed(t);
+        let turn = UnitQuaternion::new(Vector3::from(self.angular_velocity) * tau);
+        // p -> c + v tau + R (p - c).
+        let shift = c + Vector3::from(self.velocity) * tau - turn * c;
+        Isometry3::from_parts(Translation3::from(shift), turn)
     }
 
     /// Why the motion is malformed for `obstacles` obstacles, if it is.
@@ -216,10 +325,15 @@ impl ObstacleMotion {
                 self.obstacle
             ));
         }
-        if !self.velocity.iter().all(|v| v.is_finite()) || !self.start.is_finite() {
+        let finite = |v: &[f64; 3]| v.iter().all(|v| v.is_finite());
+        if !finite(&self.velocity)
+            || !finite(&self.angular_velocity)
+            || !self.pivot.as_ref().is_none_or(finite)
+            || !self.start.is_finite()
+        {
             return Err(format!(
-                "velocity {:?} and start {} must be finite",
-                self.velocity, self.start
+                "velocity {:?}, angular velocity {:?}, pivot {:?} and start {} must be finite",
+                self.velocity, self.angular_velocity, self.pivot, self.start
             ));
         }
         match self.stop {
@@ -257,6 +371,26 @@ impl Obstacle {
                 (x, vec![[0, 1, 2], [0, 2, 3]])
             }
             Obstacle::Sphere { center, radius } => sphere_surface(center, *radius, 16, 32),
+            Obstacle::OrientedBox {
+                center,
+                half_extents: h,
+                rotation,
+            } => {
+                let (x, t) = Obstacle::Box {
+                    min: h.map(|v| -v),
+                    max: *h,
+                }
+                .surface(extent);
+                let m = Isometry3::new(Vector3::from(*center), Vector3::from(*rotation));
+                let x = x
+                    .chunks_exact(3)
+                    .flat_map(|p| {
+                        let q = m * nalgebra::Point3::new(p[0], p[1], p[2]);
+                        [q.x, q.y, q.z]
+                    })
+                    .collect();
+                (x, t)
+            }
             Obstacle::Box { min, max } => {
                 let corner =
                     |i: usize| [0, 1, 2].map(|k| if i >> k & 1 == 1 { max[k] } else { min[k] });
@@ -361,7 +495,21 @@ mod tests {
                 min: [-0.5, -0.25, -0.3],
                 max: [0.25, 0.5, 0.1],
             },
+            // The same box turned about its centre.
+            Obstacle::OrientedBox {
+                center: [-0.125, 0.125, -0.1],
+                half_extents: [0.375, 0.375, 0.2],
+                rotation: TURN,
+            },
         ]
+    }
+
+    const TURN: [f64; 3] = [0.3, -0.5, 0.8];
+
+    /// `p` in the frame of the axis-aligned box of [`obstacles`] for its turned copy.
+    fn unturned(p: &Vector3<f64>) -> Vector3<f64> {
+        let c = Vector3::new(-0.125, 0.125, -0.1);
+        Rotation3::new(Vector3::from(TURN)).inverse() * (p - c) + c
     }
 
     proptest! {
@@ -377,7 +525,12 @@ mod tests {
                 for i in 0..3 {
                     let mut e = Vector3::zeros();
                     e[i] = h;
-                    if matches!(o, Obstacle::Box { .. }) && near_box_region_boundary(&(p + e)) {
+                    let near = match o {
+                        Obstacle::Box { .. } => near_box_region_boundary(&(p + e)),
+                        Obstacle::OrientedBox { .. } => near_box_region_boundary(&unturned(&(p + e))),
+                        _ => false,
+                    };
+                    if near {
                         continue;
                     }
                     let (a, b) = (o.jet(&(p + e)), o.jet(&(p - e)));
@@ -419,6 +572,59 @@ mod tests {
                 }
             }
         }
+    }
+
+    proptest! {
+        /// A solid moved rigidly has at the moved point the distance it had at the point,
+        /// its gradient turned; a box moved with no turn stays axis-aligned.
+        #[test]
+        fn moved_solids_keep_their_distances(
+            p in proptest::array::uniform3(-1.5f64..1.5),
+            turn in proptest::array::uniform3(-2.0f64..2.0),
+            shift in proptest::array::uniform3(-1.0f64..1.0),
+        ) {
+            let m = Isometry3::new(Vector3::from(shift), Vector3::from(turn));
+            let p = Vector3::from(p);
+            let q = (m * nalgebra::Point3::from(p)).coords;
+            for o in obstacles() {
+                let (a, b) = (o.jet(&p), o.moved(&m).jet(&q));
+                prop_assert!((a.distance - b.distance).abs() < 1e-12, "{o:?}: {} {}", a.distance, b.distance);
+                prop_assert!((m.rotation * a.gradient - b.gradient).norm() < 1e-9, "{o:?}");
+                let translated = o.translated(&Vector3::from(shift));
+                let turned = matches!((&o, &translated), (Obstacle::Box { .. }, Obstacle::OrientedBox { .. }));
+                prop_assert!(!turned, "{o:?} became {translated:?}");
+            }
+        }
+    }
+
+    /// A motion turns its obstacle about the pivot, which moves at the velocity, between
+    /// `start` and `stop` only.
+    #[test]
+    fn motions_turn_about_their_pivot_between_start_and_stop() {
+        let m = ObstacleMotion {
+            obstacle: 0,
+            velocity: [0.1, 0.0, 0.0],
+            angular_velocity: [0.0, 0.0, std::f64::consts::PI],
+            pivot: Some([1.0, 0.0, 0.0]),
+            start: 0.5,
+            stop: Some(1.0),
+        };
+        let centre = Vector3::zeros();
+        let at = |t: f64, p: [f64; 3]| (m.placement(t, &centre) * nalgebra::Point3::from(p)).coords;
+        assert_eq!(at(0.2, [2.0, 0.0, 0.0]), Vector3::new(2.0, 0.0, 0.0));
+        // Half a turn in 1 s: a quarter by 1.0 s, and no further after.
+        for t in [1.0, 3.0] {
+            let pivot = at(t, [1.0, 0.0, 0.0]);
+            assert!((pivot - Vector3::new(1.05, 0.0, 0.0)).norm() < 1e-12, "{pivot}");
+            let arm = at(t, [2.0, 0.0, 0.0]) - pivot;
+            assert!((arm - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-12, "{arm}");
+        }
+        // Without a pivot it turns about the centre it is given.
+        let about = ObstacleMotion { pivot: None, ..m.clone() };
+        let c = Vector3::new(0.0, 0.0, 5.0);
+        let p = (about.placement(1.0, &c) * nalgebra::Point3::from(c)).coords;
+        assert!((p - c - Vector3::new(0.05, 0.0, 0.0)).norm() < 1e-12);
+        assert!(ObstacleMotion { pivot: Some([f64::NAN; 3]), ..m }.check(1).is_err());
     }
 
     /// Whether `p` lies within 1e-5 of a plane bounding the box's Voronoi regions.
@@ -475,6 +681,11 @@ mod tests {
             Obstacle::Sphere {
                 center: [f64::NAN, 0.0, 0.0],
                 radius: 1.0,
+            },
+            Obstacle::OrientedBox {
+                center: [0.0; 3],
+                half_extents: [1.0, 0.0, 1.0],
+                rotation: [0.0; 3],
             },
         ];
         for o in bad {

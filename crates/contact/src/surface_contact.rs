@@ -5,10 +5,11 @@
 
 use std::fmt;
 
-use nalgebra::{SMatrix, SymmetricEigen, Vector3};
+use nalgebra::{Isometry3, Point3, SMatrix, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::bvh::{Aabb, Bvh};
+use crate::contact::{carried, relative_path};
 use crate::distance::{Form, closest_weights, edge_edge, mollifier, point_triangle, squared_jet};
 use crate::jet::{Jet, variables};
 use crate::{Barrier, ContactError, ContactHessian, ContactSummary, STEP_MARGIN};
@@ -66,6 +67,19 @@ enum Candidate {
 /// (IPC's `eps_x = 1e-3 |e0|^2 |e1|^2`).
 const MOLLIFIER: f64 = 1e-3;
 
+/// Where the obstacles' vertices are taken while a step's path is followed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Place {
+    /// Where they are at the current step's end, still (Newton's iterates and line search).
+    End,
+    /// From where they were at the step's start to where they are at its end, on the
+    /// straight path that the body's first displacement follows too.
+    Sweep,
+    /// Where they were at the step's start, still (a path in a moving mesh's frame, or the
+    /// lag of friction at the step's start).
+    Start,
+}
+
 /// Most advancement steps of one pair's collision detection; the bound reached by then is
 /// kept (it is safe at every step).
 const MAX_ADVANCES: usize = 500;
@@ -87,8 +101,13 @@ pub(crate) struct SelfContact {
     body: usize,
     /// The body's triangles come first in `triangles`, this many.
     body_triangles: usize,
-    /// The obstacles' vertex positions.
+    /// The obstacles' vertex positions at the current step's end, at its start, and at
+    /// rest (before any motion).
     fixed: Vec<Vector3<f64>>,
+    fixed_start: Vec<Vector3<f64>>,
+    fixed_rest: Vec<Vector3<f64>>,
+    /// Each mesh obstacle's rigid motion over the current step; `None` while it rests.
+    mesh_steps: Vec<Option<Isometry3<f64>>>,
     /// Where each obstacle mesh's vertices start in `fixed`.
     mesh_starts: Vec<usize>,
     /// Whether pairs of two body primitives count (self-contact).
@@ -140,7 +159,10 @@ impl SelfContact {
             rest_length2: Vec::new(),
             body: n,
             body_triangles,
+            fixed_start: fixed.clone(),
+            fixed_rest: fixed.clone(),
             fixed,
+            mesh_steps: vec![None; mesh_starts.len()],
             mesh_starts,
             self_pairs,
         };
@@ -152,7 +174,10 @@ impl SelfContact {
         surface.rest_length2 = surface
             .edges
             .iter()
-            .map(|e| (surface.at(rest, e[1]) - surface.at(rest, e[0])).norm_squared())
+            .map(|e| {
+                let at = |v| surface.at(rest, v, Place::End);
+                (at(e[1]) - at(e[0])).norm_squared()
+            })
             .collect();
         Ok(surface)
     }
@@ -197,21 +222,41 @@ impl SelfContact {
         self.self_pairs
     }
 
-    /// Vertex `v`'s position: the body's from `x`, an obstacle's from `fixed`.
-    fn at(&self, x: &[f64], v: usize) -> Vector3<f64> {
-        if v < self.body {
-            point(x, v)
-        } else {
-            self.fixed[v - self.body]
+    /// Places mesh obstacle `mesh` for a step: at `from` (a rigid motion of where it rests)
+    /// at the step's start, at `to` at its end.
+    pub(crate) fn place_mesh(&mut self, mesh: usize, from: &Isometry3<f64>, to: &Isometry3<f64>) {
+        let first = self.mesh_starts[mesh];
+        let end = self.mesh_starts.get(mesh + 1).copied().unwrap_or(self.fixed.len());
+        for k in first..end {
+            let rest = Point3::from(self.fixed_rest[k]);
+            self.fixed_start[k] = (from * rest).coords;
+            self.fixed[k] = (to * rest).coords;
+        }
+        self.mesh_steps[mesh] = (from != to).then(|| to * from.inverse());
+    }
+
+    /// Whether a mesh obstacle moves during the current step.
+    pub(crate) fn moving(&self) -> bool {
+        self.mesh_steps.iter().any(Option::is_some)
+    }
+
+    /// Vertex `v`'s position: the body's from `x`, an obstacle's from `fixed` (or
+    /// `fixed_start`, as `place` says).
+    fn at(&self, x: &[f64], v: usize, place: Place) -> Vector3<f64> {
+        match (v.checked_sub(self.body), place) {
+            (None, _) => point(x, v),
+            (Some(k), Place::End) => self.fixed[k],
+            (Some(k), _) => self.fixed_start[k],
         }
     }
 
-    /// Vertex `v`'s displacement along `dx` (obstacles stay).
-    fn moved(&self, dx: &[f64], v: usize) -> Vector3<f64> {
-        if v < self.body {
-            point(dx, v)
-        } else {
-            Vector3::zeros()
+    /// Vertex `v`'s displacement along `dx`: an obstacle's is its step's when swept, else
+    /// none.
+    fn moved(&self, dx: &[f64], v: usize, place: Place) -> Vector3<f64> {
+        match (v.checked_sub(self.body), place) {
+            (None, _) => point(dx, v),
+            (Some(k), Place::Sweep) => self.fixed[k] - self.fixed_start[k],
+            (Some(_), _) => Vector3::zeros(),
         }
     }
 
@@ -270,11 +315,11 @@ impl SelfContact {
     /// Refuses positions where two primitives that share no vertex are closer than `dhat`
     /// (at rest they would push apart: the barrier must be zero there).
     pub(crate) fn check_separated(&self, x: &[f64], dhat: f64) -> Result<(), ContactError> {
-        for c in self.candidates(x, None, dhat) {
+        for c in self.candidates(x, None, dhat, Place::End) {
             if !self.on_body(c) {
                 continue;
             }
-            let d = self.distance(c, &self.points(c, x)).0;
+            let d = self.distance(c, &self.points(c, x, Place::End)).0;
             if d < dhat {
                 return Err(ContactError::Invalid {
                     field: "dhat".into(),
@@ -301,8 +346,8 @@ impl SelfContact {
         }
     }
 
-    fn points(&self, c: Candidate, x: &[f64]) -> [Vector3<f64>; 4] {
-        self.indices(c).map(|v| self.at(x, v))
+    fn points(&self, c: Candidate, x: &[f64], place: Place) -> [Vector3<f64>; 4] {
+        self.indices(c).map(|v| self.at(x, v, place))
     }
 
     fn pair(&self, c: Candidate) -> SurfacePair {
@@ -346,13 +391,13 @@ impl SelfContact {
         pairs: &mut Vec<crate::FrictionPair>,
     ) {
         let own = self.mesh_starts.len();
-        for c in self.candidates(x, None, barrier.dhat) {
+        for c in self.candidates(x, None, barrier.dhat, Place::Start) {
             let indices = self.indices(c);
             let obstacle = match indices.iter().find(|&&v| v >= self.body) {
                 Some(&fixed) => self.mesh_of(fixed),
                 None => own,
             };
-            let p = self.points(c, x);
+            let p = self.points(c, x, Place::Start);
             let (d, form) = self.distance(c, &p);
             let coefficient = mu.get(obstacle).copied().unwrap_or(0.0);
             if coefficient == 0.0 || !(d > 0.0 && d < barrier.dhat) {
@@ -372,7 +417,17 @@ impl SelfContact {
                 .filter(|&k| indices[k] < self.body && w[k] != 0.0)
                 .map(|k| (indices[k], w[k]))
                 .collect();
-            let start = vertices.iter().map(|&(v, wv)| point(x, v) * wv).sum();
+            // Sticking, the gap keeps its start: the body's part of the point moves as the
+            // obstacle's part does over the step.
+            let obstacle_moves: Vector3<f64> = (0..4)
+                .filter(|&k| indices[k] >= self.body)
+                .map(|k| self.moved(x, indices[k], Place::Sweep) * w[k])
+                .sum();
+            let start = vertices
+                .iter()
+                .map(|&(v, wv)| point(x, v) * wv)
+                .sum::<Vector3<f64>>()
+                - obstacle_moves;
             pairs.push(crate::FrictionPair {
                 vertices,
                 obstacle: first + obstacle,
@@ -388,7 +443,8 @@ impl SelfContact {
     /// self-contact): intersecting surfaces whose primitives need not be close to a vertex
     /// or edge, which the distances alone would not see.
     pub(crate) fn check_crossings(&self, x: &[f64]) -> Result<(), ContactError> {
-        let boxes = |vs: &[usize]| Aabb::of(vs.iter().map(|&v| self.at(x, v)));
+        let at = |v| self.at(x, v, Place::End);
+        let boxes = |vs: &[usize]| Aabb::of(vs.iter().map(|&v| at(v)));
         let triangles = Bvh::new(self.triangles.iter().map(|t| boxes(t)).collect());
         for e in &self.edges {
             let mut found = None;
@@ -399,11 +455,7 @@ impl SelfContact {
                     && counts
                     && !tri.contains(&e[0])
                     && !tri.contains(&e[1])
-                    && crosses(
-                        self.at(x, e[0]),
-                        self.at(x, e[1]),
-                        tri.map(|v| self.at(x, v)),
-                    )
+                    && crosses(at(e[0]), at(e[1]), tri.map(at))
                 {
                     found = Some(tri);
                 }
@@ -417,13 +469,19 @@ impl SelfContact {
         Ok(())
     }
 
-    /// Pairs whose boxes (over `x`, and `x + dx` when given) come within `reach`, in a fixed
-    /// order.
-    fn candidates(&self, x: &[f64], dx: Option<&[f64]>, reach: f64) -> Vec<Candidate> {
+    /// Pairs whose boxes (over `x`, and `x + dx` when given, the obstacles as `place`
+    /// says) come within `reach`, in a fixed order.
+    fn candidates(
+        &self,
+        x: &[f64],
+        dx: Option<&[f64]>,
+        reach: f64,
+        place: Place,
+    ) -> Vec<Candidate> {
         let swept = |vs: &[usize]| {
             Aabb::of(vs.iter().flat_map(|&v| {
-                let p = self.at(x, v);
-                [p, dx.map_or(p, |dx| p + self.moved(dx, v))]
+                let p = self.at(x, v, place);
+                [p, dx.map_or(p, |dx| p + self.moved(dx, v, place))]
             }))
         };
         let triangles = Bvh::new(self.triangles.iter().map(|t| swept(t)).collect());
@@ -460,8 +518,8 @@ impl SelfContact {
         mut forces: Option<&mut [f64]>,
         mut hessian: Option<&mut ContactHessian>,
     ) -> Result<(), ContactError> {
-        for c in self.candidates(x, None, barrier.dhat) {
-            let p = self.points(c, x);
+        for c in self.candidates(x, None, barrier.dhat, Place::End) {
+            let p = self.points(c, x, Place::End);
             let (d, form) = self.distance(c, &p);
             if !(d > 0.0) {
                 return Err(self.touching(c, d));
@@ -506,18 +564,64 @@ impl SelfContact {
     /// The largest `s` in `[0, 1]` (conservatively) such that on the path `x + t dx`,
     /// `t <= s`, no pair's distance falls below [`STEP_MARGIN`] of the least of its start
     /// and `dhat`. A pair that never comes within `dhat` cannot, so only pairs whose swept
-    /// boxes come that close are advanced.
-    pub(crate) fn step_bound(&self, x: &[f64], dx: &[f64], dhat: f64) -> f64 {
+    /// boxes come that close are advanced. With `sweep`, the mesh obstacles go from where
+    /// they were at the step's start to where they are at its end on the same path (a
+    /// step's first displacement); else they stay at the end.
+    pub(crate) fn step_bound(&self, x: &[f64], dx: &[f64], dhat: f64, sweep: bool) -> f64 {
+        let place = if sweep { Place::Sweep } else { Place::End };
         let mut bound = 1.0f64;
-        for c in self.candidates(x, Some(dx), dhat) {
-            let p = self.points(c, x);
-            let dp = self.indices(c).map(|v| self.moved(dx, v));
-            bound = bound.min(self.advance(c, &p, &dp, dhat));
+        for c in self.candidates(x, Some(dx), dhat, place) {
+            let p = self.points(c, x, place);
+            let dp = self.indices(c).map(|v| self.moved(dx, v, place));
+            bound = bound.min(self.advance(c, &p, &dp, STEP_MARGIN * dhat.min(self.distance(c, &p).0)));
             if bound == 0.0 {
                 break;
             }
         }
         bound
+    }
+
+    /// [`ContactModel::carry`]'s part for the moving mesh obstacles: for each, the body's
+    /// surface vertices of a pair with it whose path in its frame (the mesh where it was at
+    /// the step's start) would come closer than a fifth of the least of the pair's distance
+    /// and `dhat` go along that path only as far as is safe, then move with the mesh.
+    pub(crate) fn carry(
+        &self,
+        x: &[f64],
+        dx: &mut [f64],
+        movable: &dyn Fn(usize) -> bool,
+        dhat: f64,
+    ) {
+        for (mesh, step) in self.mesh_steps.iter().enumerate() {
+            let Some(step) = step else {
+                continue;
+            };
+            let mut relative = vec![0.0; dx.len()];
+            let body = self.vertices.iter().filter(|&&v| v < self.body && movable(v));
+            for &v in body {
+                let path = relative_path(step, &point(x, v), &point(dx, v));
+                relative[3 * v..3 * v + 3].copy_from_slice(path.as_slice());
+            }
+            let mut fraction = vec![1.0f64; self.body];
+            for c in self.candidates(x, Some(&relative), dhat, Place::Start) {
+                let indices = self.indices(c);
+                if !indices.iter().any(|&v| v >= self.body && self.mesh_of(v) == mesh) {
+                    continue;
+                }
+                let p = self.points(c, x, Place::Start);
+                let dp = indices.map(|v| self.moved(&relative, v, Place::Start));
+                let target = 2.0 * STEP_MARGIN * dhat.min(self.distance(c, &p).0);
+                let s = self.advance(c, &p, &dp, target);
+                for &v in indices.iter().filter(|&&v| v < self.body) {
+                    fraction[v] = fraction[v].min(s);
+                }
+            }
+            for (v, &s) in fraction.iter().enumerate().filter(|(_, s)| **s < 1.0) {
+                let path = point(&relative, v);
+                let moved = carried(step, &point(x, v), &path, s);
+                dx[3 * v..3 * v + 3].copy_from_slice(moved.as_slice());
+            }
+        }
     }
 
     /// Conservative advancement of one pair: the distance changes no faster than `L`, a
@@ -528,7 +632,7 @@ impl SelfContact {
         c: Candidate,
         p: &[Vector3<f64>; 4],
         dp: &[Vector3<f64>; 4],
-        dhat: f64,
+        target: f64,
     ) -> f64 {
         let mean = (dp[0] + dp[1] + dp[2] + dp[3]) / 4.0;
         let n = dp.map(|d| (d - mean).norm());
@@ -543,7 +647,6 @@ impl SelfContact {
         if speed == 0.0 {
             return 1.0;
         }
-        let target = STEP_MARGIN * d0.min(dhat);
         let (mut t, mut d) = (0.0, d0);
         for _ in 0..MAX_ADVANCES {
             let step = (d - target) / speed;
@@ -687,9 +790,9 @@ mod tests {
             .collect();
         let mut away = vec![0.0; 24];
         away[..12].copy_from_slice(&up);
-        assert!(mesh.step_bound(&x[..12], &up, 0.1) < 1.0);
+        assert!(mesh.step_bound(&x[..12], &up, 0.1, false) < 1.0);
         assert!(
-            (mesh.step_bound(&x[..12], &up, 0.1) - both.step_bound(&x, &away, 0.1)).abs() < 1e-12
+            (mesh.step_bound(&x[..12], &up, 0.1, false) - both.step_bound(&x, &away, 0.1, false)).abs() < 1e-12
         );
     }
 
@@ -754,13 +857,13 @@ mod tests {
             let mut dx = vec![0.0; 24];
             dx[12..].copy_from_slice(&motion);
             dx[14] -= 1.0;
-            let s = surface.step_bound(&x, &dx, 0.1);
+            let s = surface.step_bound(&x, &dx, 0.1, false);
             prop_assert!(s > 0.0);
             for i in 0..=200 {
                 let t = s * i as f64 / 200.0;
                 let y: Vec<f64> = x.iter().zip(&dx).map(|(x, d)| x + t * d).collect();
-                for c in surface.candidates(&y, None, f64::INFINITY) {
-                    let d = surface.distance(c, &surface.points(c, &y)).0;
+                for c in surface.candidates(&y, None, f64::INFINITY, Place::End) {
+                    let d = surface.distance(c, &surface.points(c, &y, Place::End)).0;
                     prop_assert!(d > 0.0, "t = {t}: {} at {d}", surface.pair(c));
                 }
             }

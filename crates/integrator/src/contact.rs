@@ -55,7 +55,6 @@ impl Contact {
         let mut model =
             ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
                 .map_err(invalid)?;
-        model = model.with_motions(spec.motions.clone()).map_err(invalid)?;
         let rest = mesh.rest_positions_flat();
         if spec.self_contact {
             model = model
@@ -68,7 +67,8 @@ impl Contact {
                 .with_mesh_obstacles(deform_mesh::topology::boundary_faces(mesh), &rest, meshes)
                 .map_err(invalid)?;
         }
-        // After the meshes: its coefficients count them.
+        // After the meshes: motions and friction's coefficients count them.
+        model = model.with_motions(spec.motions.clone()).map_err(invalid)?;
         if let Some(friction) = &spec.friction {
             model = model.with_friction(friction).map_err(invalid)?;
         }

@@ -110,13 +110,13 @@ pub fn simulate(
             mesh: &mesh,
             every: scene.output.every,
             pvd: Pvd::new(out.join("series.pvd")),
-            obstacles: MovingObstacles::new(&out, &mesh, &sim, state.t),
+            obstacles: MovingObstacles::new(&out, &mesh, &sim),
         },
         error: None,
         user: observer,
     };
     log.frames.write(0, &state)?;
-    write_obstacles(&out, &mesh, &sim)?;
+    write_obstacles(&out, &mesh, &sim, state.t)?;
     let run = sim.run(&mut state, &RunOptions::steps(steps), &mut log);
     if let Some(e) = log.error {
         return Err(e);
@@ -166,12 +166,18 @@ pub fn simulate(
 
 /// The obstacles' surfaces in `obstacles.vtu`, to open in ParaView beside the frames (a
 /// plane as a square three times the body's size), where they are at the start.
-fn write_obstacles(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Result<(), SimulateError> {
+fn write_obstacles(
+    out: &Path,
+    mesh: &TetMesh,
+    sim: &Integrator,
+    state_time: f64,
+) -> Result<(), SimulateError> {
     let Some(contact) = sim.contact() else {
         return Ok(());
     };
     let path = out.join("obstacles.vtu");
-    write_obstacle_surfaces(&path, contact, contact.obstacles(), extent(mesh))
+    let (obstacles, meshes) = contact.placed_at(state_time);
+    write_surfaces(&path, &obstacles, &meshes, extent(mesh))
 }
 
 /// The size of a plane's square: three times the body's.
@@ -180,16 +186,16 @@ fn extent(mesh: &TetMesh) -> f64 {
     3.0 * (hi - lo).norm()
 }
 
-/// `obstacles` (analytic, where they are) and `contact`'s meshes as triangles in `path`.
-fn write_obstacle_surfaces(
+/// `obstacles` (analytic) and `meshes` as triangles in `path`.
+fn write_surfaces(
     path: &Path,
-    contact: &deform_contact::ContactModel,
     obstacles: &[deform_contact::Obstacle],
+    meshes: &[deform_contact::Surface],
     extent: f64,
 ) -> Result<(), SimulateError> {
     let (mut x, mut triangles) = (Vec::new(), Vec::new());
     let analytic = obstacles.iter().map(|o| o.surface(extent));
-    for (p, t) in analytic.chain(contact.mesh_obstacles().iter().cloned()) {
+    for (p, t) in analytic.chain(meshes.iter().cloned()) {
         let first = x.len() / 3;
         x.extend(p);
         triangles.extend(t.iter().map(|tri| tri.map(|i| i + first)));
@@ -201,31 +207,24 @@ fn write_obstacle_surfaces(
 /// body's, where they are at each frame's time.
 struct MovingObstacles {
     contact: deform_contact::ContactModel,
-    /// The time the obstacles are where `contact` has them.
-    t0: f64,
     extent: f64,
     pvd: Pvd,
 }
 
 impl MovingObstacles {
-    fn new(out: &Path, mesh: &TetMesh, sim: &Integrator, t0: f64) -> Option<Self> {
+    fn new(out: &Path, mesh: &TetMesh, sim: &Integrator) -> Option<Self> {
         let contact = sim.contact().filter(|c| !c.motions().is_empty())?;
         Some(Self {
             contact: contact.clone(),
-            t0,
             extent: extent(mesh),
             pvd: Pvd::new(out.join("obstacles.pvd")),
         })
     }
 
     fn write(&mut self, out: &Path, step: usize, t: f64) -> Result<(), SimulateError> {
-        let mut obstacles = self.contact.obstacles().to_vec();
-        for m in self.contact.motions() {
-            let shift = m.offset(t) - m.offset(self.t0);
-            obstacles[m.obstacle] = obstacles[m.obstacle].translated(&shift);
-        }
+        let (obstacles, meshes) = self.contact.placed_at(t);
         let file = out.join(format!("obstacles_{step:05}.vtu"));
-        write_obstacle_surfaces(&file, &self.contact, &obstacles, self.extent)?;
+        write_surfaces(&file, &obstacles, &meshes, self.extent)?;
         self.pvd.push(t, &file).map_err(|e| write_error(&file, e))
     }
 }

@@ -73,6 +73,7 @@ fn a_plane_coming_down_squeezes_a_cube_without_passing_into_it() {
             velocity: [0.0, 0.0, -speed],
             start: 0.0,
             stop: Some(stop),
+            ..Default::default()
         }],
         ..Default::default()
     };
@@ -120,6 +121,7 @@ fn a_sliding_ground_drags_a_cube_along_by_friction() {
             velocity: [ground_speed, 0.0, 0.0],
             start: 0.0,
             stop: None,
+            ..Default::default()
         }],
         friction: Some(FrictionSpec {
             mu: vec![0.5],
@@ -154,6 +156,7 @@ fn a_sliding_ground_drags_a_cube_along_by_friction() {
                 velocity: [ground_speed, 0.0, 0.0],
                 start: 0.0,
                 stop: None,
+                ..Default::default()
             }],
             ..Default::default()
         },
@@ -183,6 +186,7 @@ fn bad_motions_name_the_field() {
                 velocity: [0.0; 3],
                 start: 0.0,
                 stop: None,
+                ..Default::default()
             },
             "obstacle 3 does not exist",
         ),
@@ -192,6 +196,7 @@ fn bad_motions_name_the_field() {
                 velocity: [0.0; 3],
                 start: 1.0,
                 stop: Some(0.5),
+                ..Default::default()
             },
             "not before start",
         ),
