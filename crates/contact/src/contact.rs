@@ -83,6 +83,13 @@ pub enum ContactError {
         /// Their distance.
         distance: f64,
     },
+    /// Obstacles that move would pass through the body during a step: no first iterate that
+    /// moves the body's surface with them stays clear of everything (the obstacles move too
+    /// far in one step for the body's mesh; a smaller step or a slower motion).
+    #[error(
+        "moving obstacles would pass through the body in this step: no start moves its surface clear of them (take a smaller dt or a slower motion)"
+    )]
+    Overrun,
     /// A primitive of the body's surface touches one of a triangle-mesh obstacle.
     #[error(
         "the surface meets mesh obstacle {mesh}: {pair} (the obstacle's vertices numbered within it; distance {distance:e} m)"
@@ -461,7 +468,8 @@ impl ContactModel {
 
     /// Whether an obstacle moves during the current step.
     pub fn moving(&self) -> bool {
-        self.steps.iter().any(Option::is_some) || self.surface.as_ref().is_some_and(SelfContact::moving)
+        self.steps.iter().any(Option::is_some)
+            || self.surface.as_ref().is_some_and(SelfContact::moving)
     }
 
     /// Makes the step's first displacement `dx` (from `x` at the step's start) clear of the
@@ -649,20 +657,31 @@ impl ContactModel {
 
 /// The straight path, in the frame of an obstacle that moves by `step` over a step, of a
 /// point that starts at `p` and moves by `dp`: from `p` to `step^-1 (p + dp)`.
-pub(crate) fn relative_path(step: &Isometry3<f64>, p: &Vector3<f64>, dp: &Vector3<f64>) -> Vector3<f64> {
+pub(crate) fn relative_path(
+    step: &Isometry3<f64>,
+    p: &Vector3<f64>,
+    dp: &Vector3<f64>,
+) -> Vector3<f64> {
     step.inverse_transform_point(&Point3::from(p + dp)).coords - p
 }
 
 /// The displacement of a point from `p` that goes a fraction `s` along its path `relative`
 /// in an obstacle's frame and then moves with the obstacle (by `step`).
-pub(crate) fn carried(step: &Isometry3<f64>, p: &Vector3<f64>, relative: &Vector3<f64>, s: f64) -> Vector3<f64> {
+pub(crate) fn carried(
+    step: &Isometry3<f64>,
+    p: &Vector3<f64>,
+    relative: &Vector3<f64>,
+    s: f64,
+) -> Vector3<f64> {
     (step * Point3::from(p + relative * s)).coords - p
 }
 
 /// The centre of the bounding box of flat positions.
 fn bounding_centre(x: &[f64]) -> Vector3<f64> {
     let points = x.chunks_exact(3).map(Vector3::from_column_slice);
-    let lo = points.clone().fold(Vector3::repeat(f64::INFINITY), |a, p| a.inf(&p));
+    let lo = points
+        .clone()
+        .fold(Vector3::repeat(f64::INFINITY), |a, p| a.inf(&p));
     let hi = points.fold(Vector3::repeat(f64::NEG_INFINITY), |a, p| a.sup(&p));
     (lo + hi) * 0.5
 }

@@ -277,7 +277,9 @@ impl ContactModel {
             // The start point moves with the obstacle: `d start / d x0` is its turn.
             let turned = self
                 .step_motion(pair.obstacle)
-                .map_or(Matrix3::identity(), |m| m.rotation.to_rotation_matrix().into_inner());
+                .map_or(Matrix3::identity(), |m| {
+                    m.rotation.to_rotation_matrix().into_inner()
+                });
             let (n, hd) = (jet.gradient, jet.hessian);
             let d = at(x1, v) - pair.start;
             let p = Matrix3::identity() - n * n.transpose();

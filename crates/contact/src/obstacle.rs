@@ -91,7 +91,10 @@ impl Obstacle {
                 half_extents: h,
                 rotation,
             } => {
-                if !finite(center) || !finite(rotation) || !h.iter().all(|v| *v > 0.0 && v.is_finite()) {
+                if !finite(center)
+                    || !finite(rotation)
+                    || !h.iter().all(|v| *v > 0.0 && v.is_finite())
+                {
                     return Err(format!(
                         "an oriented box needs a finite centre and rotation and positive half extents, got {center:?}, {h:?}, {rotation:?}"
                     ));
@@ -205,7 +208,10 @@ impl Obstacle {
 impl Obstacle {
     /// The same solid moved by `d`.
     pub fn translated(&self, d: &Vector3<f64>) -> Obstacle {
-        self.moved(&Isometry3::from_parts(Translation3::from(*d), UnitQuaternion::identity()))
+        self.moved(&Isometry3::from_parts(
+            Translation3::from(*d),
+            UnitQuaternion::identity(),
+        ))
     }
 
     /// The same solid moved rigidly by `m` (a point `p` of it goes to `m p`). An
@@ -615,16 +621,29 @@ mod tests {
         // Half a turn in 1 s: a quarter by 1.0 s, and no further after.
         for t in [1.0, 3.0] {
             let pivot = at(t, [1.0, 0.0, 0.0]);
-            assert!((pivot - Vector3::new(1.05, 0.0, 0.0)).norm() < 1e-12, "{pivot}");
+            assert!(
+                (pivot - Vector3::new(1.05, 0.0, 0.0)).norm() < 1e-12,
+                "{pivot}"
+            );
             let arm = at(t, [2.0, 0.0, 0.0]) - pivot;
             assert!((arm - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-12, "{arm}");
         }
         // Without a pivot it turns about the centre it is given.
-        let about = ObstacleMotion { pivot: None, ..m.clone() };
+        let about = ObstacleMotion {
+            pivot: None,
+            ..m.clone()
+        };
         let c = Vector3::new(0.0, 0.0, 5.0);
         let p = (about.placement(1.0, &c) * nalgebra::Point3::from(c)).coords;
         assert!((p - c - Vector3::new(0.05, 0.0, 0.0)).norm() < 1e-12);
-        assert!(ObstacleMotion { pivot: Some([f64::NAN; 3]), ..m }.check(1).is_err());
+        assert!(
+            ObstacleMotion {
+                pivot: Some([f64::NAN; 3]),
+                ..m
+            }
+            .check(1)
+            .is_err()
+        );
     }
 
     /// Whether `p` lies within 1e-5 of a plane bounding the box's Voronoi regions.

@@ -226,7 +226,11 @@ impl SelfContact {
     /// at the step's start, at `to` at its end.
     pub(crate) fn place_mesh(&mut self, mesh: usize, from: &Isometry3<f64>, to: &Isometry3<f64>) {
         let first = self.mesh_starts[mesh];
-        let end = self.mesh_starts.get(mesh + 1).copied().unwrap_or(self.fixed.len());
+        let end = self
+            .mesh_starts
+            .get(mesh + 1)
+            .copied()
+            .unwrap_or(self.fixed.len());
         for k in first..end {
             let rest = Point3::from(self.fixed_rest[k]);
             self.fixed_start[k] = (from * rest).coords;
@@ -573,7 +577,8 @@ impl SelfContact {
         for c in self.candidates(x, Some(dx), dhat, place) {
             let p = self.points(c, x, place);
             let dp = self.indices(c).map(|v| self.moved(dx, v, place));
-            bound = bound.min(self.advance(c, &p, &dp, STEP_MARGIN * dhat.min(self.distance(c, &p).0)));
+            bound =
+                bound.min(self.advance(c, &p, &dp, STEP_MARGIN * dhat.min(self.distance(c, &p).0)));
             if bound == 0.0 {
                 break;
             }
@@ -597,7 +602,10 @@ impl SelfContact {
                 continue;
             };
             let mut relative = vec![0.0; dx.len()];
-            let body = self.vertices.iter().filter(|&&v| v < self.body && movable(v));
+            let body = self
+                .vertices
+                .iter()
+                .filter(|&&v| v < self.body && movable(v));
             for &v in body {
                 let path = relative_path(step, &point(x, v), &point(dx, v));
                 relative[3 * v..3 * v + 3].copy_from_slice(path.as_slice());
@@ -605,7 +613,10 @@ impl SelfContact {
             let mut fraction = vec![1.0f64; self.body];
             for c in self.candidates(x, Some(&relative), dhat, Place::Start) {
                 let indices = self.indices(c);
-                if !indices.iter().any(|&v| v >= self.body && self.mesh_of(v) == mesh) {
+                if !indices
+                    .iter()
+                    .any(|&v| v >= self.body && self.mesh_of(v) == mesh)
+                {
                     continue;
                 }
                 let p = self.points(c, x, Place::Start);
@@ -792,7 +803,9 @@ mod tests {
         away[..12].copy_from_slice(&up);
         assert!(mesh.step_bound(&x[..12], &up, 0.1, false) < 1.0);
         assert!(
-            (mesh.step_bound(&x[..12], &up, 0.1, false) - both.step_bound(&x, &away, 0.1, false)).abs() < 1e-12
+            (mesh.step_bound(&x[..12], &up, 0.1, false) - both.step_bound(&x, &away, 0.1, false))
+                .abs()
+                < 1e-12
         );
     }
 

@@ -929,7 +929,9 @@ impl Integrator {
             policy: self.policy.name(),
             ..StepReport::default()
         };
-        let (mut x, mut u) = self.initial_iterate(state, mode, t1);
+        let (mut x, mut u) = self
+            .initial_iterate(state, mode, t1)
+            .map_err(|e| e.into_step_error(&report))?;
         let mut tangent = match newton.project {
             Projection::Always => Tangent::Projected,
             Projection::Never | Projection::WhenNeeded => Tangent::Exact,
@@ -1062,7 +1064,16 @@ impl Integrator {
 
     /// Newton's first iterate `(x, u)` for a step ending at `t1`: `v^n` (dynamic) or `x^n`
     /// (static), constrained DOFs at their targets.
-    fn initial_iterate(&self, state: &State, mode: Mode, t1: f64) -> (Vec<f64>, Vec<f64>) {
+    ///
+    /// # Errors
+    /// [`ContactError::Overrun`] when obstacles that move pass through the body whatever
+    /// its first iterate.
+    fn initial_iterate(
+        &self,
+        state: &State,
+        mode: Mode,
+        t1: f64,
+    ) -> Result<(Vec<f64>, Vec<f64>), StageError> {
         let mut x = state.x.clone();
         let mut u = match mode {
             Mode::Dynamic { .. } => state.v.clone(),
@@ -1071,7 +1082,7 @@ impl Integrator {
         match mode {
             Mode::Dynamic { dt } => {
                 self.apply_constraints(&mut x, Some((&mut u, &state.x)), t1, dt);
-                self.feasible_velocity(state, dt, &mut u);
+                self.feasible_velocity(state, dt, &mut u)?;
                 for i in 0..x.len() {
                     x[i] = state.x[i] + dt * u[i];
                 }
@@ -1081,15 +1092,15 @@ impl Integrator {
                 u.copy_from_slice(&x);
             }
         }
-        (x, u)
+        Ok((x, u))
     }
 
     /// With contact, scales the free DOFs of the first iterate's velocity `u` so that the
     /// first iterate `x^n + dt u` is reached from `x^n` without touching an obstacle (the
     /// barrier must be finite there); the constrained ones follow their motions.
-    fn feasible_velocity(&self, state: &State, dt: f64, u: &mut [f64]) {
+    fn feasible_velocity(&self, state: &State, dt: f64, u: &mut [f64]) -> Result<(), ContactError> {
         let Some(c) = &self.contact else {
-            return;
+            return Ok(());
         };
         if c.model.moving() {
             return self.carried_velocity(&c.model, state, dt, u);
@@ -1101,13 +1112,21 @@ impl Integrator {
                 u[i] *= bound;
             }
         }
+        Ok(())
     }
 
     /// [`Integrator::feasible_velocity`] while obstacles move: vertices they would come too
     /// close to move with them ([`ContactModel::carry`]); if the rest of the path still
     /// comes too close to something, the free velocities are scaled down and carried
-    /// again, and at worst the free vertices only move with the obstacles.
-    fn carried_velocity(&self, model: &ContactModel, state: &State, dt: f64, u: &mut [f64]) {
+    /// again, and at worst the free vertices only move with the obstacles; if even that
+    /// comes too close, the step is refused rather than let an obstacle pass through.
+    fn carried_velocity(
+        &self,
+        model: &ContactModel,
+        state: &State,
+        dt: f64,
+        u: &mut [f64],
+    ) -> Result<(), ContactError> {
         let v0: Vec<f64> = u.to_vec();
         for scale in [1.0, 0.5, 0.0] {
             let mut dx: Vec<f64> = v0.iter().map(|v| dt * v).collect();
@@ -1115,13 +1134,14 @@ impl Integrator {
                 dx[i] *= scale;
             }
             model.carry(&state.x, &mut dx, |v| !self.dofs.is_constrained(v));
-            if scale == 0.0 || model.first_step_bound(&state.x, &dx) >= 1.0 {
+            if model.first_step_bound(&state.x, &dx) >= 1.0 {
                 for &i in self.dofs.free_dofs() {
                     u[i] = dx[i] / dt;
                 }
-                return;
+                return Ok(());
             }
         }
+        Err(ContactError::Overrun)
     }
 
     /// Stage 1: assembles energy, forces, K (Newton's, see [`Integrator::newton_matrix`]) and,

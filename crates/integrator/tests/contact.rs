@@ -449,4 +449,19 @@ fn the_readme_contact_field_and_the_bundled_scene_parse() {
         .unwrap()
         .unwrap();
     assert!(summary.min_distance > 0.0 && summary.active == 0);
+    // The turntable scene: a turned box and a turning mesh; its first steps run.
+    let path = root.join("assets/scenes/turntable.ron");
+    let mut built = deform_integrator::Scene::load(&path)
+        .unwrap()
+        .build(&path)
+        .unwrap();
+    let contact = built.integrator.contact().unwrap();
+    assert_eq!(
+        (contact.obstacles().len(), contact.mesh_obstacles().len()),
+        (1, 1)
+    );
+    assert_eq!(contact.motions().len(), 1);
+    for _ in 0..3 {
+        built.integrator.step(&mut built.state).unwrap();
+    }
 }

@@ -13,7 +13,7 @@ use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
 mod common;
 
-use common::{crosses, total_energy};
+use common::{surfaces_cross, total_energy};
 use nalgebra::Vector3;
 
 /// A 10 cm cube of 2 x 2 x 2 cells, its bottom `height` above the ground.
@@ -73,32 +73,6 @@ fn sim_with_offset(
         })
         .build()
         .unwrap()
-}
-
-fn edges(triangles: &[[usize; 3]]) -> Vec<[usize; 2]> {
-    let mut e: Vec<[usize; 2]> = triangles
-        .iter()
-        .flat_map(|f| [[f[0], f[1]], [f[1], f[2]], [f[2], f[0]]])
-        .map(|[a, b]| [a.min(b), a.max(b)])
-        .collect();
-    e.sort_unstable();
-    e.dedup();
-    e
-}
-
-/// Whether an edge of one surface crosses a triangle of the other (`a` at `pa`, `b` at
-/// `pb`).
-fn surfaces_cross(
-    (pa, a): (&[Vector3<f64>], &[[usize; 3]]),
-    (pb, b): (&[Vector3<f64>], &[[usize; 3]]),
-) -> bool {
-    let one_way = |pa: &[Vector3<f64>], a: &[[usize; 3]], pb: &[Vector3<f64>], b: &[[usize; 3]]| {
-        edges(a).iter().any(|e| {
-            b.iter()
-                .any(|t| crosses(pa[e[0]], pa[e[1]], t.map(|v| pb[v])))
-        })
-    };
-    one_way(pa, a, pb, b) || one_way(pb, b, pa, a)
 }
 
 #[test]

@@ -1,5 +1,7 @@
 //! Helpers shared by the contact integration tests, kept independent of the crate's own
 //! collision code so that their checks stay exact and separate from what they test.
+//! Each test binary uses a part of them.
+#![allow(dead_code)]
 
 use deform_integrator::{Integrator, State};
 use nalgebra::Vector3;
@@ -47,4 +49,30 @@ pub fn total_energy(sim: &mut Integrator, s: &State) -> f64 {
         other -= m * (g.x * x[0] + g.y * x[1] + g.z * x[2]);
     }
     elastic + barrier + other
+}
+
+pub fn edges(triangles: &[[usize; 3]]) -> Vec<[usize; 2]> {
+    let mut e: Vec<[usize; 2]> = triangles
+        .iter()
+        .flat_map(|f| [[f[0], f[1]], [f[1], f[2]], [f[2], f[0]]])
+        .map(|[a, b]| [a.min(b), a.max(b)])
+        .collect();
+    e.sort_unstable();
+    e.dedup();
+    e
+}
+
+/// Whether an edge of one surface crosses a triangle of the other (`a` at `pa`, `b` at
+/// `pb`).
+pub fn surfaces_cross(
+    (pa, a): (&[Vector3<f64>], &[[usize; 3]]),
+    (pb, b): (&[Vector3<f64>], &[[usize; 3]]),
+) -> bool {
+    let one_way = |pa: &[Vector3<f64>], a: &[[usize; 3]], pb: &[Vector3<f64>], b: &[[usize; 3]]| {
+        edges(a).iter().any(|e| {
+            b.iter()
+                .any(|t| crosses(pa[e[0]], pa[e[1]], t.map(|v| pb[v])))
+        })
+    };
+    one_way(pa, a, pb, b) || one_way(pb, b, pa, a)
 }
