@@ -556,8 +556,34 @@ impl ContactModel {
     pub fn evaluate(
         &self,
         x: &[f64],
+        forces: Option<&mut [f64]>,
+        hessian: Option<&mut ContactHessian>,
+    ) -> Result<ContactSummary, ContactError> {
+        self.evaluate_projected(x, forces, hessian, true)
+    }
+
+    /// The barrier's exact Hessian at `x` into `hessian` (its blocks as
+    /// [`ContactModel::evaluate`] gives them, none projected): where a pair's distance
+    /// curves (spheres, boxes' edges, surface pairs whose triangle or edges move), the
+    /// exact Hessian is indefinite. An adjoint needs it exact; Newton takes the projected
+    /// one.
+    ///
+    /// # Errors
+    /// As [`ContactModel::evaluate`].
+    pub fn exact_hessian(
+        &self,
+        x: &[f64],
+        hessian: &mut ContactHessian,
+    ) -> Result<ContactSummary, ContactError> {
+        self.evaluate_projected(x, None, Some(hessian), false)
+    }
+
+    fn evaluate_projected(
+        &self,
+        x: &[f64],
         mut forces: Option<&mut [f64]>,
         mut hessian: Option<&mut ContactHessian>,
+        project: bool,
     ) -> Result<ContactSummary, ContactError> {
         if let Some(h) = hessian.as_deref_mut() {
             h.clear();
@@ -595,7 +621,8 @@ impl ContactModel {
                 }
                 if hessian.is_some() {
                     let n = jet.gradient;
-                    block += project_psd(n * n.transpose() * d2 + jet.hessian * d1);
+                    let exact = n * n.transpose() * d2 + jet.hessian * d1;
+                    block += if project { project_psd(exact) } else { exact };
                 }
             }
             if let Some(h) = hessian.as_deref_mut()
@@ -605,7 +632,7 @@ impl ContactModel {
             }
         }
         if let Some(surface) = &self.surface {
-            surface.evaluate(x, b, &mut summary, forces, hessian)?;
+            surface.evaluate(x, (b, project), &mut summary, forces, hessian)?;
         }
         Ok(summary)
     }

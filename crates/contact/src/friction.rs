@@ -248,9 +248,12 @@ impl ContactModel {
     /// force) and `-L h Q` with `Q = -((n . d) H + n (H d)^T)` (the
     /// normal's turn, `H` the distance's Hessian, `d = x1 - start`).
     ///
+    /// Pairs of the body's surface against mesh obstacles or itself also move their closest
+    /// points' weights with `x0`; see `SelfContact::friction_start_vjp` (docs/theory.md).
+    ///
     /// # Errors
-    /// [`ContactError::Invalid`] for a pair against a mesh obstacle or the body's own
-    /// surface (whose lag also moves its closest points' weights): not supported yet.
+    /// [`ContactError::Invalid`] for a lag that is not this model's (an analytic pair of
+    /// several vertices).
     pub fn add_friction_start_vjp(
         &self,
         lag: &FrictionLag,
@@ -263,14 +266,12 @@ impl ContactModel {
         };
         let (b, eps) = (self.barrier(), lag.threshold);
         let at = |x: &[f64], v: usize| Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
-        for pair in &lag.pairs {
-            let (&[(v, _)], true) = (
-                pair.vertices.as_slice(),
-                pair.obstacle < self.obstacles().len(),
-            ) else {
+        let analytic = self.obstacles().len();
+        for pair in lag.pairs.iter().filter(|p| p.obstacle < analytic) {
+            let &[(v, _)] = pair.vertices.as_slice() else {
                 return Err(ContactError::Invalid {
                     field: "friction".into(),
-                    reason: "the start derivative of friction against meshes or the body's own surface is not supported yet".into(),
+                    reason: "a lag against an analytic obstacle has one vertex a pair".into(),
                 });
             };
             let jet = self.before(pair.obstacle).jet(&at(x0, v));
@@ -301,6 +302,10 @@ impl ContactModel {
             for k in 0..3 {
                 out[3 * v + k] += y[k];
             }
+        }
+        if let Some(surface) = self.surface() {
+            let meshes = (b, &mu[analytic..], eps);
+            surface.friction_start_vjp((x0, x1), meshes, w, out);
         }
         Ok(())
     }

@@ -5,8 +5,9 @@
 
 use std::fmt;
 
-use nalgebra::{Isometry3, Point3, SMatrix, SymmetricEigen, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
+use std::ops::AddAssign;
 
 use crate::bvh::{Aabb, Bvh};
 use crate::contact::{carried, relative_path};
@@ -442,6 +443,65 @@ impl SelfContact {
         }
     }
 
+    /// `out += (df/dx0)^T lambda` for the lagged friction forces `f` at `x1` of the surface
+    /// pairs [`SelfContact::friction_pairs`] lags at `x0` (the same pairs, recomputed), with
+    /// `mu` and `eps` as there. A pair's force on its vertex `k` is `-w_k L phi(|q|) q` with
+    /// `q = P z`, `z = sum_k w_k delta_k` (each vertex's displacement over the step, a mesh
+    /// obstacle's its motion's), and `L = mu (-b'(d)) m`; the weights `w`, the normal in
+    /// `P = I - n n^T`, and `L` move with `x0`. The distance's gradient in vertex `k` is
+    /// `w_k n`, so with its Hessian `H` the weights change as `dw_k = n^T H_k.` and the
+    /// normal as `dn = P sum_{w_k > 0} H_k.` (those weights sum to one).
+    pub(crate) fn friction_start_vjp(
+        &self,
+        (x0, x1): (&[f64], &[f64]),
+        (barrier, mu, eps): (Barrier, &[f64], f64),
+        lambda: &[f64],
+        out: &mut [f64],
+    ) {
+        let own = self.mesh_starts.len();
+        for c in self.candidates(x0, None, barrier.dhat, Place::Start) {
+            let indices = self.indices(c);
+            let obstacle = match indices.iter().find(|&&v| v >= self.body) {
+                Some(&fixed) => self.mesh_of(fixed),
+                None => own,
+            };
+            let p = self.points(c, x0, Place::Start);
+            let (d, form) = self.distance(c, &p);
+            let coefficient = mu.get(obstacle).copied().unwrap_or(0.0);
+            if coefficient == 0.0 || !(d > 0.0 && d < barrier.dhat) {
+                continue;
+            }
+            let jets = variables(&p);
+            let distance = squared_jet(form, &jets).sqrt();
+            let mollified = match c {
+                Candidate::PointTriangle(..) => Jet::constant(1.0),
+                Candidate::EdgeEdge(e0, e1) => mollifier(
+                    &jets,
+                    MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1],
+                ),
+            };
+            let body = indices.map(|v| v < self.body);
+            let delta: [Vector3<f64>; 4] = std::array::from_fn(|k| match body[k] {
+                true => point(x1, indices[k]) - p[k],
+                false => self.moved(x0, indices[k], Place::Sweep),
+            });
+            let lam: [Vector3<f64>; 4] = std::array::from_fn(|k| match body[k] {
+                true => point(lambda, indices[k]),
+                false => Vector3::zeros(),
+            });
+            let grad = pair_start_gradient(
+                (&p, &delta, &lam, &body),
+                (form, &distance, &mollified),
+                (coefficient, barrier, eps),
+            );
+            for (k, &v) in indices.iter().enumerate().filter(|(k, _)| body[*k]) {
+                for r in 0..3 {
+                    out[3 * v + r] += grad[3 * k + r];
+                }
+            }
+        }
+    }
+
     /// Refuses positions where an edge of one surface passes through a triangle of another
     /// that it counts against (the body's and a mesh obstacle's; the body's own with
     /// self-contact): intersecting surfaces whose primitives need not be close to a vertex
@@ -513,11 +573,11 @@ impl SelfContact {
     }
 
     /// Adds the self-contact barrier at `x` to `summary`, its forces to `forces` and its
-    /// PSD-projected pair Hessians to `hessian`.
+    /// pair Hessians to `hessian`, PSD-projected when `project`.
     pub(crate) fn evaluate(
         &self,
         x: &[f64],
-        barrier: Barrier,
+        (barrier, project): (Barrier, bool),
         summary: &mut ContactSummary,
         mut forces: Option<&mut [f64]>,
         mut hessian: Option<&mut ContactHessian>,
@@ -544,7 +604,12 @@ impl SelfContact {
                 }
             }
             if let Some(h) = hessian.as_deref_mut() {
-                h.add_pair(&vertices, &project_psd(energy.hessian), self.body);
+                let pair = if project {
+                    project_psd(energy.hessian)
+                } else {
+                    energy.hessian
+                };
+                h.add_pair(&vertices, &pair, self.body);
             }
         }
         Ok(())
@@ -675,6 +740,74 @@ impl SelfContact {
     }
 }
 
+/// A pair's points at the step's start, their displacements over the step, the adjoint at
+/// them, and which are the body's.
+type PairPoints<'a> = (
+    &'a [Vector3<f64>; 4],
+    &'a [Vector3<f64>; 4],
+    &'a [Vector3<f64>; 4],
+    &'a [bool; 4],
+);
+
+/// The gradient in a pair's 12 coordinates at the step's start of `S = lambda . f`, its
+/// lagged friction forces at the step's end against the adjoint `lambda` (zero on an
+/// obstacle's points), from the distance's jet and the mollifier's (see
+/// [`SelfContact::friction_start_vjp`]). `delta` is each point's displacement over the
+/// step; `body` says which points are the body's (an obstacle's do not move with the start).
+fn pair_start_gradient(
+    (p, delta, lambda, body): PairPoints<'_>,
+    (form, distance, mollified): (Form, &Jet, &Jet),
+    (mu, barrier, eps): (f64, Barrier, f64),
+) -> SVector<f64, 12> {
+    type Rows = SMatrix<f64, 3, 12>;
+    let w = closest_weights(form, p);
+    let d = distance.value;
+    let n = (0..4).map(|k| p[k] * w[k]).sum::<Vector3<f64>>() / d;
+    let projector = Matrix3::identity() - n * n.transpose();
+    let h = &distance.hessian;
+    // dw_k = n^T H_k. (a 12-row each) and dn = P sum_{w_k > 0} H_k. .
+    let dw: [SVector<f64, 12>; 4] =
+        std::array::from_fn(|k| h.fixed_view::<3, 12>(3 * k, 0).transpose() * n);
+    let mut dn = Rows::zeros();
+    for k in (0..4).filter(|&k| w[k] > 0.0) {
+        dn += h.fixed_view::<3, 12>(3 * k, 0);
+    }
+    let dn = projector * dn;
+    let z: Vector3<f64> = (0..4).map(|k| delta[k] * w[k]).sum();
+    let mut dz = Rows::zeros();
+    for k in 0..4 {
+        dz += delta[k] * dw[k].transpose();
+        if body[k] {
+            // The start is where the displacement is measured from.
+            dz.fixed_view_mut::<3, 3>(0, 3 * k)
+                .add_assign(&(Matrix3::identity() * -w[k]));
+        }
+    }
+    let q = projector * z;
+    let dq = projector * dz - dn * n.dot(&z) - n * (z.transpose() * dn);
+    let s = q.norm();
+    let (phi, dphi) = if s >= eps {
+        (1.0 / s, -1.0 / (s * s))
+    } else {
+        (2.0 / eps - s / (eps * eps), -1.0 / (eps * eps))
+    };
+    let ds = match s > 0.0 {
+        true => dq.transpose() * q / s,
+        false => SVector::<f64, 12>::zeros(),
+    };
+    let g: Vector3<f64> = (0..4).map(|k| lambda[k] * w[k]).sum();
+    let mut dg = Rows::zeros();
+    for k in 0..4 {
+        dg += lambda[k] * dw[k].transpose();
+    }
+    let (b1, b2) = (barrier.first(d), barrier.second(d));
+    let limit = mu * -b1 * mollified.value;
+    let dlimit = (distance.gradient * (-b2 * mollified.value) - mollified.gradient * b1) * mu;
+    let gq = g.dot(&q);
+    let dgq = dg.transpose() * q + dq.transpose() * g;
+    -(dlimit * (phi * gq) + ds * (limit * dphi * gq) + dgq * (limit * phi))
+}
+
 /// Whether the segment `p q` meets the closed triangle `t`: its end points on opposite
 /// sides of (or on) the triangle's plane and the crossing point inside the triangle.
 fn crosses(p: Vector3<f64>, q: Vector3<f64>, t: [Vector3<f64>; 3]) -> bool {
@@ -748,7 +881,7 @@ mod tests {
                 min_distance: f64::INFINITY,
             };
             let (mut f, mut h) = (vec![0.0; y.len()], ContactHessian::default());
-            s.evaluate(y, b, &mut summary, Some(&mut f), Some(&mut h))
+            s.evaluate(y, (b, true), &mut summary, Some(&mut f), Some(&mut h))
                 .unwrap();
             (summary, f, h)
         };
@@ -822,7 +955,7 @@ mod tests {
             let (surface, x) = pair(gap, jitter);
             let eval = |y: &[f64], f: Option<&mut [f64]>, h: Option<&mut ContactHessian>| {
                 let mut s = ContactSummary { energy: 0.0, active: 0, min_distance: f64::INFINITY };
-                surface.evaluate(y, b, &mut s, f, h).unwrap();
+                surface.evaluate(y, (b, true), &mut s, f, h).unwrap();
                 s
             };
             let (mut f, mut hess) = (vec![0.0; 24], ContactHessian::default());

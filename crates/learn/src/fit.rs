@@ -260,22 +260,6 @@ pub enum FitError {
     Optimiser(String),
 }
 
-/// The output-error adjoint has the barrier's Hessian and friction's against analytic
-/// obstacles (with the lag's dependence on the step's start), not yet friction's against
-/// meshes or the body's own surface (whose lag also moves the closest points' weights): such
-/// a scene is refused rather than fitted with a wrong gradient.
-pub(crate) fn refuse_friction(sim: &Integrator) -> Result<(), FitError> {
-    let Some(c) = sim.contact().filter(|c| c.friction().is_some()) else {
-        return Ok(());
-    };
-    match c.mesh_obstacles().is_empty() && c.self_contact_surface().is_none() {
-        true => Ok(()),
-        false => Err(FitError::Invalid(
-            "contact.friction: output-error fits through friction against meshes or the body's own surface are not supported yet (against analytic obstacles they are)".into(),
-        )),
-    }
-}
-
 /// Fits the coefficients of the integrator's material (its term split) and optionally the
 /// Rayleigh parameters to the pairs of `trajectories`, by equation error.
 ///

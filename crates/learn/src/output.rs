@@ -255,7 +255,6 @@ impl<'a> OutputError<'a> {
         options: OutputErrorOptions,
         progress: impl FnMut(usize, f64) + 'a,
     ) -> Result<Self, FitError> {
-        crate::fit::refuse_friction(sim)?;
         let MaterialField::Uniform(base) = sim.assembly().materials() else {
             return Err(FitError::Invalid(
                 "the output-error fit needs a uniform material".into(),
@@ -1243,8 +1242,10 @@ fn step_contact<'s>(
         return Ok(None);
     };
     let model = crate::fit::placed_for_step(model, from.t, to.t);
+    // The exact barrier Hessian (the adjoint solve factorises indefinite systems): the
+    // projected one Newton takes is not the residual's derivative where distances curve.
     let mut hessian = deform_integrator::ContactHessian::default();
-    model.evaluate(&to.x, None, Some(&mut hessian))?;
+    model.exact_hessian(&to.x, &mut hessian)?;
     let lag = model.lag_friction(&from.x, dt);
     model.add_friction(&lag, &to.x, None, Some(&mut hessian));
     Ok(Some(StepContact {
