@@ -519,6 +519,34 @@ impl ContactModel {
         Ok(self)
     }
 
+    /// Sets the coefficients of friction, one per frictional obstacle in
+    /// [`ContactModel::frictional`]'s order (the smoothing speed stays).
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] (`friction.mu`) without friction, for another count, or a
+    /// coefficient that is negative or not finite.
+    pub fn set_friction_coefficients(&mut self, mu: &[f64]) -> Result<(), ContactError> {
+        let invalid = |reason: String| ContactError::Invalid {
+            field: "friction.mu".into(),
+            reason,
+        };
+        let expected = self.frictional();
+        let Some((own, _)) = self.friction.as_mut() else {
+            return Err(invalid("the contact has no friction to set".into()));
+        };
+        if mu.len() != expected {
+            return Err(invalid(format!(
+                "{} coefficients for {expected} frictional obstacles",
+                mu.len()
+            )));
+        }
+        if let Some(m) = mu.iter().find(|m| !(m.is_finite() && **m >= 0.0)) {
+            return Err(invalid(format!("{m} must be finite and >= 0")));
+        }
+        own.copy_from_slice(mu);
+        Ok(())
+    }
+
     /// The same potential without friction.
     pub fn without_friction(mut self) -> Self {
         self.friction = None;

@@ -735,6 +735,26 @@ impl Integrator {
         self.contact.as_ref().map(|c| &c.model)
     }
 
+    /// Sets contact's coefficients of friction, one per frictional obstacle
+    /// ([`ContactModel::frictional`]'s order); the next step lags friction with them.
+    ///
+    /// # Errors
+    /// [`IntegratorError::Invalid`] (`contact`) without contact or friction, for another
+    /// count, or a coefficient that is negative or not finite.
+    pub fn set_friction_coefficients(&mut self, mu: &[f64]) -> Result<(), IntegratorError> {
+        let invalid = |reason: String| IntegratorError::Invalid {
+            field: "contact",
+            reason,
+        };
+        let c = self
+            .contact
+            .as_mut()
+            .ok_or_else(|| invalid("the scene has no contact".into()))?;
+        c.model
+            .set_friction_coefficients(mu)
+            .map_err(|e| invalid(e.to_string()))
+    }
+
     /// The contact potential at positions `x` (flat `3N`): energy, active pairs, least
     /// distance. `None` without contact. A state to start from is checked with it: it also
     /// refuses surfaces that pass through each other ([`ContactModel::check_crossings`]).

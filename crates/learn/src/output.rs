@@ -225,8 +225,11 @@ pub struct OutputError<'a> {
     mass: bool,
     /// The mesh's vertices (the number of mass scales).
     vertices: usize,
-    /// Rayleigh `alpha` and `gamma` are the last two coefficients.
+    /// Rayleigh `alpha` and `gamma` follow the mass scales.
     damping: bool,
+    /// The coefficients of friction where the fit starts (the scene's), fitted last: none,
+    /// or one per frictional obstacle.
+    friction: Vec<f64>,
     trajectories: Vec<&'a Trajectory>,
     options: OutputErrorOptions,
     solver: RefCell<Cholesky>,
@@ -268,6 +271,7 @@ impl<'a> OutputError<'a> {
             mass: false,
             vertices: sim.assembly().num_vertices(),
             damping: false,
+            friction: Vec::new(),
             sim: RefCell::new(sim),
             trajectories: trajectories.to_vec(),
             options,
@@ -331,6 +335,33 @@ impl<'a> OutputError<'a> {
         self
     }
 
+    /// Also fits the coefficients of friction: the coefficients end with one per
+    /// frictional obstacle ([`deform_integrator::ContactModel::frictional`]'s order). A
+    /// coefficient that starts at zero stays there (the optimiser works in logarithms).
+    /// Through the same adjoint: the friction forces are `mu` times those at unit `mu`,
+    /// so `dr/dmu_o = -dt f_o / mu_o` with `f_o` the forces of the pairs lagged against
+    /// obstacle `o`.
+    ///
+    /// # Errors
+    /// [`FitError::Invalid`] when the scene has no friction.
+    pub fn with_friction(mut self) -> Result<Self, FitError> {
+        let mu = (self.sim.borrow().contact())
+            .and_then(|c| c.friction())
+            .map(|(mu, _)| mu.to_vec());
+        let Some(mu) = mu else {
+            return Err(FitError::Invalid(
+                "contact.friction: the scene has no friction to fit".into(),
+            ));
+        };
+        self.friction = mu;
+        Ok(self)
+    }
+
+    /// Number of coefficients of friction fitted (none, or one per frictional obstacle).
+    fn num_friction(&self) -> usize {
+        self.friction.len()
+    }
+
     /// Also fits a scale of each vertex's lumped mass (positive; the total mass is not
     /// held fixed, and is reported by [`Integrator::mass_scale`]): the coefficients gain one
     /// per vertex after the material's. A coarse mesh lumps mass where the fine body does
@@ -368,7 +399,8 @@ impl<'a> OutputError<'a> {
     fn bounds(&self) -> Vec<f64> {
         let mut lower = vec![0.0; self.num_coefficients()];
         if self.damping {
-            *lower.last_mut().expect("damping has two") = -0.5 * self.sim.borrow().options().dt;
+            lower[self.num_material() + self.num_mass() + 1] =
+                -0.5 * self.sim.borrow().options().dt;
         }
         lower
     }
@@ -376,7 +408,10 @@ impl<'a> OutputError<'a> {
     /// Number of coefficients: terms times groups, a scale per vertex with the mass, and 2
     /// with damping.
     pub fn num_coefficients(&self) -> usize {
-        self.num_material() + self.num_mass() + if self.damping { 2 } else { 0 }
+        self.num_material()
+            + self.num_mass()
+            + if self.damping { 2 } else { 0 }
+            + self.num_friction()
     }
 
     /// The base material's coefficients in every group (and the integrator's damping): where
@@ -393,6 +428,7 @@ impl<'a> OutputError<'a> {
         if self.damping {
             c.extend([o.options().alpha, o.options().gamma]);
         }
+        c.extend_from_slice(&self.friction);
         c
     }
 
@@ -520,6 +556,7 @@ impl<'a> OutputError<'a> {
             grouping,
             mass: self.mass,
             damping: self.damping,
+            friction: self.num_friction(),
         };
         let jobs = self.rollouts();
         let shares = if self.ready_lanes(&sim, c, jobs.len())? {
@@ -658,6 +695,11 @@ impl<'a> OutputError<'a> {
                     reason: e.to_string(),
                 })?;
         }
+        if !self.friction.is_empty() {
+            let f = self.num_friction();
+            sim.set_friction_coefficients(&c[c.len() - f..])
+                .map_err(|e| invalid(e.to_string()))?;
+        }
         Ok(())
     }
 }
@@ -760,11 +802,13 @@ struct Pass<'p> {
     /// The start prior's position and velocity weights, and the unobserved vertices' factor.
     prior: (f64, f64, f64),
     allow_retries: bool,
-    /// The adjoint's gradient: per group, then mass scales and damping.
+    /// The adjoint's gradient: per group, then mass scales, damping and friction.
     gradient_len: usize,
     grouping: Grouping,
     mass: bool,
     damping: bool,
+    /// Coefficients of friction fitted (last in the gradient).
+    friction: usize,
 }
 
 /// One rollout's share of the loss's sums and gradients.
@@ -831,7 +875,8 @@ impl Pass<'_> {
             None => {
                 let unscaled = self.mass.then(|| sim.unscaled_vertex_masses());
                 let grouping = self.grouping.clone();
-                adjoint.insert(Adjoint::new(sim, grouping, unscaled, self.damping)?)
+                let tail = (self.damping, self.friction);
+                adjoint.insert(Adjoint::new(sim, grouping, unscaled, tail)?)
             }
         };
         let (t, n) = (trajectories[ti], self.n);
@@ -996,8 +1041,9 @@ struct Adjoint {
     grouping: Grouping,
     /// The unscaled vertex masses when the gradient has mass scales (after the material's).
     unscaled: Option<Vec<f64>>,
-    /// The gradient ends with `alpha, gamma`.
+    /// The gradient ends with `alpha, gamma`, then this many coefficients of friction.
     damping: bool,
+    friction: usize,
 }
 
 impl Adjoint {
@@ -1005,7 +1051,7 @@ impl Adjoint {
         sim: &Integrator,
         grouping: Grouping,
         unscaled: Option<Vec<f64>>,
-        damping: bool,
+        (damping, friction): (bool, usize),
     ) -> Result<Self, FitError> {
         let kmat = sim.assembly().stiffness_matrix();
         let damped = (sim.options().gamma != 0.0).then(|| (kmat.clone(), kmat.clone()));
@@ -1017,6 +1063,7 @@ impl Adjoint {
             grouping,
             unscaled,
             damping,
+            friction,
         })
     }
 
@@ -1173,9 +1220,9 @@ impl Adjoint {
                 let mut kv = vec![0.0; n];
                 deform_solvers::LinearOperator::apply(self.kmat.csr(), &next.v, &mut kv);
                 let dot = |a: &[f64]| lambda.iter().zip(a).map(|(l, x)| l * x).sum::<f64>();
-                let last = grad.len() - 2;
-                grad[last] -= dt * dot(&mv);
-                grad[last + 1] -= dt * dot(&kv);
+                let first = grad.len() - 2 - self.friction;
+                grad[first] -= dt * dot(&mv);
+                grad[first + 1] -= dt * dot(&kv);
             }
             // Adjoints of the state at k: x_{k+1} = x_k + dt v_{k+1} passes adj_x on;
             // dr/dx_k = dt (K + gamma D_v K) and dr/dv_k = -M enter through lambda.
@@ -1192,6 +1239,8 @@ impl Adjoint {
             // Friction's lag makes the step's forces depend on its start as well.
             let mut lag_term = vec![0.0; n];
             if let Some(c) = &contact {
+                let tail = grad.len() - self.friction;
+                c.add_friction_gradient(&next.x, &lambda, dt, &mut grad[tail..]);
                 c.hessian.add_product(1.0, &lambda, &mut k_lambda);
                 let ends = (r.states[k].x.as_slice(), next.x.as_slice());
                 (c.model
@@ -1229,6 +1278,29 @@ struct StepContact<'s> {
     model: std::borrow::Cow<'s, deform_integrator::ContactModel>,
     lag: deform_integrator::FrictionLag,
     hessian: deform_integrator::ContactHessian,
+}
+
+impl StepContact<'_> {
+    /// `grad[o] += dt lambda . f_o / mu_o` for each frictional obstacle `o` whose
+    /// coefficient is fitted (`grad` holds one per obstacle, or none): `-lambda . dr/dmu_o`
+    /// with the step's friction forces `f_o` at `x1` of the pairs lagged against `o`, which
+    /// are `mu_o` times those at unit `mu`.
+    fn add_friction_gradient(&self, x1: &[f64], lambda: &[f64], dt: f64, grad: &mut [f64]) {
+        let Some((mu, _)) = self.model.friction().filter(|_| !grad.is_empty()) else {
+            return;
+        };
+        for (o, g) in grad.iter_mut().enumerate().filter(|&(o, _)| mu[o] > 0.0) {
+            let pairs = self.lag.pairs.iter().filter(|p| p.obstacle == o);
+            let lag = deform_integrator::FrictionLag {
+                pairs: pairs.cloned().collect(),
+                threshold: self.lag.threshold,
+            };
+            let mut f = vec![0.0; x1.len()];
+            self.model.add_friction(&lag, x1, Some(&mut f), None);
+            let work: f64 = lambda.iter().zip(&f).map(|(l, f)| l * f).sum();
+            *g += dt * work / mu[o];
+        }
+    }
 }
 
 /// [`StepContact`] of the step from `from` to `to` (moving obstacles where the integrator
@@ -1622,9 +1694,11 @@ pub struct Field {
     /// Also fit a scale of each vertex's lumped mass (after the material coefficients; see
     /// [`OutputError::with_mass_scale`]).
     pub mass: bool,
-    /// Also fit Rayleigh `alpha, gamma` (the last two coefficients; see
+    /// Also fit Rayleigh `alpha, gamma` (after the mass scales; see
     /// [`OutputError::with_damping`]).
     pub damping: bool,
+    /// Also fit the coefficients of friction (last; see [`OutputError::with_friction`]).
+    pub friction: bool,
 }
 
 /// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]). The fitted
@@ -1653,6 +1727,11 @@ pub fn fit_output_error_field(
     };
     let objective = if field.damping {
         objective.with_damping()
+    } else {
+        objective
+    };
+    let objective = if field.friction {
+        objective.with_friction()?
     } else {
         objective
     };

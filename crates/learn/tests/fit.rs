@@ -480,8 +480,8 @@ const CUBE: &str = "Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (
 
 /// A cube on the ground, thrown at random velocities: its output error's gradient through
 /// the contact matches differences of the loss over 12-step rollouts through the impacts,
-/// and the fit from 1.3x the coefficients comes back within 1 %. `contact` and `gravity`
-/// are the scene's fields.
+/// and the fit from 1.3x the coefficients (the Lame pair, and with friction its
+/// coefficient) comes back within 1 %. `contact` and `gravity` are the scene's fields.
 fn output_error_through_contact(contact: &str, gravity: &str) {
     output_error_through_contact_of(CUBE, "[]", contact, gravity);
 }
@@ -527,9 +527,16 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
         velocity_weight: 0.5,
         ..Default::default()
     };
+    // With friction, its coefficients are fitted with the moduli.
+    let frictional = sim.contact().unwrap().friction().is_some();
     let objective =
         deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
+    let objective = match frictional {
+        true => objective.with_friction().unwrap(),
+        false => objective,
+    };
     let c: Vec<f64> = objective.uniform_start().iter().map(|v| 1.3 * v).collect();
+    assert_eq!(c.len(), 2 + usize::from(frictional));
     let (loss, grad) = objective.evaluate(&c).unwrap();
     assert!(loss > 0.0);
     for j in 0..c.len() {
@@ -547,8 +554,20 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
     }
     let truth_c = objective.uniform_start();
     drop(objective);
-    let fit =
-        deform_learn::fit_output_error(&mut sim, &trajectories, &c, options, |_, _| {}).unwrap();
+    let field = deform_learn::output::Field {
+        initial: Some(c),
+        friction: frictional,
+        ..Default::default()
+    };
+    let fit = deform_learn::output::fit_output_error_field(
+        &mut sim,
+        &trajectories,
+        &field,
+        options,
+        |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(fit.coefficients.len(), truth_c.len());
     for (f, t) in fit.coefficients.iter().zip(&truth_c) {
         assert!(
             relative(*f, *t) < 0.01,

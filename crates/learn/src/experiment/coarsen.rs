@@ -283,6 +283,7 @@ impl CoarseSettings {
             regularisation,
             mass: false,
             damping: self.damping,
+            friction: false,
         }
     }
 }
