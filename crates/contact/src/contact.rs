@@ -23,6 +23,12 @@ pub struct ContactSpec {
     /// matrix, the stiffness with which the material holds one vertex in place.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub kappa: Option<f64>,
+    /// Whether the barrier stiffens itself when surfaces are squeezed deep into it: after a
+    /// step whose least distance is below [`ADAPT_BELOW`] of `dhat`, `kappa` doubles (at most
+    /// [`ADAPT_MAX`] times its start), as IPC adapts it. By default on when `kappa` is
+    /// chosen automatically and off when given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive_kappa: Option<bool>,
     /// Coulomb friction against the obstacles, analytic and mesh (none by default: they are
     /// frictionless).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -209,6 +215,15 @@ pub struct ContactModel {
     /// the step's start to where it is at its end); `None` while it rests.
     steps: Vec<Option<Isometry3<f64>>>,
 }
+
+/// A step whose least contact distance falls below this fraction of `dhat` doubles an
+/// adaptive barrier's stiffness ([`ContactSpec::adaptive_kappa`]): a barrier too soft for
+/// the loads lets surfaces come within a millionth of `dhat`, where its curvature makes
+/// Newton crawl (the soft tube of `assets/scenes/tube_squash.ron`).
+pub const ADAPT_BELOW: f64 = 1e-2;
+
+/// The most an adaptive barrier's stiffness grows over its start.
+pub const ADAPT_MAX: f64 = 1024.0;
 
 /// The fraction of a vertex's distance to an obstacle that a step may close: a step is
 /// bounded so that no distance falls below a tenth of what it was (IPC's CCD keeps the same
@@ -544,6 +559,21 @@ impl ContactModel {
             return Err(invalid(format!("{m} must be finite and >= 0")));
         }
         own.copy_from_slice(mu);
+        Ok(())
+    }
+
+    /// Sets the barrier's stiffness `kappa` in place (see [`ContactModel::with_stiffness`]).
+    ///
+    /// # Errors
+    /// [`ContactError::Invalid`] for a `kappa` that is not positive and finite.
+    pub fn set_stiffness(&mut self, kappa: f64) -> Result<(), ContactError> {
+        if !(kappa > 0.0 && kappa.is_finite()) {
+            return Err(ContactError::Invalid {
+                field: "kappa".into(),
+                reason: format!("must be positive and finite, got {kappa}"),
+            });
+        }
+        self.barrier.kappa = kappa;
         Ok(())
     }
 

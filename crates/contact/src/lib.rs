@@ -23,8 +23,8 @@ mod surface_contact;
 
 pub use barrier::Barrier;
 pub use contact::{
-    ContactError, ContactHessian, ContactModel, ContactSpec, ContactSummary, CouplingBlock,
-    MeshObstacle, STEP_MARGIN, VertexBlock,
+    ADAPT_BELOW, ADAPT_MAX, ContactError, ContactHessian, ContactModel, ContactSpec,
+    ContactSummary, CouplingBlock, MeshObstacle, STEP_MARGIN, VertexBlock,
 };
 pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
 pub use obstacle::{DistanceJet, Obstacle, ObstacleMotion, Surface};

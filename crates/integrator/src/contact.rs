@@ -4,7 +4,8 @@
 
 use deform_assembly::{Assembly, Outputs, StiffnessMatrix};
 use deform_contact::{
-    Barrier, ContactHessian, ContactModel, ContactSpec, ContactSummary, FrictionLag, MeshObstacle,
+    ADAPT_BELOW, ADAPT_MAX, Barrier, ContactHessian, ContactModel, ContactSpec, ContactSummary,
+    FrictionLag, MeshObstacle,
 };
 use deform_mesh::TetMesh;
 
@@ -23,6 +24,8 @@ pub(crate) struct Contact {
     pub(crate) last: Option<ContactSummary>,
     /// Friction lagged at the start of the current Newton solve (empty when static).
     pub(crate) lag: FrictionLag,
+    /// The barrier's stiffness at the start, when it adapts ([`ContactSpec::adaptive_kappa`]).
+    pub(crate) adaptive: Option<f64>,
 }
 
 impl Contact {
@@ -78,7 +81,33 @@ impl Contact {
             coupled: None,
             last: None,
             lag: FrictionLag::default(),
+            adaptive: spec
+                .adaptive_kappa
+                .unwrap_or(spec.kappa.is_none())
+                .then_some(kappa),
         })
+    }
+
+    /// After a solve whose last configuration came within [`ADAPT_BELOW`] of `dhat`, doubles
+    /// an adaptive barrier's stiffness (up to [`ADAPT_MAX`] times its start).
+    pub(crate) fn adapt(&mut self) {
+        let (Some(start), Some(last)) = (self.adaptive, self.last) else {
+            return;
+        };
+        let b = self.model.barrier();
+        if last.min_distance < ADAPT_BELOW * b.dhat && b.kappa < ADAPT_MAX * start {
+            // Doubling a positive finite stiffness stays valid.
+            let _ = self
+                .model
+                .set_stiffness((2.0 * b.kappa).min(ADAPT_MAX * start));
+        }
+    }
+
+    /// Puts an adaptive barrier's stiffness back to its start.
+    pub(crate) fn reset(&mut self) {
+        if let Some(start) = self.adaptive {
+            let _ = self.model.set_stiffness(start);
+        }
     }
 
     /// The potential at `x`: returns its energy (the barrier's and the lagged friction's),

@@ -719,6 +719,9 @@ impl Integrator {
         };
         self.policy = policy;
         self.steps_taken = 0;
+        if let Some(c) = self.contact.as_mut() {
+            c.reset();
+        }
         let direct = |s: &SolverSpec| matches!(s, SolverSpec::Direct { .. });
         self.solvers.retain(|(s, _)| direct(s));
         for (spec, solver) in &mut self.candidates {
@@ -871,7 +874,12 @@ impl Integrator {
         let mut iterations: Vec<IterationReport> = Vec::new();
         loop {
             let sub = h.min(remaining);
-            match self.newton(&current, Mode::Dynamic { dt: sub }, observer) {
+            let solved = self.newton(&current, Mode::Dynamic { dt: sub }, observer);
+            // Surfaces squeezed deep into the barrier stiffen it for what follows.
+            if let Some(c) = self.contact.as_mut() {
+                c.adapt();
+            }
+            match solved {
                 Ok((next, mut report)) => {
                     current = next;
                     remaining -= sub;

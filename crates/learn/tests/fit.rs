@@ -1917,7 +1917,9 @@ fn equation_error_fits_self_contact_friction() {
 
 /// A cube dropped onto a spike, a triangle-mesh obstacle read from an `.obj` file: the
 /// equation error has the mesh's contact forces (its pairs with the cube's surface) in its
-/// barrier column, so it recovers the Lame pair and the barrier's stiffness.
+/// barrier column, so it recovers the Lame pair and the barrier's stiffness. The barrier
+/// keeps one stiffness (`adaptive_kappa: Some(false)`): the apex squeezes the cube's face
+/// deep enough that an adaptive one doubles mid-trajectory, and one column has one kappa.
 #[test]
 fn equation_error_fits_moduli_from_trajectories_against_a_mesh_obstacle() {
     let dir = tempfile::tempdir().unwrap();
@@ -1934,7 +1936,7 @@ fn equation_error_fits_moduli_from_trajectories_against_a_mesh_obstacle() {
         mesh: Generate((cells: (2, 2, 2), size: (0.1, 0.1, 0.1), origin: (0.0, 0.0, 0.062))),
         material: NeoHookean(Young(e: 1e5, nu: 0.4)),
         density: 1000.0,
-        contact: Some((obstacles: [], meshes: [(file: {:?})])),
+        contact: Some((obstacles: [], meshes: [(file: {:?})], adaptive_kappa: Some(false))),
         integrator: (dt: 0.005, newton: (rel: 1e-11, abs: 1e-13)),
         steps: 1,
     )"#,
