@@ -54,6 +54,16 @@ pub enum Projection {
     WhenNeeded,
 }
 
+impl Projection {
+    /// The tangent a step's Newton solve starts with.
+    fn first_tangent(self) -> Tangent {
+        match self {
+            Projection::Always => Tangent::Projected,
+            Projection::Never | Projection::WhenNeeded => Tangent::Exact,
+        }
+    }
+}
+
 /// Newton's stopping rules and globalisation.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -960,10 +970,7 @@ impl Integrator {
         let (mut x, mut u) = self
             .initial_iterate(state, mode, t1)
             .map_err(|e| e.into_step_error(&report))?;
-        let mut tangent = match newton.project {
-            Projection::Always => Tangent::Projected,
-            Projection::Never | Projection::WhenNeeded => Tangent::Exact,
-        };
+        let mut tangent = newton.project.first_tangent();
         // Solves whose result was not used (a failed choice before the fallback, an
         // exact-tangent attempt before projection), charged to the next iteration's report.
         let mut discarded: Vec<CandidateOutcome> = Vec::new();
