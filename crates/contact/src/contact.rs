@@ -524,13 +524,7 @@ impl ContactModel {
     /// # Errors
     /// [`ContactError::Invalid`] for a `kappa` that is not positive and finite.
     pub fn with_stiffness(mut self, kappa: f64) -> Result<Self, ContactError> {
-        if !(kappa > 0.0 && kappa.is_finite()) {
-            return Err(ContactError::Invalid {
-                field: "kappa".into(),
-                reason: format!("must be positive and finite, got {kappa}"),
-            });
-        }
-        self.barrier.kappa = kappa;
+        self.set_stiffness(kappa)?;
         Ok(self)
     }
 

@@ -12,7 +12,7 @@ use std::ops::AddAssign;
 use crate::bvh::{Aabb, Bvh};
 use crate::contact::{carried, relative_path};
 use crate::distance::{Form, closest_weights, edge_edge, mollifier, point_triangle, squared_jet};
-use crate::jet::{Jet, variables};
+use crate::jet::{Jet, JetPoint, variables};
 use crate::{Barrier, ContactError, ContactHessian, ContactSummary, STEP_MARGIN};
 
 /// Two primitives of the surface that a self-contact distance is measured between.
@@ -55,6 +55,21 @@ impl fmt::Display for SurfacePair {
             }
         }
     }
+}
+
+/// A pair that friction lags at a step's start ([`SelfContact::lagged_pairs`]).
+struct LaggedPair {
+    candidate: Candidate,
+    /// Its four vertices (the body's below `body`, an obstacle's from there).
+    indices: [usize; 4],
+    /// Its obstacle among the meshes, or the meshes' count for the body's own surface.
+    obstacle: usize,
+    /// Its points at the step's start, their distance and its form.
+    points: [Vector3<f64>; 4],
+    distance: f64,
+    form: Form,
+    /// Its obstacle's coefficient of friction (non-zero).
+    mu: f64,
 }
 
 /// A candidate pair by index: (surface vertex, triangle) or (edge, edge).
@@ -398,29 +413,15 @@ impl SelfContact {
         first: usize,
         pairs: &mut Vec<crate::FrictionPair>,
     ) {
-        let own = self.mesh_starts.len();
-        for c in self.candidates(x, None, barrier.dhat, Place::Start) {
-            let indices = self.indices(c);
-            let obstacle = match indices.iter().find(|&&v| v >= self.body) {
-                Some(&fixed) => self.mesh_of(fixed),
-                None => own,
-            };
-            let p = self.points(c, x, Place::Start);
-            let (d, form) = self.distance(c, &p);
-            let coefficient = mu.get(obstacle).copied().unwrap_or(0.0);
-            if coefficient == 0.0 || !(d > 0.0 && d < barrier.dhat) {
-                continue;
-            }
-            let w = closest_weights(form, &p);
+        for pair in self.lagged_pairs(x, barrier.dhat, mu) {
+            let (indices, p, d) = (pair.indices, pair.points, pair.distance);
+            let w = closest_weights(pair.form, &p);
             let gap: Vector3<f64> = (0..4).map(|k| p[k] * w[k]).sum();
-            let force = -barrier.first(d)
-                * match c {
-                    Candidate::PointTriangle(..) => 1.0,
-                    Candidate::EdgeEdge(e0, e1) => {
-                        let eps = MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1];
-                        mollifier(&variables(&p), eps).value
-                    }
-                };
+            let mollified = match pair.candidate {
+                Candidate::PointTriangle(..) => 1.0,
+                Candidate::EdgeEdge(..) => self.mollified(pair.candidate, &variables(&p)).value,
+            };
+            let force = -barrier.first(d) * mollified;
             let vertices: Vec<(usize, f64)> = (0..4)
                 .filter(|&k| indices[k] < self.body && w[k] != 0.0)
                 .map(|k| (indices[k], w[k]))
@@ -438,8 +439,8 @@ impl SelfContact {
                 - obstacle_moves;
             pairs.push(crate::FrictionPair {
                 vertices,
-                obstacle: first + obstacle,
-                limit: coefficient * force,
+                obstacle: first + pair.obstacle,
+                limit: pair.mu * force,
                 basis: crate::friction::tangent_basis(&(gap / d)),
                 start,
             });
@@ -461,28 +462,11 @@ impl SelfContact {
         lambda: &[f64],
         out: &mut [f64],
     ) {
-        let own = self.mesh_starts.len();
-        for c in self.candidates(x0, None, barrier.dhat, Place::Start) {
-            let indices = self.indices(c);
-            let obstacle = match indices.iter().find(|&&v| v >= self.body) {
-                Some(&fixed) => self.mesh_of(fixed),
-                None => own,
-            };
-            let p = self.points(c, x0, Place::Start);
-            let (d, form) = self.distance(c, &p);
-            let coefficient = mu.get(obstacle).copied().unwrap_or(0.0);
-            if coefficient == 0.0 || !(d > 0.0 && d < barrier.dhat) {
-                continue;
-            }
+        for pair in self.lagged_pairs(x0, barrier.dhat, mu) {
+            let (indices, p) = (pair.indices, pair.points);
             let jets = variables(&p);
-            let distance = squared_jet(form, &jets).sqrt();
-            let mollified = match c {
-                Candidate::PointTriangle(..) => Jet::constant(1.0),
-                Candidate::EdgeEdge(e0, e1) => mollifier(
-                    &jets,
-                    MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1],
-                ),
-            };
+            let distance = squared_jet(pair.form, &jets).sqrt();
+            let mollified = self.mollified(pair.candidate, &jets);
             let body = indices.map(|v| v < self.body);
             let delta: [Vector3<f64>; 4] = std::array::from_fn(|k| match body[k] {
                 true => point(x1, indices[k]) - p[k],
@@ -494,8 +478,8 @@ impl SelfContact {
             });
             let grad = pair_start_gradient(
                 (&p, &delta, &lam, &body),
-                (form, &distance, &mollified),
-                (coefficient, barrier, eps),
+                (pair.form, &distance, &mollified),
+                (pair.mu, barrier, eps),
             );
             for (k, &v) in indices.iter().enumerate().filter(|(k, _)| body[*k]) {
                 for r in 0..3 {
@@ -626,11 +610,53 @@ impl SelfContact {
             .map(b.value(d), b.first(d), b.second(d));
         match c {
             Candidate::PointTriangle(..) => energy,
+            Candidate::EdgeEdge(..) => energy * self.mollified(c, &x),
+        }
+    }
+
+    /// The factor on a pair's barrier with its derivatives: 1 on a point and a triangle,
+    /// IPC's mollifier on two edges (its threshold from their rest lengths).
+    fn mollified(&self, c: Candidate, x: &[JetPoint; 4]) -> Jet {
+        match c {
+            Candidate::PointTriangle(..) => Jet::constant(1.0),
             Candidate::EdgeEdge(e0, e1) => {
-                let eps = MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1];
-                energy * mollifier(&x, eps)
+                mollifier(x, MOLLIFIER * self.rest_length2[e0] * self.rest_length2[e1])
             }
         }
+    }
+
+    /// The pairs friction lags at `x`, a step's start (mesh obstacles where they were
+    /// then): those closer than `dhat` whose obstacle has a non-zero coefficient in `mu`
+    /// (the meshes', then the body's own surface's), in a fixed order. The lag and its
+    /// derivative in the start both take them from here.
+    fn lagged_pairs<'a>(
+        &'a self,
+        x: &'a [f64],
+        dhat: f64,
+        mu: &'a [f64],
+    ) -> impl Iterator<Item = LaggedPair> + 'a {
+        let own = self.mesh_starts.len();
+        self.candidates(x, None, dhat, Place::Start)
+            .into_iter()
+            .filter_map(move |c| {
+                let indices = self.indices(c);
+                let obstacle = match indices.iter().find(|&&v| v >= self.body) {
+                    Some(&fixed) => self.mesh_of(fixed),
+                    None => own,
+                };
+                let points = self.points(c, x, Place::Start);
+                let (distance, form) = self.distance(c, &points);
+                let mu = mu.get(obstacle).copied().unwrap_or(0.0);
+                (mu != 0.0 && distance > 0.0 && distance < dhat).then_some(LaggedPair {
+                    candidate: c,
+                    indices,
+                    obstacle,
+                    points,
+                    distance,
+                    form,
+                    mu,
+                })
+            })
     }
 
     /// The largest `s` in `[0, 1]` (conservatively) such that on the path `x + t dx`,
@@ -645,8 +671,7 @@ impl SelfContact {
         for c in self.candidates(x, Some(dx), dhat, place) {
             let p = self.points(c, x, place);
             let dp = self.indices(c).map(|v| self.moved(dx, v, place));
-            bound =
-                bound.min(self.advance(c, &p, &dp, STEP_MARGIN * dhat.min(self.distance(c, &p).0)));
+            bound = bound.min(self.advance(c, &p, &dp, (STEP_MARGIN, dhat)));
             if bound == 0.0 {
                 break;
             }
@@ -689,8 +714,7 @@ impl SelfContact {
                 }
                 let p = self.points(c, x, Place::Start);
                 let dp = indices.map(|v| self.moved(&relative, v, Place::Start));
-                let target = 2.0 * STEP_MARGIN * dhat.min(self.distance(c, &p).0);
-                let s = self.advance(c, &p, &dp, target);
+                let s = self.advance(c, &p, &dp, (2.0 * STEP_MARGIN, dhat));
                 for &v in indices.iter().filter(|&&v| v < self.body) {
                     fraction[v] = fraction[v].min(s);
                 }
@@ -703,15 +727,15 @@ impl SelfContact {
         }
     }
 
-    /// Conservative advancement of one pair: the distance changes no faster than `L`, a
-    /// bound of the points' relative speed, so a step of `(d - target) / L` never passes the
-    /// target distance.
+    /// Conservative advancement of one pair towards `target = margin min(d0, dhat)` of its
+    /// start distance `d0`: the distance changes no faster than `L`, a bound of the points'
+    /// relative speed, so a step of `(d - target) / L` never passes the target distance.
     fn advance(
         &self,
         c: Candidate,
         p: &[Vector3<f64>; 4],
         dp: &[Vector3<f64>; 4],
-        target: f64,
+        (margin, dhat): (f64, f64),
     ) -> f64 {
         let mean = (dp[0] + dp[1] + dp[2] + dp[3]) / 4.0;
         let n = dp.map(|d| (d - mean).norm());
@@ -726,6 +750,7 @@ impl SelfContact {
         if speed == 0.0 {
             return 1.0;
         }
+        let target = margin * d0.min(dhat);
         let (mut t, mut d) = (0.0, d0);
         for _ in 0..MAX_ADVANCES {
             let step = (d - target) / speed;

@@ -29,6 +29,25 @@ fn model() -> ContactModel {
     ContactModel::new(obstacles, barrier, vec![0, 2, 3]).unwrap()
 }
 
+/// [`model`] with friction as `spec` says; when `turning`, each obstacle turns by 0.3 rad
+/// about its centre and drifts during a step of 0.01 s (the sticking positions turn with
+/// it), placed for the step from 0.
+fn frictional_model(spec: &deform_contact::FrictionSpec, turning: bool) -> ContactModel {
+    let m = model().with_friction(spec).unwrap();
+    if !turning {
+        return m;
+    }
+    let turn = |obstacle| deform_contact::ObstacleMotion {
+        obstacle,
+        velocity: [0.5, -0.2, 0.0],
+        angular_velocity: [10.0, -20.0, 20.0],
+        ..Default::default()
+    };
+    let mut m = m.with_motions((0..3).map(turn).collect()).unwrap();
+    m.set_step(0.0, 0.01);
+    m
+}
+
 /// Four vertices, each within `dhat` of one obstacle (or two).
 fn positions(t: [f64; 12]) -> Vec<f64> {
     let near = [
@@ -167,19 +186,7 @@ proptest! {
         turning in proptest::bool::ANY,
     ) {
         let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
-        let mut m = model().with_friction(&spec).unwrap();
-        if turning {
-            // Each obstacle turns by 0.3 rad over the step about its centre and drifts:
-            // the sticking positions turn with it.
-            let turn = |obstacle| deform_contact::ObstacleMotion {
-                obstacle,
-                velocity: [0.5, -0.2, 0.0],
-                angular_velocity: [10.0, -20.0, 20.0],
-                ..Default::default()
-            };
-            m = m.with_motions((0..3).map(turn).collect()).unwrap();
-            m.set_step(0.0, 0.01);
-        }
+        let m = frictional_model(&spec, turning);
         let start = positions(t);
         let dt = 0.01;
         let lag = m.lag_friction(&start, dt);
@@ -404,19 +411,7 @@ proptest! {
         turning in proptest::bool::ANY,
     ) {
         let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
-        let mut m = model().with_friction(&spec).unwrap();
-        if turning {
-            // Each obstacle turns by 0.3 rad over the step about its centre and drifts:
-            // the sticking positions turn with it.
-            let turn = |obstacle| deform_contact::ObstacleMotion {
-                obstacle,
-                velocity: [0.5, -0.2, 0.0],
-                angular_velocity: [10.0, -20.0, 20.0],
-                ..Default::default()
-            };
-            m = m.with_motions((0..3).map(turn).collect()).unwrap();
-            m.set_step(0.0, 0.01);
-        }
+        let m = frictional_model(&spec, turning);
         let x0 = positions(t);
         let scale = if far { 1e-3 } else { 1e-5 };
         let x1: Vec<f64> = x0.iter().zip(&slide).map(|(a, b)| a + scale * b).collect();

@@ -13,7 +13,7 @@ use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
 mod common;
 
-use common::{crosses, total_energy};
+use common::{crosses, edges, total_energy};
 use nalgebra::Vector3;
 
 /// Two 10 cm cubes of 2 x 2 x 2 cells in one mesh: the lower one 1 mm above the ground, the
@@ -78,13 +78,7 @@ fn thrown(sim: &Integrator, mesh: &TetMesh, speed: f64) -> State {
 /// The first surface edge crossing a surface triangle that shares no vertex with it.
 fn intersection(mesh: &TetMesh, x: &[f64]) -> Option<([usize; 2], [usize; 3])> {
     let faces = deform_mesh::topology::boundary_faces(mesh);
-    let mut edges: Vec<[usize; 2]> = faces
-        .iter()
-        .flat_map(|f| [[f[0], f[1]], [f[1], f[2]], [f[2], f[0]]])
-        .map(|[a, b]| [a.min(b), a.max(b)])
-        .collect();
-    edges.sort_unstable();
-    edges.dedup();
+    let edges = edges(&faces);
     let p = |v: usize| Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
     for e in &edges {
         for f in &faces {

@@ -598,6 +598,29 @@ fn output_error_gradient_through_friction_equals_finite_differences() {
     );
 }
 
+/// One mesh of a slab (`(cells, size, origin)`, its top at z = 0) and a 10 cm cube of
+/// 2 x 2 x 2 cells `gap` above it, written to `slab_and_cube.msh` in `dir`.
+fn slab_and_cube(
+    dir: &Path,
+    (cells, size, origin): ([usize; 3], [f64; 3], [f64; 3]),
+    gap: f64,
+) -> std::path::PathBuf {
+    let grid = |cells, size, origin| deform_mesh::generate::BoxGrid {
+        cells,
+        size,
+        origin,
+        split: Default::default(),
+    };
+    let mesh = deform_mesh::generate::boxes(&[
+        grid(cells, size, origin),
+        grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, gap]),
+    ])
+    .unwrap();
+    let file = dir.join("slab_and_cube.msh");
+    deform_mesh::io::write(&file, &mesh).unwrap();
+    file
+}
+
 /// Through friction against a triangle mesh (the ground as two triangles, mu 0.3, the cube
 /// sliding down the tilted gravity): the lag's closest points' weights move with the
 /// step's start too.
@@ -623,20 +646,9 @@ fn output_error_gradient_through_mesh_friction_equals_finite_differences() {
 /// one Newton takes was 0.2 % off here).
 #[test]
 fn output_error_gradient_through_self_contact_friction_equals_finite_differences() {
-    let grid = |cells, size, origin| deform_mesh::generate::BoxGrid {
-        cells,
-        size,
-        origin,
-        split: Default::default(),
-    };
-    let mesh = deform_mesh::generate::boxes(&[
-        grid([4, 2, 1], [0.4, 0.2, 0.05], [-0.1, -0.05, -0.05]),
-        grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 1e-3]),
-    ])
-    .unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("slab_and_cube.msh");
-    deform_mesh::io::write(&file, &mesh).unwrap();
+    let slab = ([4, 2, 1], [0.4, 0.2, 0.05], [-0.1, -0.05, -0.05]);
+    let file = slab_and_cube(dir.path(), slab, 1e-3);
     output_error_through_contact_of(
         &format!("File({:?})", file.display().to_string()),
         "[(select: Plane(point: (0.0, 0.0, 0.0), normal: (0.0, 0.0, -1.0)))]",
@@ -1876,20 +1888,9 @@ fn equation_error_fits_moduli_and_friction_from_contact_trajectories() {
 /// the body's own surface's coefficient and recovers it with the Lame pair and the barrier.
 #[test]
 fn equation_error_fits_self_contact_friction() {
-    let grid = |cells, size, origin| deform_mesh::generate::BoxGrid {
-        cells,
-        size,
-        origin,
-        split: Default::default(),
-    };
-    let mesh = deform_mesh::generate::boxes(&[
-        grid([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]),
-        grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, 2e-3]),
-    ])
-    .unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("slab_and_cube.msh");
-    deform_mesh::io::write(&file, &mesh).unwrap();
+    let slab = ([10, 3, 1], [1.0, 0.3, 0.05], [-0.1, -0.1, -0.05]);
+    let file = slab_and_cube(dir.path(), slab, 2e-3);
     let text = format!(
         r#"Scene(
         name: "slab",

@@ -51,6 +51,7 @@ pub fn total_energy(sim: &mut Integrator, s: &State) -> f64 {
     elastic + barrier + other
 }
 
+/// The edges of `triangles`, each once, as sorted vertex pairs.
 pub fn edges(triangles: &[[usize; 3]]) -> Vec<[usize; 2]> {
     let mut e: Vec<[usize; 2]> = triangles
         .iter()
