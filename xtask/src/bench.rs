@@ -44,7 +44,8 @@ pub struct ScalingArgs {
     /// Thread counts (comma-separated; 1 up to the machine's threads by default).
     #[arg(long, value_delimiter = ',')]
     pub threads: Vec<usize>,
-    /// Repetitions (medians are reported).
+    /// Rounds: each times every stage once at every thread count, alternating the order of
+    /// the counts (medians over rounds are reported).
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
     /// Only these stages (comma-separated names, e.g. `assembly_all,factorize`); all by
@@ -467,7 +468,7 @@ fn timed_steps(
 /// of speed-ups against one thread and the serial fraction fitted to them.
 fn scaling(args: ScalingArgs) -> Result<()> {
     use deform_integrator::benchmark::{
-        ScalingStage, amdahl_speedup, serial_fraction, time_stages,
+        ScalingStage, amdahl_speedup, median, serial_fraction, time_stages,
     };
     let stages: Vec<ScalingStage> = if args.stages.is_empty() {
         ScalingStage::ALL.to_vec()
@@ -496,21 +497,34 @@ fn scaling(args: ScalingArgs) -> Result<()> {
         bail!("--threads must include 1: speed-ups are against one thread");
     }
     let tets = beam(args.n).0.num_tets();
-    // times[stage][k]: seconds at threads[k].
-    let mut times = vec![Vec::new(); stages.len()];
-    for &p in &threads {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(p).build()?;
-        let measured = pool.install(|| time_stages(args.n, &stages, args.repeats))?;
-        for (k, (stage, seconds)) in measured.into_iter().enumerate() {
-            println!(
-                r#"{{"what": "scaling", "stage": "{}", "n": {}, "tets": {tets}, "threads": {p}, "seconds": {seconds:.6}, "speedup": {:.3}}}"#,
-                stage.name(),
-                args.n,
-                times[k].first().map_or(1.0, |t1: &f64| t1 / seconds),
-            );
-            times[k].push(seconds);
+    // samples[stage][k]: seconds at threads[k], one per round. Each round times every stage
+    // once at every thread count, in ascending then descending order of threads, so that a
+    // machine that slows down or speeds up during the run (a neighbour on a shared VM) moves
+    // every count's times alike instead of the last count's.
+    let mut samples = vec![vec![Vec::new(); threads.len()]; stages.len()];
+    for round in 0..args.repeats.max(1) {
+        let order: Vec<usize> = match round % 2 {
+            0 => (0..threads.len()).collect(),
+            _ => (0..threads.len()).rev().collect(),
+        };
+        for k in order {
+            let p = threads[k];
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(p).build()?;
+            let measured = pool.install(|| time_stages(args.n, &stages, 1))?;
+            for (s, (stage, seconds)) in measured.into_iter().enumerate() {
+                println!(
+                    r#"{{"what": "scaling", "stage": "{}", "n": {}, "tets": {tets}, "threads": {p}, "round": {round}, "seconds": {seconds:.6}}}"#,
+                    stage.name(),
+                    args.n,
+                );
+                samples[s][k].push(seconds);
+            }
         }
     }
+    // times[stage][k]: the median at threads[k].
+    let times: Vec<Vec<f64>> = (samples.into_iter())
+        .map(|per| per.into_iter().map(median).collect())
+        .collect();
     let last = *threads.last().expect("at least one count");
     println!(
         "\n| stage | 1 thread (s) | {last} threads (s) | speed-up | serial fraction | predicted on {} |",

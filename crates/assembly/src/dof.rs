@@ -91,8 +91,21 @@ impl DofMap {
     pub fn restrict(&self, full: &[f64], reduced: &mut [f64]) -> Result<(), AssemblyError> {
         check_len("full vector", full.len(), self.num_dofs())?;
         check_len("reduced vector", reduced.len(), self.num_free())?;
-        for (r, &i) in reduced.iter_mut().zip(&self.free) {
-            *r = full[i];
+        const ENTRIES: usize = 8192;
+        let gather = |(r, free): (&mut [f64], &[usize])| {
+            for (r, &i) in r.iter_mut().zip(free) {
+                *r = full[i];
+            }
+        };
+        if crate::assembly::inline(reduced.len() / ENTRIES) {
+            gather((reduced, &self.free));
+        } else {
+            use rayon::iter::{IndexedParallelIterator, ParallelIterator};
+            use rayon::slice::{ParallelSlice, ParallelSliceMut};
+            let parts = reduced
+                .par_chunks_mut(ENTRIES)
+                .zip(self.free.par_chunks(ENTRIES));
+            parts.for_each(gather);
         }
         Ok(())
     }

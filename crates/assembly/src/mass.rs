@@ -3,12 +3,14 @@
 use deform_mesh::topology::BlockPattern;
 use deform_mesh::{ConsistentMass, TetMesh};
 
-use rayon::iter::{IntoParallelIterator, ParallelIterator};
+use rayon::iter::{IndexedParallelIterator, IntoParallelIterator, ParallelIterator};
 
 use crate::assembly::check_len;
 
 /// Rows of a reduced matrix per parallel task of [`Assembly::combine_reduced`].
 const REDUCED_ROWS: usize = 1024;
+/// Entries per parallel task of a product with a lumped mass.
+const LUMPED_ROWS: usize = 8192;
 use crate::{Assembly, AssemblyError, DofMap, ReducedMatrix, StiffnessMatrix};
 
 /// A mass matrix: lumped (diagonal, `rho W / 4` per element corner) or consistent
@@ -60,8 +62,18 @@ impl Assembly {
         self.check_mass(mass)?;
         match mass {
             Mass::Lumped(m) => {
-                for (i, yi) in y.iter_mut().enumerate() {
-                    *yi = m[i / 3] * x[i];
+                // Each entry alone: the same bits in any chunking.
+                let rows = |(c, ys): (usize, &mut [f64])| {
+                    for (k, yi) in ys.iter_mut().enumerate() {
+                        let i = c * LUMPED_ROWS + k;
+                        *yi = m[i / 3] * x[i];
+                    }
+                };
+                if crate::assembly::inline(y.len() / LUMPED_ROWS) {
+                    y.chunks_mut(LUMPED_ROWS).enumerate().for_each(rows);
+                } else {
+                    use rayon::slice::ParallelSliceMut;
+                    y.par_chunks_mut(LUMPED_ROWS).enumerate().for_each(rows);
                 }
             }
             Mass::Consistent(m) => m.apply(&self.geometry.pattern, x, y),

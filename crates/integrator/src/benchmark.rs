@@ -4,6 +4,7 @@ use deform_assembly::{Assembly, DofMap, MaterialField, Tangent};
 use deform_materials::{Lame, Model, NeoHookean};
 use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
+use rayon::prelude::*;
 use sprs::CsMat;
 
 /// The beam of size `n`, its Neo-Hookean material (E = 1e6, nu = 0.4) and the deformed state
@@ -70,9 +71,19 @@ fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
 }
 
 /// The middle value (the upper one of an even count).
-fn median(mut v: Vec<f64>) -> f64 {
+///
+/// # Panics
+/// If `v` is empty.
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
+}
+
+/// [`median_time`] after one untimed call that allocates and first touches what `f`
+/// uses: a pass of milliseconds would otherwise time page faults.
+fn warm_median_time<T>(repeats: usize, mut f: impl FnMut() -> T) -> (T, f64) {
+    f();
+    median_time(repeats, f)
 }
 
 /// Median over `repeats` of `f`'s wall time, and its last result.
@@ -146,7 +157,7 @@ pub fn time_assembly(
         AssemblyOutputs::Stiffness => (false, false, true),
         AssemblyOutputs::All => (true, true, true),
     };
-    let (result, seconds) = median_time(repeats, || {
+    let (result, seconds) = warm_median_time(repeats, || {
         let mut e = 0.0;
         asm.evaluate(
             &x,
@@ -475,11 +486,20 @@ pub enum ScalingStage {
     StepDirection,
     /// That step's line searches.
     StepLineSearch,
+    /// The machine's ceiling for passes that only read: a dot product of two vectors of
+    /// [`MEMORY_LEN`] doubles (far beyond any cache), in fixed chunks.
+    MemoryRead,
+    /// The ceiling for passes that write: `c = a + 3 b` over [`MEMORY_LEN`] doubles
+    /// (STREAM's triad), what every vector update and product with a vector does.
+    MemoryTriad,
 }
+
+/// Doubles per vector of the memory ceilings (128 MB each).
+pub const MEMORY_LEN: usize = 16 << 20;
 
 impl ScalingStage {
     /// Every stage, in report order.
-    pub const ALL: [ScalingStage; 15] = [
+    pub const ALL: [ScalingStage; 17] = [
         ScalingStage::Assembly(AssemblyOutputs::Energy),
         ScalingStage::Assembly(AssemblyOutputs::EnergyForces),
         ScalingStage::Assembly(AssemblyOutputs::Stiffness),
@@ -495,6 +515,8 @@ impl ScalingStage {
         ScalingStage::StepMatrix,
         ScalingStage::StepDirection,
         ScalingStage::StepLineSearch,
+        ScalingStage::MemoryRead,
+        ScalingStage::MemoryTriad,
     ];
 
     /// Its name in reports and on the command line.
@@ -515,6 +537,8 @@ impl ScalingStage {
             ScalingStage::StepMatrix => "step_matrix",
             ScalingStage::StepDirection => "step_direction",
             ScalingStage::StepLineSearch => "step_line_search",
+            ScalingStage::MemoryRead => "memory_read",
+            ScalingStage::MemoryTriad => "memory_triad",
         }
     }
 
@@ -573,7 +597,15 @@ pub fn time_stages(
     let mut step: Option<Vec<(crate::StageSeconds, f64)>> = None;
     let mut iterative: Vec<IterativeTiming> = Vec::new();
     for &stage in stages {
-        let solver_stage = !matches!(stage, ScalingStage::Assembly(_)) && !stage.is_step();
+        let solver_stage = matches!(
+            stage,
+            ScalingStage::Spmv
+                | ScalingStage::AmgSetup
+                | ScalingStage::AmgIteration
+                | ScalingStage::Ic0Setup
+                | ScalingStage::Ic0Iteration
+                | ScalingStage::Factorize
+        );
         if solver_stage && system.is_none() {
             let a = beam_system(n);
             let b = (0..a.rows())
@@ -590,7 +622,7 @@ pub fn time_stages(
             ScalingStage::Spmv => {
                 let (a, _, b) = system();
                 let mut y = vec![0.0; b.len()];
-                median_time(repeats, || {
+                warm_median_time(repeats, || {
                     deform_solvers::LinearOperator::apply(a, b, &mut y)
                 })
                 .1
@@ -629,6 +661,9 @@ pub fn time_stages(
                 result?;
                 seconds
             }
+            ScalingStage::MemoryRead | ScalingStage::MemoryTriad => {
+                memory_pass(stage == ScalingStage::MemoryTriad, repeats)
+            }
             _ => {
                 if step.is_none() {
                     step = Some(time_steps(n, repeats)?);
@@ -649,6 +684,44 @@ pub fn time_stages(
         out.push((stage, seconds));
     }
     Ok(out)
+}
+
+/// The median seconds of one pass over [`MEMORY_LEN`]-long vectors, in the current pool:
+/// a triad (two read, one written) or a dot product (two read). At least five repeats, as
+/// a pass takes milliseconds.
+fn memory_pass(triad: bool, repeats: usize) -> f64 {
+    const CHUNK: usize = 8192;
+    let a = vec![1.0; MEMORY_LEN];
+    let b = vec![2.0; MEMORY_LEN];
+    let mut c = vec![0.0; MEMORY_LEN];
+    let repeats = repeats.max(5);
+    if triad {
+        warm_median_time(repeats, || {
+            c.par_chunks_mut(CHUNK)
+                .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
+                .for_each(|(c, (a, b))| {
+                    for ((c, a), b) in c.iter_mut().zip(a).zip(b) {
+                        *c = a + 3.0 * b;
+                    }
+                });
+        })
+        .1
+    } else {
+        let (sum, seconds) = warm_median_time(repeats, || {
+            let parts: Vec<f64> = a
+                .par_chunks(CHUNK)
+                .zip(b.par_chunks(CHUNK))
+                .map(|(a, b)| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>())
+                .collect();
+            parts.iter().sum::<f64>()
+        });
+        assert_eq!(
+            sum,
+            2.0 * MEMORY_LEN as f64,
+            "the dot product of ones and twos"
+        );
+        seconds
+    }
 }
 
 /// The entry of `all` called `name`, as a one-entry slice.
@@ -673,10 +746,12 @@ fn per_iteration(t: &IterativeTiming, setup: bool) -> f64 {
 }
 
 /// `repeats` first steps of the beam from rest with PCG-AMG, each on a restarted integrator
-/// (so each builds its hierarchies anew): their stages' seconds summed over the Newton
+/// (so each builds its hierarchies anew), after one untimed step that allocates and first
+/// touches the integrator's buffers: their stages' seconds summed over the Newton
 /// iterations, and the whole step's.
 fn time_steps(n: usize, repeats: usize) -> Result<Vec<(crate::StageSeconds, f64)>, BenchError> {
     let (mut sim, rest) = beam_integrator(n, named(&STEP_POLICIES, "pcg_amg")[0].1)?;
+    sim.step(&mut rest.clone())?;
     let mut out = Vec::new();
     for _ in 0..repeats.max(1) {
         sim.restart();

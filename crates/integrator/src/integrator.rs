@@ -10,6 +10,7 @@ use deform_mesh::TetMesh;
 use deform_solvers::{
     Indefinite, LinearOperator, LinearSolver, Ordering, SetupStats, SolveStats, SolverError,
     SolverSpec,
+    vector::{dot, for_each_entry, norm},
 };
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -1223,22 +1224,20 @@ impl Integrator {
         match mode {
             Mode::Dynamic { dt } => {
                 let gamma = self.options.stiffness_damping(dt);
+                let alpha = self.options.alpha;
                 self.asm.mass_apply(&self.mass, u, &mut w.fd)?;
-                for (d, ku) in w.fd.iter_mut().zip(&w.ku) {
-                    *d = -(self.options.alpha * *d + if gamma == 0.0 { 0.0 } else { gamma * ku });
-                }
-                for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
-                    *d = a - b;
-                }
+                let ku = &w.ku;
+                for_each_entry(&mut w.fd, |i, d| {
+                    *d = -(alpha * *d + if gamma == 0.0 { 0.0 } else { gamma * ku[i] });
+                });
+                for_each_entry(&mut w.dv, |i, d| *d = u[i] - state.v[i]);
                 self.asm.mass_apply(&self.mass, &w.dv, &mut w.r)?;
-                for i in 0..w.r.len() {
-                    w.r[i] -= dt * (w.f[i] + w.fd[i] + external[i]);
-                }
+                let (f, fd) = (&w.f, &w.fd);
+                for_each_entry(&mut w.r, |i, r| *r -= dt * (f[i] + fd[i] + external[i]));
             }
             Mode::Static => {
-                for i in 0..w.r.len() {
-                    w.r[i] = -(w.f[i] + external[i]);
-                }
+                let f = &w.f;
+                for_each_entry(&mut w.r, |i, r| *r = -(f[i] + external[i]));
             }
         }
         self.dofs
@@ -1564,9 +1563,8 @@ impl Integrator {
             let untestable = -slope * step_length <= noise;
             let mut trial = std::mem::take(&mut w.trial);
             let mut xt = std::mem::take(&mut w.xt);
-            for ((t, a), b) in trial.iter_mut().zip(u).zip(&w.du) {
-                *t = a + step_length * b;
-            }
+            let du = &w.du;
+            for_each_entry(&mut trial, |i, t| *t = u[i] + step_length * du[i]);
             self.positions_into(mode, state, &trial, &mut xt);
             let mut e = 0.0;
             let outputs = Outputs {
@@ -1618,7 +1616,6 @@ impl Integrator {
         if gamma == 0.0 {
             return Ok((0.0, 0.0));
         }
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
         // `damping_forces` with alpha 0 and gamma 1: `-K du`.
         self.asm
             .damping_forces(0.0, 1.0, &self.mass, &self.k, &w.du, &mut w.fd)?;
@@ -1629,11 +1626,7 @@ impl Integrator {
     /// Positions of the iterate `u`, into `x`.
     fn positions_into(&self, mode: Mode, state: &State, u: &[f64], x: &mut [f64]) {
         match mode {
-            Mode::Dynamic { dt } => {
-                for ((xi, x0), v) in x.iter_mut().zip(&state.x).zip(u) {
-                    *xi = x0 + dt * v;
-                }
-            }
+            Mode::Dynamic { dt } => for_each_entry(x, |i, xi| *xi = state.x[i] + dt * u[i]),
             Mode::Static => x.copy_from_slice(u),
         }
     }
@@ -1650,13 +1643,10 @@ impl Integrator {
         damping: f64,
         w: &mut Work,
     ) -> f64 {
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
         let gravity = dot(u, self.external());
         match mode {
             Mode::Dynamic { dt } => {
-                for ((d, a), b) in w.dv.iter_mut().zip(u).zip(&state.v) {
-                    *d = a - b;
-                }
+                for_each_entry(&mut w.dv, |i, d| *d = u[i] - state.v[i]);
                 self.asm
                     .mass_apply(&self.mass, &w.dv, &mut w.mdv)
                     .expect("sizes match");
@@ -2081,8 +2071,4 @@ fn retryable(e: &StepError) -> bool {
             ..
         }
     )
-}
-
-fn norm(v: &[f64]) -> f64 {
-    v.iter().map(|a| a * a).sum::<f64>().sqrt()
 }

@@ -1378,3 +1378,46 @@ fn a_restarted_or_forked_integrator_runs_as_a_new_one() {
     // Without a restart the same run differs (the stale factor of the bent state).
     assert!(history_mattered.len() >= 2, "{history_mattered:?}");
 }
+
+/// Steps of a beam large enough that every vector pass of the residual, the merit function
+/// and the line search runs in parallel chunks (38k DOFs), and that PCG's and the V-cycle's
+/// fused passes do: the same bits on one thread as on two, with the direct solver and with
+/// PCG-AMG, and with stiffness damping (the residual's `K u`).
+#[test]
+fn large_steps_are_the_same_on_one_thread_and_two() {
+    use deform_integrator::benchmark::beam_integrator;
+    let run = |threads: usize, policy: &str, gamma: f64| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (mut sim, mut state) = beam_integrator(14, policy).unwrap();
+            let mut options = sim.options().clone();
+            options.gamma = gamma;
+            sim.set_options(options).unwrap();
+            let mut iterations = 0;
+            for _ in 0..2 {
+                iterations += sim.step(&mut state).unwrap().iterations.len();
+            }
+            (state, iterations)
+        })
+    };
+    for (policy, gamma) in [
+        ("Fixed(Pcg(preconditioner: Amg()))", 0.0),
+        ("Fixed(Direct())", 0.01),
+    ] {
+        let (one, its_one) = run(1, policy, gamma);
+        let (two, its_two) = run(2, policy, gamma);
+        assert_eq!(its_one, its_two, "{policy}");
+        assert!(its_one >= 2, "{policy}: Newton iterated");
+        assert!(one.x.iter().any(|x| x.abs() > 0.0));
+        for (what, a, b) in [("x", &one.x, &two.x), ("v", &one.v, &two.v)] {
+            let differs = a
+                .iter()
+                .zip(b.iter())
+                .position(|(p, q)| p.to_bits() != q.to_bits());
+            assert_eq!(differs, None, "{policy}: {what} differs at this DOF");
+        }
+    }
+}

@@ -73,28 +73,47 @@ impl<T: Scalar> Blocks<T> {
     /// `y = self x` (any shape). Each row is one running sum over its blocks in column
     /// order, so a 3x3-block copy of a CSR matrix multiplies exactly like the CSR matrix.
     pub fn multiply_vector(&self, x: &[f64], y: &mut [f64]) {
+        self.multiply_vector_with(x, y, |_, p, yi| *yi = p);
+    }
+
+    /// Calls `store(i, (self x)_i, &mut y_i)` for every scalar row `i`: a product whose
+    /// entries are combined with `y` (and anything indexed by `i`) as they are stored, one
+    /// pass over memory instead of a product and an element-wise pass after it. The sums
+    /// are those of [`Self::multiply_vector`].
+    pub fn multiply_vector_with(
+        &self,
+        x: &[f64],
+        y: &mut [f64],
+        store: impl Fn(usize, f64, &mut f64) + Sync + Send,
+    ) {
         match (self.r, self.c) {
-            (3, 3) => self.multiply_fixed::<3, 3>(x, y),
-            (3, 6) => self.multiply_fixed::<3, 6>(x, y),
-            (6, 3) => self.multiply_fixed::<6, 3>(x, y),
-            (6, 6) => self.multiply_fixed::<6, 6>(x, y),
+            (3, 3) => self.multiply_fixed::<3, 3>(x, y, store),
+            (3, 6) => self.multiply_fixed::<3, 6>(x, y, store),
+            (6, 3) => self.multiply_fixed::<6, 3>(x, y, store),
+            (6, 6) => self.multiply_fixed::<6, 6>(x, y, store),
             (r, c) => self.for_row_tasks(y, |i, yi| {
-                yi.fill(0.0);
-                for k in self.ptr[i]..self.ptr[i + 1] {
-                    let (block, xj) = (self.block(k), &x[self.idx[k] as usize * c..][..c]);
-                    for (row, yv) in yi.iter_mut().enumerate() {
+                debug_assert_eq!(yi.len(), r);
+                for (row, yv) in yi.iter_mut().enumerate() {
+                    let mut acc = 0.0;
+                    for k in self.ptr[i]..self.ptr[i + 1] {
+                        let (block, xj) = (self.block(k), &x[self.idx[k] as usize * c..][..c]);
                         for (b, v) in block[row * c..(row + 1) * c].iter().zip(xj) {
-                            *yv += (*b).into() * v;
+                            acc += (*b).into() * v;
                         }
                     }
+                    store(i * r + row, acc, yv);
                 }
-                debug_assert_eq!(yi.len(), r);
             }),
         }
     }
 
-    /// [`Self::multiply_vector`] with the block shape known at compile time (unrolled).
-    fn multiply_fixed<const R: usize, const C: usize>(&self, x: &[f64], y: &mut [f64]) {
+    /// [`Self::multiply_vector_with`] with the block shape known at compile time (unrolled).
+    fn multiply_fixed<const R: usize, const C: usize>(
+        &self,
+        x: &[f64],
+        y: &mut [f64],
+        store: impl Fn(usize, f64, &mut f64) + Sync + Send,
+    ) {
         self.for_row_tasks(y, |i, yi| {
             let mut acc = [0.0; R];
             for k in self.ptr[i]..self.ptr[i + 1] {
@@ -106,7 +125,9 @@ impl<T: Scalar> Blocks<T> {
                     }
                 }
             }
-            yi.copy_from_slice(&acc);
+            for (row, (yv, a)) in yi.iter_mut().zip(acc).enumerate() {
+                store(i * R + row, a, yv);
+            }
         });
     }
 

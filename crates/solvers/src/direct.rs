@@ -17,10 +17,11 @@ use faer::{Conj, MatMut, Par, Side};
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
-use crate::operator::{LinearOperator, norm};
+use crate::operator::LinearOperator;
 use crate::ordering::{Elimination, Ordering, order_rows};
 use crate::split::{Failure, Split};
 use crate::stats::{SetupStats, SolveStats, Termination};
+use crate::vector::norm;
 use crate::{LinearSolver, SolverError};
 
 /// What the direct solver does with a matrix that is not positive definite.

@@ -5,11 +5,10 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
-use crate::operator::{
-    LinearOperator, dot, fast_operator, for_each_entry, norm, positive_diagonal,
-};
+use crate::operator::{LinearOperator, fast_operator, positive_diagonal};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
+use crate::vector::{dot, for_each_entry, norm, update_and_norm};
 use crate::{LinearSolver, SolverError};
 
 /// Stopping rule: converged when `||b - A x|| <= max(abs, rel ||b||)`.
@@ -271,10 +270,8 @@ impl Iterative {
                 return Some(curvature);
             }
             let alpha = rz / curvature;
-            for_each_entry(x, |i, xi| *xi += alpha * p[i]);
-            for_each_entry(&mut r, |i, ri| *ri -= alpha * ap[i]);
+            rn = update_and_norm(x, &mut r, alpha, &p, &ap);
             stats.iterations += 1;
-            rn = norm(&r);
             stats.residuals.push(rn);
             if !rn.is_finite() {
                 stats.termination = Termination::Diverged;

@@ -51,6 +51,7 @@ mod precond;
 mod spec;
 mod split;
 mod stats;
+pub mod vector;
 
 pub use amg::AmgSmoother;
 pub use direct::{Cholesky, Indefinite, Precision};

@@ -113,11 +113,6 @@ impl LinearOperator for CsMat<f64> {
 const ROW_CHUNK: usize = 1020;
 /// Below this many nonzeros the product runs on the calling thread (same arithmetic).
 const PARALLEL_NNZ: usize = 200_000;
-/// Entries per partial sum of dot products and per task of vector updates.
-const VECTOR_CHUNK: usize = 8192;
-/// Below this length vector operations run on the calling thread (same arithmetic).
-const PARALLEL_LEN: usize = 4 * VECTOR_CHUNK;
-
 /// The diagonal of `a`, all of it positive, or [`SolverError::NotPositiveDefinite`] at the
 /// first entry that is not.
 pub(crate) fn positive_diagonal(a: &dyn LinearOperator) -> Result<Vec<f64>, SolverError> {
@@ -130,45 +125,6 @@ pub(crate) fn positive_diagonal(a: &dyn LinearOperator) -> Result<Vec<f64>, Solv
             spent: None,
         }),
         None => Ok(d),
-    }
-}
-
-/// `sqrt(x . x)`.
-pub(crate) fn norm(x: &[f64]) -> f64 {
-    dot(x, x).sqrt()
-}
-
-/// `x . y` as partial sums over fixed chunks of `VECTOR_CHUNK` entries, added in chunk
-/// order: the same arithmetic whether the chunks run in parallel or not, so the result does
-/// not depend on the thread count.
-pub(crate) fn dot(x: &[f64], y: &[f64]) -> f64 {
-    let partial = |(a, b): (&[f64], &[f64])| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
-    if x.len() < PARALLEL_LEN {
-        x.chunks(VECTOR_CHUNK)
-            .zip(y.chunks(VECTOR_CHUNK))
-            .map(partial)
-            .sum()
-    } else {
-        let parts: Vec<f64> = x
-            .par_chunks(VECTOR_CHUNK)
-            .zip(y.par_chunks(VECTOR_CHUNK))
-            .map(partial)
-            .collect();
-        parts.iter().sum()
-    }
-}
-
-/// Applies `f(i, &mut y[i])` to every entry, in parallel chunks for long vectors.
-pub(crate) fn for_each_entry(y: &mut [f64], f: impl Fn(usize, &mut f64) + Sync + Send) {
-    let chunk = |(c, ys): (usize, &mut [f64])| {
-        for (k, v) in ys.iter_mut().enumerate() {
-            f(c * VECTOR_CHUNK + k, v);
-        }
-    };
-    if y.len() < PARALLEL_LEN {
-        y.chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
-    } else {
-        y.par_chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
     }
 }
 

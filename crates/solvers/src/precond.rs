@@ -8,8 +8,9 @@ use crate::amg::{Amg, AmgSmoother};
 
 use crate::direct::{Cholesky, Indefinite, Precision};
 use crate::ic0::{self, Ic0};
-use crate::operator::{LinearOperator, for_each_entry, positive_diagonal};
+use crate::operator::{LinearOperator, positive_diagonal};
 use crate::ordering::Ordering;
+use crate::vector::for_each_entry;
 use crate::{LinearSolver, SolverError};
 
 /// Which preconditioner PCG uses.

@@ -26,8 +26,9 @@ use sprs::CsMat;
 use crate::blocks::Blocks;
 
 use crate::direct::{Cholesky, Indefinite};
-use crate::operator::{LinearOperator, dot, for_each_entry, norm, positive_diagonal};
+use crate::operator::{LinearOperator, positive_diagonal};
 use crate::ordering::Ordering;
+use crate::vector::{dot, for_each_entry, norm};
 use crate::{LinearSolver, SolverError};
 
 /// The smoother on every level of the multigrid cycle.
@@ -257,8 +258,7 @@ impl Amg {
         };
         let a = &level.a;
         self.smooth(level, b, x, true, s);
-        a.multiply_vector(x, &mut s.work);
-        for_each_entry(&mut s.work, |i, w| *w = b[i] - *w);
+        a.multiply_vector_with(x, &mut s.work, |i, ax, w| *w = b[i] - ax);
         level.r.multiply_vector(&s.work, &mut s.bc);
         s.xc.fill(0.0);
         self.cycle(l + 1, &s.bc, &mut s.xc, deeper);
@@ -273,20 +273,16 @@ impl Amg {
     fn smooth(&self, level: &Level, b: &[f64], x: &mut [f64], zero: bool, s: &mut Scratch) {
         let (a, work, step) = (&level.a, &mut s.work, &mut s.step);
         let d = &level.inv_diag;
-        // work = D^-1 (b - A x)
-        let residual = |x: &[f64], work: &mut [f64], skip: bool| {
-            if skip {
-                for_each_entry(work, |i, w| *w = d[i] * b[i]);
-            } else {
-                a.multiply_vector(x, work);
-                for_each_entry(work, |i, w| *w = d[i] * (b[i] - *w));
-            }
-        };
+        // Each residual `D^-1 (b - A x)` is formed as the product is stored.
         match self.smoother {
             AmgSmoother::Jacobi { sweeps } => {
                 let omega = 4.0 / (3.0 * level.lambda);
                 for s in 0..sweeps {
-                    residual(x, work, zero && s == 0);
+                    if zero && s == 0 {
+                        for_each_entry(work, |i, w| *w = d[i] * b[i]);
+                    } else {
+                        a.multiply_vector_with(x, work, |i, ax, w| *w = d[i] * (b[i] - ax));
+                    }
                     for_each_entry(x, |i, xi| *xi += omega * work[i]);
                 }
             }
@@ -296,14 +292,19 @@ impl Amg {
                 let (theta, delta) = (0.5 * (upper + lower), 0.5 * (upper - lower));
                 let sigma = theta / delta;
                 let mut rho = 1.0 / sigma;
-                residual(x, work, zero);
-                for_each_entry(step, |i, v| *v = work[i] / theta);
+                if zero {
+                    for_each_entry(step, |i, v| *v = d[i] * b[i] / theta);
+                } else {
+                    a.multiply_vector_with(x, step, |i, ax, v| *v = d[i] * (b[i] - ax) / theta);
+                }
                 for _ in 1..degree {
                     for_each_entry(x, |i, xi| *xi += step[i]);
-                    residual(x, work, false);
                     let rho_next = 1.0 / (2.0 * sigma - rho);
                     let (c1, c2) = (rho_next * rho, 2.0 * rho_next / delta);
-                    for_each_entry(step, |i, s| *s = c1 * *s + c2 * work[i]);
+                    // step = c1 step + c2 D^-1 (b - A x)
+                    a.multiply_vector_with(x, step, |i, ax, s| {
+                        *s = c1 * *s + c2 * (d[i] * (b[i] - ax));
+                    });
                     rho = rho_next;
                 }
                 for_each_entry(x, |i, xi| *xi += step[i]);
