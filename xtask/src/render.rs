@@ -60,29 +60,34 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     Ok(md)
 }
 
-/// Contact's parameters in a material fit: the scene's and stage 1's, with their relative
-/// differences.
+/// Contact's parameters in a material fit: the scene's, stage 1's and (friction, when it
+/// fitted them) stage 2's, with their relative differences from the scene's.
 fn contact_parameters(c: &ContactParameters, md: &mut String) -> Result<()> {
-    md.push_str("\nContact's parameters (stage 1 fits them with the material):\n\n| parameter | scene | equation error | difference |\n|---|---|---|---|\n");
-    let row = |md: &mut String, name: String, (scene, fit): (f64, Option<f64>)| {
-        let (fit, diff) = match fit {
-            Some(f) if scene != 0.0 => (
-                format!("{f:.5e}"),
-                format!("{:.3} %", 100.0 * (f - scene).abs() / scene),
-            ),
-            Some(f) => (format!("{f:.5e}"), "-".into()),
-            None => ("not fitted".into(), "-".into()),
-        };
-        writeln!(md, "| {name} | {scene:.5e} | {fit} | {diff} |")
+    let stage2 = c.output_error.as_ref();
+    md.push_str(match stage2 {
+        None => "\nContact's parameters (stage 1 fits them with the material):\n\n| parameter | scene | equation error | difference |\n|---|---|---|---|\n",
+        Some(_) => "\nContact's parameters (stage 1 fits them with the material, stage 2 fits friction again):\n\n| parameter | scene | equation error | difference | output error | difference |\n|---|---|---|---|---|---|\n",
+    });
+    let cell = |scene: f64, fit: Option<f64>| match fit {
+        Some(f) if scene != 0.0 => format!("{f:.5e} | {:.3} %", 100.0 * (f - scene).abs() / scene),
+        Some(f) => format!("{f:.5e} | -"),
+        None => "not fitted | -".into(),
     };
-    row(md, "kappa (N/m)".into(), c.kappa)?;
+    let row = |md: &mut String, name: String, (scene, fit): (f64, Option<f64>), two| {
+        let last = match stage2 {
+            Some(_) => format!(" {} |", cell(scene, two)),
+            None => String::new(),
+        };
+        writeln!(md, "| {name} | {scene:.5e} | {} |{last}", cell(scene, fit))
+    };
+    row(md, "kappa (N/m)".into(), c.kappa, None)?;
     let own = c.self_contact.then(|| c.friction.len() - 1);
     for (i, mu) in c.friction.iter().enumerate() {
         let name = match own == Some(i) {
             true => "mu, self-contact".to_owned(),
             false => format!("mu, obstacle {i}"),
         };
-        row(md, name, *mu)?;
+        row(md, name, *mu, stage2.map(|m| m[i]))?;
     }
     md.push('\n');
     Ok(())

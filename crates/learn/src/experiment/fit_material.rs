@@ -7,11 +7,13 @@ use std::time::Instant;
 use deform_materials::Lame;
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout, with_lame};
+use super::{
+    Context, ExperimentObserver, Series, Stage, Task, mean_rollout, with_friction, with_lame,
+};
 use crate::dataset::Split;
 use crate::error::LearnError;
 use crate::fit::{Unusable, fit_equation_error};
-use crate::output::{OutputError, OutputErrorFit, fit_output_error};
+use crate::output::{Field, OutputError, OutputErrorFit, fit_output_error_field};
 use crate::rollout::{mean_error, stable_or};
 
 /// Which parameters a row of the fit table holds.
@@ -92,6 +94,10 @@ pub struct ContactParameters {
     pub friction: Vec<(f64, Option<f64>)>,
     /// Whether the last coefficient is the body's own surface's (self-contact).
     pub self_contact: bool,
+    /// Each coefficient of friction as stage 2 fitted them, when it did (stage 1 was asked
+    /// to fit friction and stage 2 ran); in `friction`'s order.
+    #[serde(default)]
+    pub output_error: Option<Vec<f64>>,
 }
 
 impl ContactParameters {
@@ -109,7 +115,17 @@ impl ContactParameters {
                 .map(|i| (scene_mu(i), fitted_mu(i)))
                 .collect(),
             self_contact: model.self_contact_surface().is_some(),
+            output_error: None,
         })
+    }
+
+    /// Where stage 2 starts each coefficient of friction: stage 1's estimate where it is a
+    /// coefficient (finite, not negative), else the scene's.
+    fn stage1_or_scene(&self) -> Vec<f64> {
+        let usable = |f: &f64| f.is_finite() && *f >= 0.0;
+        (self.friction.iter())
+            .map(|(scene, fit)| fit.filter(usable).unwrap_or(*scene))
+            .collect()
     }
 }
 
@@ -166,6 +182,96 @@ fn stage1(
     let fit = fit_equation_error(sim, train, options)?;
     let unusable = fit.unusable();
     Ok((Some(fit), unusable, started.elapsed().as_secs_f64()))
+}
+
+/// Where stage 2 may start: stage 1's coefficients, a prior Lame pair (the task's `start`,
+/// or the scene's when stage 1 is unusable) and, when it fits friction, the coefficients
+/// of friction to start from (appended to either).
+struct Start<'a> {
+    stage1: &'a [f64],
+    prior: Option<Lame>,
+    friction: Option<&'a [f64]>,
+}
+
+/// What stage 2 found.
+struct Stage2 {
+    fit: OutputErrorFit,
+    /// The fitted coefficients (Lame pair, then friction's), or the start's when the fitted
+    /// model failed a free rollout.
+    coefficients: Vec<f64>,
+    seconds: f64,
+    started_from_prior: Option<(f64, f64)>,
+    unstable: Option<String>,
+}
+
+/// Stage 2: output error on the training data from stage 1's estimate, or from the prior
+/// when its loss is lower (or the estimate is no material); the fitted model must then run
+/// freely over the training and validation data, or its start stands instead.
+fn stage2(
+    sim: &mut deform_integrator::Integrator,
+    data: &crate::dataset::Dataset,
+    options: crate::OutputErrorOptions,
+    from: &Start<'_>,
+    report: &FitMaterialReport,
+    observer: &mut dyn ExperimentObserver,
+) -> Result<Stage2, LearnError> {
+    let train = data.split(Split::Train);
+    observer.start(Stage::Fit, options.max_iterations);
+    let started = Instant::now();
+    let with_friction = |c: &[f64]| [c, from.friction.unwrap_or(&[])].concat();
+    let mut initial = with_friction(from.stage1);
+    let mut started_from_prior = None;
+    if let Some(lame) = from.prior {
+        let prior = with_friction(&[lame.mu, lame.lambda]);
+        let mut loss_at = |c: &[f64]| {
+            let o = OutputError::new(sim, &train, options, |_, _| {})?;
+            let o = if from.friction.is_some() {
+                o.with_friction()?
+            } else {
+                o
+            };
+            o.evaluate(c).map(|(l, _)| l)
+        };
+        let l0 = loss_at(&prior);
+        if let Some(why) = &report.stage1_unusable {
+            // Stage 2 can only start from the prior: say why it cannot, if it cannot.
+            let l0 = l0.map_err(|e| {
+                let (e0, nu0) = lame.to_young();
+                LearnError::Unsupported(format!(
+                    "stage 1 is unusable ({why}) and stage 2 cannot start from the prior (E = {e0:.4e} Pa, nu = {nu0:.4}): {e}",
+                ))
+            })?;
+            started_from_prior = Some((l0, f64::INFINITY));
+            initial = prior;
+        } else {
+            let l1 = loss_at(&initial).unwrap_or(f64::INFINITY);
+            if let Ok(l0) = l0
+                && l0 < l1
+            {
+                started_from_prior = Some((l0, l1));
+                initial = prior;
+            }
+        }
+    }
+    let field = Field {
+        initial: Some(initial.clone()),
+        friction: from.friction.is_some(),
+        ..Field::default()
+    };
+    let fit = fit_output_error_field(sim, &train, &field, options, |k, loss| {
+        observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
+    })?;
+    observer.finish();
+    let validation = data.split(Split::Validation);
+    let sets = [train.as_slice(), validation.as_slice()];
+    let (coefficients, unstable) = stable_or(sim, &sets, fit.coefficients.clone(), initial);
+    Ok(Stage2 {
+        fit,
+        coefficients,
+        seconds: started.elapsed().as_secs_f64(),
+        started_from_prior,
+        unstable,
+    })
 }
 
 fn young(mu: f64, lambda: f64) -> (f64, f64) {
@@ -233,66 +339,37 @@ pub fn run(
         rollouts: Vec::new(),
         contact: ContactParameters::of(&cx.built.integrator, stage1.as_ref()),
     };
+    // Stage 2 fits friction too when stage 1 was asked to.
+    let friction = (report.contact.as_ref())
+        .filter(|c| equation_error.friction && !c.friction.is_empty())
+        .map(ContactParameters::stage1_or_scene);
     if let Some(options) = output_error {
-        let mut sim = cx.built.integrator;
-        observer.start(Stage::Fit, options.max_iterations);
-        let t2 = Instant::now();
-        // Start from the stage-1 estimate, or from the prior when it fits better (or the
-        // estimate is no material: then the prior is the task's, or else the scene's own).
-        let mut initial = stage1_coefficients.clone();
-        let prior = match (start, &report.stage1_unusable) {
-            (Some(p), _) => Some(p.to_lame()?),
-            (None, Some(_)) => Some(truth),
-            (None, None) => None,
+        let from = Start {
+            stage1: &stage1_coefficients,
+            prior: match (start, &report.stage1_unusable) {
+                (Some(p), _) => Some(p.to_lame()?),
+                (None, Some(_)) => Some(truth),
+                (None, None) => None,
+            },
+            friction: friction.as_deref(),
         };
-        if let Some(lame) = prior {
-            let prior = vec![lame.mu, lame.lambda];
-            let mut loss_at = |c: &[f64]| {
-                OutputError::new(&mut sim, &train, *options, |_, _| {})
-                    .and_then(|o| o.evaluate(c))
-                    .map(|(l, _)| l)
-            };
-            let l0 = loss_at(&prior);
-            if let Some(why) = &report.stage1_unusable {
-                // Stage 2 can only start from the prior: say why it cannot, if it cannot.
-                let l0 = l0.map_err(|e| {
-                    LearnError::Unsupported(format!(
-                        "stage 1 is unusable ({why}) and stage 2 cannot start from the prior (E = {:.4e} Pa, nu = {:.4}): {e}",
-                        lame.to_young().0,
-                        lame.to_young().1
-                    ))
-                })?;
-                report.started_from_prior = Some((l0, f64::INFINITY));
-                initial = prior;
-            } else {
-                let l1 = loss_at(&initial).unwrap_or(f64::INFINITY);
-                if let Ok(l0) = l0
-                    && l0 < l1
-                {
-                    report.started_from_prior = Some((l0, l1));
-                    initial = prior;
-                }
-            }
-        }
-        let fit = fit_output_error(&mut sim, &train, &initial, *options, |k, loss| {
-            observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
-        })?;
-        observer.finish();
-        // The fitted model must run freely over the data it was fitted and validated on, or
-        // its start stands instead.
-        let validation = cx.data.split(Split::Validation);
-        let sets = [train.as_slice(), validation.as_slice()];
-        let (c, unstable) = stable_or(&mut sim, &sets, &fit.coefficients, &initial);
-        report.unstable = unstable;
-        let (e2, nu2) = young(c[0], c[1]);
+        let mut sim = cx.built.integrator;
+        let s2 = stage2(&mut sim, &cx.data, *options, &from, &report, observer)?;
+        let (e2, nu2) = young(s2.coefficients[0], s2.coefficients[1]);
         rows.push(ModuliRow {
             estimate: Estimate::OutputError,
             young: e2,
             poisson: nu2,
-            seconds: Some(t2.elapsed().as_secs_f64()),
+            seconds: Some(s2.seconds),
         });
-        fitted = (c[0], c[1]);
-        report.output_error = Some(fit);
+        fitted = (s2.coefficients[0], s2.coefficients[1]);
+        if let (Some(c), Some(_)) = (report.contact.as_mut(), &friction) {
+            c.output_error =
+                Some(s2.coefficients[s2.coefficients.len() - c.friction.len()..].to_vec());
+        }
+        report.started_from_prior = s2.started_from_prior;
+        report.unstable = s2.unstable;
+        report.output_error = Some(s2.fit);
     }
     // Rollouts on the test trajectories with each parameter set.
     observer.start(Stage::Rollouts, 3);
@@ -303,14 +380,25 @@ pub fn run(
     } else {
         "scene's parameters"
     };
-    for (name, (mu, lambda)) in [
-        (first, (truth.mu, truth.lambda)),
-        ("equation error", (mu1, lambda1)),
-        ("fitted", fitted),
+    // Each estimate rolls out with its own coefficients of friction, where it fitted them
+    // (stage 1's where they are coefficients, as stage 2 starts from them).
+    let fitted_friction = (report.contact.as_ref())
+        .and_then(|c| c.output_error.clone())
+        .or_else(|| friction.clone());
+    for (name, (mu, lambda), mu_friction) in [
+        (first, (truth.mu, truth.lambda), None),
+        ("equation error", (mu1, lambda1), friction),
+        ("fitted", fitted, fitted_friction),
     ] {
         // An estimate that is no material (stage 1 on noisy data) has no rollout.
         let errors = match Lame::try_new(mu, lambda) {
-            Ok(_) => mean_rollout(&with_lame(&cx.scene, mu, lambda)?, origin, &tests)?,
+            Ok(_) => {
+                let mut scene = with_lame(&cx.scene, mu, lambda)?;
+                if let Some(m) = &mu_friction {
+                    scene = with_friction(&scene, m)?;
+                }
+                mean_rollout(&scene, origin, &tests)?
+            }
             Err(_) => vec![f64::NAN; states],
         };
         report.rollouts.push(Series::new(name, errors));

@@ -316,6 +316,38 @@ pub(crate) fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene, Le
     Ok(s)
 }
 
+/// The scene with each frictional obstacle's coefficient replaced, in
+/// [`deform_integrator::ContactModel::frictional`]'s order (the analytic obstacles, the mesh
+/// obstacles, then the body's own surface with self-contact).
+///
+/// # Errors
+/// [`LearnError::Unsupported`] for a scene without friction or another count.
+pub(crate) fn with_friction(scene: &Scene, mu: &[f64]) -> Result<Scene, LearnError> {
+    let mut s = scene.clone();
+    let contact = s.contact.as_mut();
+    let Some((contact, friction)) = contact.and_then(|c| {
+        let external = c.obstacles.len() + c.meshes.len();
+        c.friction.as_mut().map(|f| (external, f))
+    }) else {
+        return Err(LearnError::Unsupported(
+            "the scene has no friction to set".into(),
+        ));
+    };
+    let own = usize::from(scene.contact.as_ref().is_some_and(|c| c.self_contact));
+    if mu.len() != contact + own {
+        return Err(LearnError::Unsupported(format!(
+            "{} coefficients of friction for {} frictional obstacles",
+            mu.len(),
+            contact + own
+        )));
+    }
+    friction.mu = mu[..contact].to_vec();
+    if own == 1 {
+        friction.self_mu = Some(mu[contact]);
+    }
+    Ok(s)
+}
+
 /// The mean over `trajectories` of the rollout error of `scene` at each recorded state.
 ///
 /// # Errors
