@@ -236,6 +236,82 @@ proptest! {
             prop_assert!(work <= 0.0, "friction did work {work}");
         }
     }
+
+    /// Newton's secant curvature for pairs its direction carries past their sticking
+    /// position: without flags `add_friction_with` is `add_friction`; a flagged sliding
+    /// pair's Hessian is `limit / s` across the whole tangent plane, and its quadratic model
+    /// majorises the potential (lies above it for any displacement), so a step taken on it
+    /// never overshoots friction. `flag_reversals` flags exactly the sliding pairs whose
+    /// slip the displacement reverses.
+    #[test]
+    fn the_secant_friction_model_majorises_and_flags_reversals(
+        t in proptest::array::uniform12(-1.0f64..1.0),
+        slide in proptest::collection::vec(-1.0f64..1.0, 12),
+        step in proptest::collection::vec(-1.0f64..1.0, 12),
+        back in 0.0f64..3.0,
+    ) {
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
+        let m = frictional_model(&spec, false);
+        let start = positions(t);
+        let lag = m.lag_friction(&start, 0.01);
+        let n = start.len();
+        // Sliding: displacements of 1 mm against eps = 1e-5 m.
+        let x: Vec<f64> = start.iter().zip(&slide).map(|(a, b)| a + 1e-3 * b).collect();
+        let (mut f, mut f_with) = (vec![0.0; n], vec![0.0; n]);
+        let (mut h, mut h_with) = (ContactHessian::default(), ContactHessian::default());
+        let e = m.add_friction(&lag, &x, Some(&mut f), Some(&mut h));
+        let none = vec![false; lag.pairs.len()];
+        let e_with = m.add_friction_with(&lag, &x, Some(&mut f_with), Some(&mut h_with), &none);
+        prop_assert_eq!(e, e_with);
+        prop_assert_eq!(&f, &f_with);
+        prop_assert_eq!(&h.vertex, &h_with.vertex);
+        // A displacement that takes each vertex `back` times its slip back (past the
+        // sticking position beyond 1), plus a little off the line.
+        let mut dx = vec![0.0; n];
+        for pair in &lag.pairs {
+            let v = pair.vertices[0].0;
+            for k in 0..3 {
+                let slip = x[3 * v + k] - pair.start[k];
+                dx[3 * v + k] = -back * slip + 1e-4 * step[3 * v + k];
+            }
+        }
+        let mut flags = vec![false; lag.pairs.len()];
+        let flagged = m.flag_reversals(&lag, &x, &dx, &mut flags);
+        prop_assert_eq!(flagged, flags.iter().filter(|f| **f).count());
+        for (pair, flag) in lag.pairs.iter().zip(&flags) {
+            let u = pair.basis.transpose() * (x_of(&x, pair) - pair.start);
+            let w = pair.basis.transpose() * (x_of(&x, pair) + x_of(&dx, pair) - pair.start);
+            prop_assert_eq!(*flag, u.norm() >= lag.threshold && u.dot(&w) < 0.0);
+        }
+        // Every pair flagged: the secant model lies above the potential along dx.
+        let all = vec![true; lag.pairs.len()];
+        let mut hs = ContactHessian::default();
+        m.add_friction_with(&lag, &x, None, Some(&mut hs), &all);
+        for ((v, b), (w, exact)) in hs.vertex.iter().zip(&h.vertex) {
+            prop_assert_eq!(v, w);
+            // Larger than the exact one (by limit / s along the slip), and isotropic.
+            prop_assert!((b - exact).symmetric_eigen().eigenvalues.min() >= -1e-9 * b.norm());
+        }
+        for a in [0.25, 0.5, 1.0, 1.5] {
+            let y: Vec<f64> = x.iter().zip(&dx).map(|(p, d)| p + a * d).collect();
+            let mut model = e;
+            for (k, fi) in f.iter().enumerate() {
+                model -= fi * a * dx[k];
+            }
+            for (v, b) in &hs.vertex {
+                let d = Vector3::new(dx[3 * v], dx[3 * v + 1], dx[3 * v + 2]) * a;
+                model += 0.5 * d.dot(&(b * d));
+            }
+            let actual = m.add_friction(&lag, &y, None, None);
+            prop_assert!(actual <= model + 1e-12 * e.abs().max(1e-12), "at {a}: {actual} > {model}");
+        }
+    }
+}
+
+/// A pair's contact point (one vertex of weight 1 against an analytic obstacle).
+fn x_of(x: &[f64], pair: &deform_contact::FrictionPair) -> Vector3<f64> {
+    let v = pair.vertices[0].0;
+    Vector3::new(x[3 * v], x[3 * v + 1], x[3 * v + 2])
 }
 
 proptest! {

@@ -24,6 +24,9 @@ pub(crate) struct Contact {
     pub(crate) last: Option<ContactSummary>,
     /// Friction lagged at the start of the current Newton solve (empty when static).
     pub(crate) lag: FrictionLag,
+    /// Which pairs of `lag` Newton models with their secant curvature: those one of its
+    /// directions carried past their sticking position ([`ContactModel::flag_reversals`]).
+    secant: Vec<bool>,
     /// The barrier's stiffness at the start, when it adapts ([`ContactSpec::adaptive_kappa`]).
     pub(crate) adaptive: Option<f64>,
 }
@@ -81,6 +84,7 @@ impl Contact {
             coupled: None,
             last: None,
             lag: FrictionLag::default(),
+            secant: Vec::new(),
             adaptive: spec
                 .adaptive_kappa
                 .unwrap_or(spec.kappa.is_none())
@@ -123,8 +127,20 @@ impl Contact {
             .model
             .evaluate(x, forces.as_deref_mut(), blocks.as_deref_mut())?;
         self.last = Some(summary);
-        let friction = self.model.add_friction(&self.lag, x, forces, blocks);
+        let friction = (self.model).add_friction_with(&self.lag, x, forces, blocks, &self.secant);
         Ok(summary.energy + friction)
+    }
+
+    /// Lags friction for a solve (no pair flagged yet).
+    pub(crate) fn set_lag(&mut self, lag: FrictionLag) {
+        self.secant = vec![false; lag.pairs.len()];
+        self.lag = lag;
+    }
+
+    /// Flags the friction pairs that Newton's displacement `dx` from `x` carries past their
+    /// sticking position; from the next Newton matrix on they take their secant curvature.
+    pub(crate) fn flag_reversals(&mut self, x: &[f64], dx: &[f64]) {
+        (self.model).flag_reversals(&self.lag, x, dx, &mut self.secant);
     }
 }
 

@@ -1294,25 +1294,29 @@ impl Integrator {
                 Mode::Static => state.t,
             };
             c.model.set_step(state.t, t1);
-            c.lag = match mode {
+            c.set_lag(match mode {
                 Mode::Dynamic { dt } => c.model.lag_friction(&state.x, dt),
                 Mode::Static => Default::default(),
-            };
+            });
         }
     }
 
     /// How far along `w.du` from the iterate `u` the line search may go: the contact's
-    /// continuous collision bound (1 without contact). Uses `w.xt` as scratch.
-    fn step_bound(&self, mode: Mode, state: &State, u: &[f64], w: &mut Work) -> f64 {
-        let Some(c) = &self.contact else {
+    /// continuous collision bound (1 without contact). Flags the friction pairs the full
+    /// step carries past their sticking position (see [`Contact::flag_reversals`]). Uses
+    /// `w.xt` as scratch.
+    fn step_bound(&mut self, mode: Mode, state: &State, u: &[f64], w: &mut Work) -> f64 {
+        if self.contact.is_none() {
             return 1.0;
-        };
+        }
         self.positions_into(mode, state, u, &mut w.xt);
         let scale = match mode {
             Mode::Dynamic { dt } => dt,
             Mode::Static => 1.0,
         };
         let dx: Vec<f64> = w.du.iter().map(|d| scale * d).collect();
+        let c = self.contact.as_mut().expect("checked above");
+        c.flag_reversals(&w.xt, &dx);
         c.model.step_bound(&w.xt, &dx)
     }
 
