@@ -342,8 +342,7 @@ pub enum PolicySpec {
         #[serde(default = "default_eta_max")]
         eta_max: f64,
     },
-    /// `small` for systems of fewer than `large_from` free DOFs, `large` from there on
-    /// ([`BySize`]). The default: a direct factorisation while its fill is affordable,
+    /// `small` for systems of fewer than `large_from` free DOFs, `large` from there on. The default: a direct factorisation while its fill is affordable,
     /// PCG with smoothed-aggregation multigrid beyond.
     BySize {
         /// The solver below `large_from` free DOFs.
@@ -380,7 +379,8 @@ fn default_eta_max() -> f64 {
 }
 
 impl Default for PolicySpec {
-    /// [`BySize::default`].
+    /// The `BySize` policy's default: a direct solver below 150,000 free DOFs, PCG-AMG
+    /// from there on.
     fn default() -> Self {
         let BySize {
             small,

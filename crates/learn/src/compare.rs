@@ -114,7 +114,7 @@ pub fn measure(
 }
 
 /// [`measure`] for every contestant. On problems below
-/// [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free DOFs the runs (every contestant's repeats)
+/// `lanes::SIDE_BY_SIDE_MAX_DOFS` (20,000) free DOFs the runs (every contestant's repeats)
 /// go side by side, one per thread on a pool of one thread, so their times are one core's
 /// as on one thread; the work, flops and accuracy are the same bits either way. `progress`
 /// sees each finished repeat.

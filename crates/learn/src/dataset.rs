@@ -431,8 +431,8 @@ fn simulate_one(
 }
 
 /// Every trajectory of `starts`, in order. Below
-/// [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free DOFs they run side by side
-/// ([`crate::lanes::side_by_side`]; each has its own integrator, so the bits do not depend
+/// `lanes::SIDE_BY_SIDE_MAX_DOFS` (20,000) free DOFs they run side by side
+/// (`lanes::side_by_side`; each has its own integrator, so the bits do not depend
 /// on the thread count); `progress` is called on this thread.
 fn simulate_all(
     scene: &Scene,

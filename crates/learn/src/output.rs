@@ -601,7 +601,7 @@ impl<'a> OutputError<'a> {
     }
 
     /// Whether `jobs` rollouts run side by side: with more than one thread and one rollout,
-    /// a problem below [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] and a policy that forks. The lanes (one
+    /// a problem below `lanes::SIDE_BY_SIDE_MAX_DOFS` (20,000) and a policy that forks. The lanes (one
     /// per thread, forks of `sim`) then hold coefficients `c`.
     fn ready_lanes(&self, sim: &Integrator, c: &[f64], jobs: usize) -> Result<bool, FitError> {
         if !crate::lanes::worth_it(jobs, sim.dofs().num_free()) {
@@ -838,7 +838,7 @@ impl Pass<'_> {
             .collect()
     }
 
-    /// The rollouts side by side ([`crate::lanes::side_by_side`]). Every rollout starts
+    /// The rollouts side by side (`lanes::side_by_side`). Every rollout starts
     /// from a restarted integrator, so which lane runs it does not change its bits.
     fn side_by_side(
         &self,

@@ -217,8 +217,8 @@ pub fn collect(
 pub type Run<'a> = (Scene, &'a Path, usize);
 
 /// Logs several simulations into one dataset (its metadata names the first scene);
-/// `progress` sees each finished step. Below [`crate::lanes::SIDE_BY_SIDE_MAX_DOFS`] free
-/// DOFs the simulations run side by side ([`crate::lanes::side_by_side`]); the logged
+/// `progress` sees each finished step. Below `lanes::SIDE_BY_SIDE_MAX_DOFS` (20,000) free
+/// DOFs the simulations run side by side (`lanes::side_by_side`); the logged
 /// flops and iterations are the same bits either way, the logged seconds one core's.
 ///
 /// # Errors

@@ -8,7 +8,7 @@
 //! | Wavefront `.obj` (surface) | [`read_surface`] | [`write_obj`] |
 //!
 //! [`read_arrays`] reads a mesh from numpy's `.npy` vertex and tet arrays. [`read`] and
-//! [`write`] pick the format from the extension. Readers never panic on any
+//! [`write()`] pick the format from the extension. Readers never panic on any
 //! input: every error names the file, the line (and byte offset) and what was expected.
 //! Writers go through `deform_fs::write_atomic`: a temporary file in the same directory, synced,
 //! then renamed over the target, so a crash never leaves a half-written file.
