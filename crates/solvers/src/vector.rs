@@ -85,3 +85,55 @@ pub fn for_each_entry(y: &mut [f64], f: impl Fn(usize, &mut f64) + Sync + Send) 
         y.par_chunks_mut(VECTOR_CHUNK).enumerate().for_each(chunk);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build();
+        pool.unwrap().install(f)
+    }
+
+    /// Long enough for the parallel path, with a ragged last chunk; values of mixed
+    /// magnitude so that the order of the additions shows in the bits.
+    fn vector(n: usize, seed: u64) -> Vec<f64> {
+        (0..n as u64)
+            .map(|i| {
+                let h = (i ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11;
+                (h as f64 / (1u64 << 53) as f64 - 0.5) * 10f64.powi((i % 7) as i32 - 3)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn passes_give_the_same_bits_on_any_thread_count_and_match_plain_arithmetic() {
+        for n in [1000, 5 * PARALLEL_LEN + 17] {
+            let (x, y) = (vector(n, 1), vector(n, 2));
+            let d1 = on_threads(1, || dot(&x, &y));
+            let d3 = on_threads(3, || dot(&x, &y));
+            assert_eq!(d1.to_bits(), d3.to_bits(), "{n}");
+            let plain: f64 = x.iter().zip(&y).map(|(a, b)| a * b).sum();
+            let size = x.iter().map(|a| a * a).sum::<f64>().sqrt()
+                * y.iter().map(|b| b * b).sum::<f64>().sqrt();
+            assert!((d1 - plain).abs() <= 1e-12 * size, "{n}: {d1} {plain}");
+            // The fused update is the two updates and the norm after them, bit for bit.
+            let (p, q) = (vector(n, 3), vector(n, 4));
+            let fused = |threads| {
+                on_threads(threads, || {
+                    let (mut a, mut r) = (x.clone(), y.clone());
+                    let rn = update_and_norm(&mut a, &mut r, 0.3, &p, &q);
+                    (a, r, rn)
+                })
+            };
+            let (a, r, rn) = fused(1);
+            assert_eq!(fused(2).2.to_bits(), rn.to_bits());
+            let (mut a2, mut r2) = (x.clone(), y.clone());
+            for_each_entry(&mut a2, |i, v| *v += 0.3 * p[i]);
+            for_each_entry(&mut r2, |i, v| *v -= 0.3 * q[i]);
+            assert_eq!(a, a2);
+            assert_eq!(r, r2);
+            assert_eq!(norm(&r2).to_bits(), rn.to_bits());
+        }
+    }
+}
