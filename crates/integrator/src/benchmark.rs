@@ -4,7 +4,6 @@ use deform_assembly::{Assembly, DofMap, MaterialField, Tangent};
 use deform_materials::{Lame, Model, NeoHookean};
 use deform_mesh::TetMesh;
 use deform_mesh::generate::BoxGrid;
-use rayon::prelude::*;
 use sprs::CsMat;
 
 /// The beam of size `n`, its Neo-Hookean material (E = 1e6, nu = 0.4) and the deformed state
@@ -687,34 +686,32 @@ pub fn time_stages(
 }
 
 /// The median seconds of one pass over [`MEMORY_LEN`]-long vectors, in the current pool:
-/// a triad (two read, one written) or a dot product (two read). At least five repeats, as
-/// a pass takes milliseconds.
+/// a triad (two read, one written) or a dot product (two read, the solvers' fixed-chunk
+/// `dot`). At least five repeats, as a pass takes milliseconds. The triad zips its chunks
+/// rather than indexing them ([`deform_solvers::vector::for_each_entry`] with `a[i]`,
+/// `b[i]` took twice as long on one thread: bounds checks, no vector instructions), so that
+/// it streams memory and nothing else.
 fn memory_pass(triad: bool, repeats: usize) -> f64 {
-    const CHUNK: usize = 8192;
+    use rayon::prelude::*;
+    const CHUNK: usize = deform_solvers::vector::VECTOR_CHUNK;
     let a = vec![1.0; MEMORY_LEN];
     let b = vec![2.0; MEMORY_LEN];
     let mut c = vec![0.0; MEMORY_LEN];
     let repeats = repeats.max(5);
     if triad {
-        warm_median_time(repeats, || {
-            c.par_chunks_mut(CHUNK)
+        let pass = || {
+            let chunks = c.par_chunks_mut(CHUNK);
+            chunks
                 .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
                 .for_each(|(c, (a, b))| {
                     for ((c, a), b) in c.iter_mut().zip(a).zip(b) {
                         *c = a + 3.0 * b;
                     }
-                });
-        })
-        .1
+                })
+        };
+        warm_median_time(repeats, pass).1
     } else {
-        let (sum, seconds) = warm_median_time(repeats, || {
-            let parts: Vec<f64> = a
-                .par_chunks(CHUNK)
-                .zip(b.par_chunks(CHUNK))
-                .map(|(a, b)| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>())
-                .collect();
-            parts.iter().sum::<f64>()
-        });
+        let (sum, seconds) = warm_median_time(repeats, || deform_solvers::vector::dot(&a, &b));
         assert_eq!(
             sum,
             2.0 * MEMORY_LEN as f64,

@@ -22,8 +22,9 @@ pub(crate) struct Contact {
     pub(crate) coupled: Option<sprs::CsMat<f64>>,
     /// The potential at the configuration evaluated last: at the end of a step, its state.
     pub(crate) last: Option<ContactSummary>,
-    /// Friction lagged at the start of the current Newton solve (empty when static).
-    pub(crate) lag: FrictionLag,
+    /// Friction lagged at the start of the current Newton solve (empty when static); set
+    /// with [`Contact::set_lag`], which clears `secant` with it.
+    lag: FrictionLag,
     /// Which pairs of `lag` Newton models with their secant curvature: those one of its
     /// directions carried past their sticking position ([`ContactModel::flag_reversals`]).
     secant: Vec<bool>,

@@ -57,6 +57,17 @@ fn same(what: &str, got: f64, want: f64) {
     );
 }
 
+/// The material-fit report of the bundled experiment `assets/experiments/{name}.ron`.
+fn bundled_fit(name: &str) -> deform_learn::experiment::fit_material::FitMaterialReport {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../assets/experiments/{name}.ron"));
+    let e = Experiment::load(&path).unwrap();
+    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
+        panic!("{name}: not a material fit")
+    };
+    r
+}
+
 fn report(name: &str) -> deform_learn::experiment::ExperimentReport {
     let e = Experiment::load(&data(&format!("{name}.ron"))).unwrap();
     run(&e, None, &mut NoProgress).unwrap()
@@ -89,12 +100,7 @@ fn fit_material_reports_the_recorded_figures() {
 /// no friction on the frictionless ball.
 #[test]
 fn the_contact_fit_recovers_material_stiffness_and_friction() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../assets/experiments/fit_material_contact.ron");
-    let e = Experiment::load(&path).unwrap();
-    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
-        panic!("task")
-    };
+    let r = bundled_fit("fit_material_contact");
     assert!(
         r.young_error() < 0.01 && r.poisson_error() < 0.01,
         "{:?}",
@@ -124,12 +130,7 @@ fn the_contact_fit_recovers_material_stiffness_and_friction() {
 /// true moduli do.
 #[test]
 fn the_coarse_step_fit_goes_through_contact() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../assets/experiments/coarse_dt_contact.ron");
-    let e = Experiment::load(&path).unwrap();
-    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
-        panic!("task")
-    };
+    let r = bundled_fit("coarse_dt_contact");
     let fit = r.output_error.as_ref().expect("the output-error stage ran");
     assert!(
         fit.loss < fit.initial_loss,
@@ -151,12 +152,7 @@ fn the_coarse_step_fit_goes_through_contact() {
 /// leaves friction at the scene's) and than stage 1's estimate.
 #[test]
 fn the_coarse_step_fit_goes_through_friction() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../assets/experiments/coarse_dt_friction.ron");
-    let e = Experiment::load(&path).unwrap();
-    let TaskReport::FitMaterial(r) = run(&e, None, &mut NoProgress).unwrap().task else {
-        panic!("task")
-    };
+    let r = bundled_fit("coarse_dt_friction");
     let fit = r.output_error.as_ref().expect("the output-error stage ran");
     assert!(r.unstable.is_none(), "{:?}", r.unstable);
     assert!(

@@ -324,26 +324,22 @@ pub(crate) fn with_lame(scene: &Scene, mu: f64, lambda: f64) -> Result<Scene, Le
 /// [`LearnError::Unsupported`] for a scene without friction or another count.
 pub(crate) fn with_friction(scene: &Scene, mu: &[f64]) -> Result<Scene, LearnError> {
     let mut s = scene.clone();
-    let contact = s.contact.as_mut();
-    let Some((contact, friction)) = contact.and_then(|c| {
-        let external = c.obstacles.len() + c.meshes.len();
-        c.friction.as_mut().map(|f| (external, f))
-    }) else {
-        return Err(LearnError::Unsupported(
-            "the scene has no friction to set".into(),
-        ));
+    let unsupported = |why: String| Err(LearnError::Unsupported(why));
+    let Some(contact) = s.contact.as_mut().filter(|c| c.friction.is_some()) else {
+        return unsupported("the scene has no friction to set".into());
     };
-    let own = usize::from(scene.contact.as_ref().is_some_and(|c| c.self_contact));
-    if mu.len() != contact + own {
-        return Err(LearnError::Unsupported(format!(
-            "{} coefficients of friction for {} frictional obstacles",
-            mu.len(),
-            contact + own
-        )));
+    let external = contact.obstacles.len() + contact.meshes.len();
+    let frictional = external + usize::from(contact.self_contact);
+    if mu.len() != frictional {
+        return unsupported(format!(
+            "{} coefficients of friction for {frictional} frictional obstacles",
+            mu.len()
+        ));
     }
-    friction.mu = mu[..contact].to_vec();
-    if own == 1 {
-        friction.self_mu = Some(mu[contact]);
+    let friction = contact.friction.as_mut().expect("checked above");
+    friction.mu = mu[..external].to_vec();
+    if contact.self_contact {
+        friction.self_mu = Some(mu[external]);
     }
     Ok(s)
 }
