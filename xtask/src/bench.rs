@@ -13,7 +13,7 @@ use deform_integrator::benchmark::{
     AssemblyOutputs, ITERATIVE_SOLVERS, STEP_POLICIES, beam, beam_free_coordinates,
     beam_integrator, beam_integrator_with, beam_system, time_assembly, time_direct, time_iterative,
 };
-use deform_integrator::{MaterialField, Model, OnStep, RunOptions, State, StepReport};
+use deform_integrator::{MaterialField, Model, State};
 use deform_materials::StableNeoHookean;
 use deform_mesh::io::{MshFormat, MshVersion, write_msh};
 
@@ -373,8 +373,11 @@ fn solvers(args: SolversArgs) -> Result<()> {
 fn step(args: StepArgs) -> Result<()> {
     for (name, policy) in chosen(&STEP_POLICIES, &args.policies, "--policies")? {
         let (sim, state) = beam_integrator(args.n, policy)?;
-        let free = timed_steps(sim, state, args.steps, name)?;
+        let mut free = Timed::new(sim, state, name);
         let Some(gap) = args.ground else {
+            for _ in 0..args.steps {
+                free.step()?;
+            }
             continue;
         };
         let ground = deform_integrator::ContactSpec {
@@ -386,18 +389,31 @@ fn step(args: StepArgs) -> Result<()> {
         };
         let (sim, state) = beam_integrator_with(args.n, policy, Some(ground))?;
         let surface = sim.contact().map_or(0, |c| c.vertices().len());
-        let touching = timed_steps(sim, state, args.steps, name)?;
+        let mut touching = Timed::new(sim, state, name);
+        // The two runs take their steps in turn, each step's pair in alternating order, so
+        // that both see the machine as it is then: this VM's speed drifts by tens of per
+        // cent over a minute, which timed one run after the other moved the ratio alone.
+        let mut pairs = Vec::new();
+        for k in 0..args.steps {
+            let (with, without) = if k % 2 == 0 {
+                let without = free.step()?;
+                (touching.step()?, without)
+            } else {
+                let with = touching.step()?;
+                (with, free.step()?)
+            };
+            pairs.push((with, without));
+        }
         // The same step with and without the ground, where the ground touches fewer than
         // 5 % of the surface vertices (and at all).
         let few = |active: usize| active > 0 && (active as f64) < 0.05 * surface as f64;
-        let pairs: Vec<(f64, f64)> = touching
+        let ratios: Vec<(f64, f64)> = pairs
             .iter()
-            .zip(&free)
-            .filter(|(with, _)| few(with.2))
+            .filter(|(with, _)| few(with.contacts))
             .map(|(with, without)| {
                 (
-                    with.0 / without.0,
-                    (with.0 / with.1.max(1) as f64) / (without.0 / without.1.max(1) as f64),
+                    with.seconds / without.seconds,
+                    with.per_iteration() / without.per_iteration(),
                 )
             })
             .collect();
@@ -405,63 +421,84 @@ fn step(args: StepArgs) -> Result<()> {
             x.sort_by(f64::total_cmp);
             x.get(x.len() / 2).copied().unwrap_or(f64::NAN)
         };
-        let most = touching.iter().map(|s| s.2).max().unwrap_or(0);
-        let step_ratio = median(pairs.iter().map(|p| p.0).collect());
-        let newton_ratio = median(pairs.iter().map(|p| p.1).collect());
+        let most = pairs.iter().map(|p| p.0.contacts).max().unwrap_or(0);
+        let step_ratio = median(ratios.iter().map(|p| p.0).collect());
+        let newton_ratio = median(ratios.iter().map(|p| p.1).collect());
         println!(
             r#"{{"what": "contact_step", "policy": "{name}", "steps": {}, "steps_touching_under_5_percent": {}, "most_in_contact": {most}, "surface_vertices": {surface}, "median_step_ratio": {step_ratio:.2}, "median_newton_iteration_ratio": {newton_ratio:.2}}}"#,
             args.steps,
-            pairs.len(),
+            ratios.len(),
         );
     }
     Ok(())
 }
 
-/// Runs `steps` steps printing a JSON line per step; returns each step's wall time, Newton
-/// iterations and active contact pairs.
-fn timed_steps(
-    mut sim: deform_integrator::Integrator,
-    mut state: State,
-    steps: usize,
-    name: &str,
-) -> Result<Vec<(f64, usize, usize)>> {
-    let tets = sim.assembly().num_elements();
-    let mut last = Instant::now();
-    let mut timings = Vec::new();
-    let run = sim.run(
-        &mut state,
-        &RunOptions::steps(steps),
-        &mut OnStep(|report: &StepReport, _: &State| {
-            // Wall time of the whole step as the caller sees it.
-            let seconds = last.elapsed().as_secs_f64();
-            let solve = report.solver_seconds();
-            let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
-            // The process's peak so far (it includes earlier policies' runs).
-            let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
-            // The Newton iterations' stages: assembly and residual, the Newton matrix
-            // (with K when the residual came from the line search), the line search. The
-            // final convergence check is no iteration: it is in `other_seconds` only.
-            let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
-                report.iterations.iter().map(|i| f(&i.stages)).sum()
-            };
-            let active = report.contact.map_or(0, |c| c.active);
-            println!(
-                r#"{{"what": "step", "impl": "deform", "policy": "{name}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "residual_seconds": {:.3}, "matrix_seconds": {:.3}, "line_search_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}, "contacts": {active}}}"#,
-                report.step,
-                report.newton_iterations(),
-                report.linear_iterations(),
-                seconds - solve,
-                stage(|s| s.residual),
-                stage(|s| s.matrix),
-                stage(|s| s.line_search),
-                report.flops()
-            );
-            timings.push((seconds, report.newton_iterations(), active));
-            last = Instant::now();
-        }),
-    );
-    run.into_result()?;
-    Ok(timings)
+/// One step's wall time, Newton iterations and active contact pairs.
+#[derive(Debug, Clone, Copy)]
+struct StepTiming {
+    seconds: f64,
+    newton: usize,
+    contacts: usize,
+}
+
+impl StepTiming {
+    fn per_iteration(&self) -> f64 {
+        self.seconds / self.newton.max(1) as f64
+    }
+}
+
+/// A simulation whose steps are timed one at a time, each printed as a JSON line.
+struct Timed {
+    sim: deform_integrator::Integrator,
+    state: State,
+    name: String,
+}
+
+impl Timed {
+    fn new(sim: deform_integrator::Integrator, state: State, name: &str) -> Self {
+        Self {
+            sim,
+            state,
+            name: name.to_owned(),
+        }
+    }
+
+    /// Takes one step, printing its JSON line.
+    fn step(&mut self) -> Result<StepTiming> {
+        let started = Instant::now();
+        let report = self.sim.step(&mut self.state)?;
+        // Wall time of the whole step as the caller sees it.
+        let seconds = started.elapsed().as_secs_f64();
+        let tets = self.sim.assembly().num_elements();
+        let solve = report.solver_seconds();
+        let setup: u64 = report.iterations.iter().map(|i| i.setup.flops).sum();
+        // The process's peak so far (it includes earlier policies' runs).
+        let peak = deform_mesh::memory::peak_rss_bytes().map_or(-1.0, |b| b as f64 / 1e6);
+        // The Newton iterations' stages: assembly and residual, the Newton matrix (with K
+        // when the residual came from the line search), the line search. The final
+        // convergence check is no iteration: it is in `other_seconds` only.
+        let stage = |f: fn(&deform_integrator::StageSeconds) -> f64| -> f64 {
+            report.iterations.iter().map(|i| f(&i.stages)).sum()
+        };
+        let contacts = report.contact.map_or(0, |c| c.active);
+        println!(
+            r#"{{"what": "step", "impl": "deform", "policy": "{}", "step": {}, "tets": {tets}, "seconds": {seconds:.3}, "newton": {}, "linear": {}, "solve_seconds": {solve:.3}, "other_seconds": {:.3}, "residual_seconds": {:.3}, "matrix_seconds": {:.3}, "line_search_seconds": {:.3}, "flops": {}, "setup_flops": {setup}, "peak_rss_mb": {peak:.1}, "contacts": {contacts}}}"#,
+            self.name,
+            report.step,
+            report.newton_iterations(),
+            report.linear_iterations(),
+            seconds - solve,
+            stage(|s| s.residual),
+            stage(|s| s.matrix),
+            stage(|s| s.line_search),
+            report.flops()
+        );
+        Ok(StepTiming {
+            seconds,
+            newton: report.newton_iterations(),
+            contacts,
+        })
+    }
 }
 
 /// Times every stage in a pool of each thread count (JSON lines as they come), then a table

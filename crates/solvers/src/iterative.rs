@@ -99,6 +99,8 @@ pub struct Iterative {
     inv_diag: Vec<f64>,
     /// Node positions for a stale-Cholesky factor's ordering.
     coordinates: Option<Vec<[f64; 3]>>,
+    /// Solves stop at or below this residual norm whatever the tolerance asks (0: none).
+    floor: f64,
 }
 
 impl Iterative {
@@ -136,7 +138,14 @@ impl Iterative {
             refresh: false,
             inv_diag: Vec::new(),
             coordinates: None,
+            floor: 0.0,
         })
+    }
+
+    /// The residual norm a solve of a right-hand side of norm `rhs_norm` stops at: the
+    /// tolerance's, or the residual floor when that is larger.
+    fn threshold(&self, rhs_norm: f64) -> f64 {
+        self.tolerance.threshold(rhs_norm).max(self.floor)
     }
 
     /// The stopping rule.
@@ -196,7 +205,7 @@ impl Iterative {
     ) {
         let n = b.len();
         let mut r = vec![0.0; n];
-        let threshold = self.tolerance.threshold(stats.rhs_norm);
+        let threshold = self.threshold(stats.rhs_norm);
         loop {
             a.apply(x, &mut r);
             stats.matvecs += 1;
@@ -236,7 +245,7 @@ impl Iterative {
         stats: &mut SolveStats,
     ) -> Option<f64> {
         let n = b.len();
-        let threshold = self.tolerance.threshold(stats.rhs_norm);
+        let threshold = self.threshold(stats.rhs_norm);
         let (mut r, mut z, mut ap) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
         a.apply(x, &mut r);
         stats.matvecs += 1;
@@ -303,6 +312,14 @@ impl LinearSolver for Iterative {
             Method::Pcg(PreconditionerSpec::Identity) => "cg".to_owned(),
             Method::Pcg(p) => format!("pcg({p:?})"),
         }
+    }
+
+    fn set_residual_floor(&mut self, floor: f64) {
+        self.floor = if floor.is_finite() {
+            floor.max(0.0)
+        } else {
+            0.0
+        };
     }
 
     fn set_relative_tolerance(&mut self, rel: f64) -> Result<(), SolverError> {

@@ -93,6 +93,12 @@ pub trait LinearSolver: Send {
         Ok(())
     }
 
+    /// Makes later solves stop once the residual norm is at or below `floor`, whatever the
+    /// relative and absolute tolerances ask (0 clears it); a no-op for direct solvers.
+    /// Newton sets it from its own tolerance: a linear residual far below the one Newton
+    /// accepts buys no accuracy in the step's result.
+    fn set_residual_floor(&mut self, _floor: f64) {}
+
     /// Makes the next `factorize` recompute anything it would otherwise reuse (a stale
     /// preconditioner); a no-op for solvers that keep nothing.
     fn refresh(&mut self) {}
