@@ -41,6 +41,17 @@ impl Barrier {
         let e = d - self.dhat;
         -self.kappa * (2.0 * (d / self.dhat).ln() + 4.0 * e / d - e * e / (d * d))
     }
+
+    /// The secant slope of `b'` from `d` to `to`: the curvature that makes Newton's linear
+    /// model of the barrier force exact at `to`, where a step is predicted to carry the
+    /// distance (`b''(d)` when `to` is not positive, where `b'` does not exist, or within
+    /// rounding of `d`). Non-negative, as `b'` does not decrease.
+    pub fn secant(&self, d: f64, to: f64) -> f64 {
+        if to <= 0.0 || (to - d).abs() <= 1e-12 * self.dhat {
+            return self.second(d);
+        }
+        ((self.first(to) - self.first(d)) / (to - d)).max(0.0)
+    }
 }
 
 #[cfg(test)]
@@ -64,6 +75,26 @@ mod tests {
             prop_assert!((fd1 - B.first(d)).abs() <= 1e-6 * B.first(d).abs().max(1e-3), "{fd1} {}", B.first(d));
             prop_assert!((fd2 - B.second(d)).abs() <= 1e-6 * B.second(d).abs().max(1.0), "{fd2} {}", B.second(d));
             prop_assert!(B.value(d) > 0.0 && B.first(d) < 0.0 && B.second(d) > 0.0);
+        }
+    }
+
+    proptest! {
+        /// The secant makes the linear model exact at its end, tends to `b''` as the ends
+        /// meet, and is never negative (the barrier is convex and flat beyond `dhat`).
+        #[test]
+        fn the_secant_is_exact_at_its_end(s in 0.02f64..1.5, t in 0.02f64..1.5) {
+            let (d, to) = (s * B.dhat, t * B.dhat);
+            let slope = B.secant(d, to);
+            prop_assert!(slope >= 0.0);
+            if (to - d).abs() > 1e-6 * B.dhat {
+                let model = B.first(d) + slope * (to - d);
+                prop_assert!((model - B.first(to)).abs() <= 1e-9 * B.first(d).abs().max(B.first(to).abs()).max(1e-6));
+            }
+            // (Near `dhat` both `b'` and `b''` vanish and the difference is rounding.)
+            if s < 0.95 {
+                let near = B.secant(d, d * (1.0 + 1e-7));
+                prop_assert!((near - B.second(d)).abs() <= 1e-5 * B.second(d));
+            }
         }
     }
 

@@ -602,6 +602,50 @@ impl SelfContact {
         Ok(())
     }
 
+    /// [`crate::ContactModel::secant_correction`] for the surface pairs closer than `dhat`
+    /// at `x`: each pair's projected Hessian with the barrier's secant curvature less the
+    /// one with `b''`, added to `out`; returns how many pairs changed.
+    pub(crate) fn secant_correction(
+        &self,
+        x: &[f64],
+        dx: &[f64],
+        b: Barrier,
+        out: &mut ContactHessian,
+    ) -> usize {
+        let mut changed = 0;
+        for c in self.candidates(x, None, b.dhat, Place::End) {
+            let p = self.points(c, x, Place::End);
+            let (d, form) = self.distance(c, &p);
+            if !(d > 0.0 && d < b.dhat) {
+                continue;
+            }
+            let vars = variables(&p);
+            let distance = squared_jet(form, &vars).sqrt();
+            let vertices = self.indices(c);
+            let mut predicted = d;
+            for (k, &v) in vertices.iter().enumerate().filter(|(_, v)| **v < self.body) {
+                for r in 0..3 {
+                    predicted += distance.gradient[3 * k + r] * dx[3 * v + r];
+                }
+            }
+            let secant = b.secant(d, predicted);
+            if secant == b.second(d) {
+                continue;
+            }
+            let with = |curvature: f64| {
+                let energy = distance.map(b.value(d), b.first(d), curvature);
+                let energy = match c {
+                    Candidate::PointTriangle(..) => energy,
+                    Candidate::EdgeEdge(..) => energy * self.mollified(c, &vars),
+                };
+                project_psd(energy.hessian)
+            };
+            out.add_pair(&vertices, &(with(secant) - with(b.second(d))), self.body);
+            changed += 1;
+        }
+        changed
+    }
+
     /// A pair's barrier energy with its derivatives in the pair's 12 coordinates.
     fn energy(&self, c: Candidate, p: &[Vector3<f64>; 4], form: Form, d: f64, b: Barrier) -> Jet {
         let x = variables(p);

@@ -606,3 +606,43 @@ fn start_derivative_matches(
     }
     Ok(())
 }
+
+proptest! {
+    /// The secant correction makes Newton's linear model of a ground contact's force exact
+    /// at the distance the step predicts (`b'(d + n . dx)`, also where that lies beyond
+    /// `dhat`); corrected blocks stay positive semidefinite, and no step changes nothing.
+    #[test]
+    fn the_secant_correction_makes_the_barrier_force_exact_where_the_step_lands(
+        t in prop::array::uniform12(-1.0f64..1.0),
+        s in prop::array::uniform12(-1.0f64..1.0),
+    ) {
+        let m = model();
+        let x = positions(t);
+        let dx: Vec<f64> = s.iter().map(|v| 0.03 * v).collect();
+        let mut h = ContactHessian::default();
+        m.evaluate(&x, None, Some(&mut h)).unwrap();
+        let mut delta = ContactHessian::default();
+        let changed = m.secant_correction(&x, &dx, &mut delta);
+        let block = |hs: &ContactHessian, v: usize| {
+            hs.vertex.iter().filter(|(w, _)| *w == v).fold(nalgebra::Matrix3::zeros(), |a, (_, b)| a + b)
+        };
+        // Vertex 0 is above the ground only (z = 0.01 +- 0.008, dhat 0.05).
+        let b = m.barrier();
+        let (d, dz) = (x[2], dx[2]);
+        let corrected = block(&h, 0) + block(&delta, 0);
+        let model_force = (corrected * Vector3::new(dx[0], dx[1], dx[2])).z;
+        if d + dz > 0.0 {
+            let want = b.first(d + dz) - b.first(d);
+            prop_assert!((model_force - want).abs() <= 1e-9 * want.abs().max(b.first(d).abs()), "{model_force} vs {want}");
+        }
+        for v in [0, 2, 3] {
+            let e = (block(&h, v) + block(&delta, v)).symmetric_eigenvalues();
+            prop_assert!(e.min() >= -1e-9 * e.max().abs().max(1.0), "{e}");
+        }
+        // Vertex 0 moving along the normal changes its curvature.
+        prop_assert!(changed > 0 || dz == 0.0);
+        let zero = vec![0.0; x.len()];
+        prop_assert_eq!(m.secant_correction(&x, &zero, &mut delta), 0);
+        prop_assert!(delta.is_empty());
+    }
+}

@@ -23,6 +23,7 @@ use crate::matrix_free::{MatrixFreeNewton, Restricted};
 use crate::policy::{Decision, PolicyContext, SolverPolicy};
 use crate::report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
 use crate::run::{NoObserver, Observer};
+use crate::secant::{self, Secant};
 use crate::state::{Constraint, Motion, State};
 use deform_contact::{ContactError, ContactModel, ContactSpec, ContactSummary};
 
@@ -78,6 +79,14 @@ pub struct NewtonOptions {
     pub update: f64,
     /// Iteration cap.
     pub max_iterations: usize,
+    /// With contact and an iterative linear solver, solve each Newton system this many
+    /// more times, each with the barrier's curvature replaced by its secant slope to the
+    /// distances the last solution predicts (0: plain Newton; direct solvers take none).
+    /// The barrier's curvature changes by a factor of several within a fraction of `dhat`,
+    /// where Newton's linear model lands contacts a fiftieth of `dhat` off; the rounds
+    /// reuse the preconditioner and start from the last solution, and all but the last
+    /// stop at 1e-2 of the right-hand side, so they cost a few iterations each.
+    pub barrier_secant: usize,
     /// Iterative linear solves stop once their residual is at most this fraction of
     /// Newton's own tolerance `max(abs, rel ||r_0||)`, whatever their relative tolerance
     /// asks (0: only theirs). The linear residual is the residual the Newton update
@@ -98,6 +107,7 @@ impl Default for NewtonOptions {
             rel: 1e-6,
             update: 0.0,
             max_iterations: 30,
+            barrier_secant: 2,
             linear_floor: 0.1,
             line_search: true,
             project: Projection::Never,
@@ -1040,6 +1050,7 @@ impl Integrator {
                 c_k,
                 c_contact: contact_scale(mode),
                 floor: newton.linear_floor * newton.abs.max(newton.rel * report.initial_residual),
+                position_scale: if dt > 0.0 { dt } else { 1.0 },
             };
             let context = IterationContext {
                 step: self.steps_taken,
@@ -1710,6 +1721,14 @@ impl Integrator {
                     .and_then(|c| c.coupled.as_ref())
                     .unwrap_or(&self.a_free.matrix),
                 contact: self.contact.as_ref().map(|c| &c.hessian),
+                secant: self.contact.as_ref().map(|c| Secant {
+                    model: &c.model,
+                    dofs: &self.dofs,
+                    x: point.x,
+                    scale: point.position_scale,
+                    c_contact: point.c_contact,
+                    rounds: self.options.newton.barrier_secant,
+                }),
                 point,
             },
             &mut self.solvers,
@@ -1906,6 +1925,8 @@ struct NewtonPoint<'a> {
     c_contact: f64,
     /// Iterative solves stop at this residual norm ([`NewtonOptions::linear_floor`]).
     floor: f64,
+    /// Positions move this times the unknown's update (`dt` dynamic, 1 static).
+    position_scale: f64,
 }
 
 /// The linear system of a Newton iteration: the assembled reduced matrix, or the same matrix
@@ -1920,6 +1941,8 @@ struct System<'a> {
     a_free: &'a CsMat<f64>,
     /// Contact's Hessian blocks at the point (for matrix-free solves).
     contact: Option<&'a deform_contact::ContactHessian>,
+    /// The barrier's secant rounds, with contact.
+    secant: Option<Secant<'a>>,
     point: NewtonPoint<'a>,
 }
 
@@ -1995,7 +2018,21 @@ fn solve_with(
     }
     solver.set_residual_floor(system.point.floor);
     let setup = solver.factorize(a)?;
-    match solver.solve(a, rhs, x) {
+    // The barrier's secant rounds where there are contacts and an iterative solver. A
+    // direct solver's factor is of `a` alone: conjugate gradients on the corrected matrix
+    // preconditioned by it took more back-substitutions than the Newton iterations they
+    // saved were worth (docs/theory.md, "Contact").
+    let solved = match &system.secant {
+        Some(secant)
+            if secant.rounds > 0
+                && system.contact.is_some_and(|h| !h.is_empty())
+                && !matches!(spec, SolverSpec::Direct { .. }) =>
+        {
+            secant::solve(secant, solver.as_mut(), a, rhs, x, system.point.floor)
+        }
+        _ => solver.solve(a, rhs, x),
+    };
+    match solved {
         Ok(stats) => Ok((setup, stats)),
         Err(error) => Err(FailedSolve {
             setup: Some(setup),

@@ -44,6 +44,7 @@ mod policy;
 mod report;
 mod run;
 pub mod scene;
+mod secant;
 mod simulate;
 mod state;
 

@@ -1,0 +1,173 @@
+//! Newton directions with the barrier's secant curvature (`NewtonOptions::barrier_secant`).
+//!
+//! Newton's linear model takes each contact pair's barrier curvature `b''(d)` at the
+//! iterate, but `b''` changes by a factor of several over a fraction of `dhat`: a direction
+//! that moves contacts by a tenth of `dhat` lands them a fiftieth of `dhat` off, and the
+//! next residual is the barrier's. Given a direction, each pair's curvature is replaced by
+//! the secant slope of `b'` to the distance the direction predicts
+//! ([`ContactModel::secant_correction`]) and the same right-hand side solved again, from
+//! the direction, with the solver's preconditioner as it is: the change is confined to the
+//! contacts, so a few iterations do. Repeated, the rounds converge to the step whose
+//! elasticity is linearised and whose barrier is exact along the predicted distances.
+
+use deform_assembly::DofMap;
+use deform_contact::{ContactHessian, ContactModel};
+use deform_solvers::{LinearOperator, LinearSolver, SolveStats, SolverError};
+use nalgebra::{Matrix3, Vector3};
+
+/// What the secant rounds need of the Newton system.
+#[derive(Clone, Copy)]
+pub(crate) struct Secant<'a> {
+    pub(crate) model: &'a ContactModel,
+    pub(crate) dofs: &'a DofMap,
+    /// Positions at the iterate (full `3N`).
+    pub(crate) x: &'a [f64],
+    /// Positions move `scale` times the unknown's update (`dt` for a dynamic step's
+    /// velocity, 1 for positions).
+    pub(crate) scale: f64,
+    /// The factor of contact's Hessian in the Newton matrix.
+    pub(crate) c_contact: f64,
+    /// Rounds (0: none).
+    pub(crate) rounds: usize,
+}
+
+/// `A + c dH` on the free DOFs: the Newton matrix with a correction of the contact
+/// Hessian's blocks, kept as free block indices.
+struct Corrected<'a> {
+    base: &'a dyn LinearOperator,
+    /// `(row, column, c B)`: free indices of each block's first DOF.
+    blocks: Vec<(usize, usize, Matrix3<f64>)>,
+}
+
+impl<'a> Corrected<'a> {
+    fn new(base: &'a dyn LinearOperator, delta: &ContactHessian, dofs: &DofMap, c: f64) -> Self {
+        let free = dofs.free_dofs();
+        let index = |v: usize| free.binary_search(&(3 * v)).ok();
+        let coupled = delta.coupling.iter().map(|&(i, j, b)| (i, j, b));
+        let blocks = delta
+            .vertex
+            .iter()
+            .map(|&(v, b)| (v, v, b))
+            .chain(coupled)
+            .filter_map(|(i, j, b)| Some((index(i)?, index(j)?, b * c)))
+            .collect();
+        Self { base, blocks }
+    }
+}
+
+impl LinearOperator for Corrected<'_> {
+    fn nrows(&self) -> usize {
+        self.base.nrows()
+    }
+
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        self.base.apply(x, y);
+        for &(i, j, b) in &self.blocks {
+            let bx = b * Vector3::new(x[j], x[j + 1], x[j + 2]);
+            for k in 0..3 {
+                y[i + k] += bx[k];
+            }
+        }
+    }
+
+    fn diagonal(&self, out: &mut [f64]) {
+        self.base.diagonal(out);
+        for &(i, j, b) in self.blocks.iter().filter(|(i, j, _)| i == j) {
+            debug_assert_eq!(i, j);
+            for k in 0..3 {
+                out[i + k] += b[(k, k)];
+            }
+        }
+    }
+
+    fn block_diagonal(&self, out: &mut [Matrix3<f64>]) -> Result<(), SolverError> {
+        self.base.block_diagonal(out)?;
+        for &(i, _, b) in self.blocks.iter().filter(|(i, j, _)| i == j) {
+            out[i / 3] += b;
+        }
+        Ok(())
+    }
+
+    fn apply_flops(&self) -> u64 {
+        self.base.apply_flops() + 18 * self.blocks.len() as u64
+    }
+}
+
+/// The loose solves' residual, relative to the right-hand side's: they only predict where
+/// the contacts go.
+const LOOSE: f64 = 1e-2;
+
+/// Solves `a du = rhs` (free DOFs; `du` holds the start) with the iterative `solver`, set
+/// up for `a`, and the secant rounds: a loose first solve of `a`, then each round's
+/// corrected matrix solved from the last solution with the preconditioner of `a`, loosely
+/// but for the last round, which stops at `floor` (and the solver's own tolerance). The
+/// rounds' iterations and work are added up; a round whose solve fails ends them (the
+/// direction of the round before stands, solved to the full tolerance on its own matrix).
+///
+/// # Errors
+/// As the solver's `solve` on `a`.
+pub(crate) fn solve(
+    secant: &Secant<'_>,
+    solver: &mut dyn LinearSolver,
+    a: &dyn LinearOperator,
+    rhs: &[f64],
+    du: &mut [f64],
+    floor: f64,
+) -> Result<SolveStats, SolverError> {
+    let loose = floor.max(LOOSE * deform_solvers::vector::norm(rhs));
+    let mut round = |op: &dyn LinearOperator, du: &mut [f64], stop: f64| {
+        solver.set_residual_floor(stop);
+        let done = solver.solve(op, rhs, du);
+        solver.set_residual_floor(floor);
+        done
+    };
+    let mut stats = round(a, du, loose)?;
+    let mut dx = vec![0.0; secant.x.len()];
+    let (mut delta, mut kept) = (ContactHessian::default(), ContactHessian::default());
+    for k in 0..secant.rounds {
+        secant.dofs.scatter(du, &mut dx).expect("sizes match");
+        dx.iter_mut().for_each(|d| *d *= secant.scale);
+        if secant.model.secant_correction(secant.x, &dx, &mut delta) == 0 {
+            break;
+        }
+        let op = Corrected::new(a, &delta, secant.dofs, secant.c_contact);
+        let last = k + 1 == secant.rounds;
+        let before = du.to_vec();
+        match round(&op, du, if last { floor } else { loose }) {
+            Ok(done) => {
+                add(&mut stats, &done);
+                if last {
+                    return Ok(stats);
+                }
+                std::mem::swap(&mut kept, &mut delta);
+            }
+            Err(_) => {
+                du.copy_from_slice(&before);
+                break;
+            }
+        }
+    }
+    // The last matrix the rounds reached, to the full tolerance (`a` itself when none
+    // did: a preconditioner applied through `a`'s CSR fails on the corrected operator).
+    let done = if kept.is_empty() {
+        round(a, du, floor)?
+    } else {
+        round(
+            &Corrected::new(a, &kept, secant.dofs, secant.c_contact),
+            du,
+            floor,
+        )?
+    };
+    add(&mut stats, &done);
+    Ok(stats)
+}
+
+fn add(stats: &mut SolveStats, round: &SolveStats) {
+    stats.iterations += round.iterations;
+    stats.matvecs += round.matvecs;
+    stats.flops += round.flops;
+    stats.sweep_flops += round.sweep_flops;
+    stats.seconds += round.seconds;
+    stats.residuals.extend_from_slice(&round.residuals);
+    stats.termination = round.termination;
+}
