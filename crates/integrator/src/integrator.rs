@@ -1043,15 +1043,7 @@ impl Integrator {
                 .map_err(|e| fail_assembly(e, &report))?;
             stages.matrix = clock.elapsed().as_secs_f64();
             let clock = Instant::now();
-            let point = NewtonPoint {
-                x: &x,
-                tangent,
-                c_m,
-                c_k,
-                c_contact: contact_scale(mode),
-                floor: newton.linear_floor * newton.abs.max(newton.rel * report.initial_residual),
-                position_scale: if dt > 0.0 { dt } else { 1.0 },
-            };
+            let point = NewtonPoint::new(&x, tangent, (c_m, c_k), mode, &newton, &report);
             let context = IterationContext {
                 step: self.steps_taken,
                 iteration,
@@ -1927,6 +1919,31 @@ struct NewtonPoint<'a> {
     floor: f64,
     /// Positions move this times the unknown's update (`dt` dynamic, 1 static).
     position_scale: f64,
+}
+
+impl<'a> NewtonPoint<'a> {
+    /// The point `x` of a Newton iteration of `report`'s step, with its matrix's factors.
+    fn new(
+        x: &'a [f64],
+        tangent: Tangent,
+        (c_m, c_k): (f64, f64),
+        mode: Mode,
+        newton: &NewtonOptions,
+        report: &StepReport,
+    ) -> Self {
+        Self {
+            x,
+            tangent,
+            c_m,
+            c_k,
+            c_contact: contact_scale(mode),
+            floor: newton.linear_floor * newton.abs.max(newton.rel * report.initial_residual),
+            position_scale: match mode {
+                Mode::Dynamic { dt } => dt,
+                Mode::Static => 1.0,
+            },
+        }
+    }
 }
 
 /// The linear system of a Newton iteration: the assembled reduced matrix, or the same matrix
