@@ -79,13 +79,14 @@ pub struct NewtonOptions {
     pub update: f64,
     /// Iteration cap.
     pub max_iterations: usize,
-    /// With contact and an iterative linear solver, solve each Newton system this many
-    /// more times, each with the barrier's curvature replaced by its secant slope to the
-    /// distances the last solution predicts (0: plain Newton; direct solvers take none).
-    /// The barrier's curvature changes by a factor of several within a fraction of `dhat`,
-    /// where Newton's linear model lands contacts a fiftieth of `dhat` off; the rounds
-    /// reuse the preconditioner and start from the last solution, and all but the last
-    /// stop at 1e-2 of the right-hand side, so they cost a few iterations each.
+    /// With contact, solve each Newton system this many more times, each with the
+    /// barrier's curvature replaced by its secant slope to the distances the last solution
+    /// predicts (0: plain Newton). The barrier's curvature changes by a factor of several
+    /// within a fraction of `dhat`, where Newton's linear model lands contacts a fiftieth
+    /// of `dhat` off; the rounds reuse the preconditioner (a direct solver's factor, for
+    /// at most 4 conjugate-gradient iterations a round) and start from the last solution,
+    /// and all but the last stop at 1e-2 of the right-hand side, so they cost a few
+    /// iterations each.
     pub barrier_secant: usize,
     /// Iterative linear solves stop once their residual is at most this fraction of
     /// Newton's own tolerance `max(abs, rel ||r_0||)`, whatever their relative tolerance
@@ -107,7 +108,7 @@ impl Default for NewtonOptions {
             rel: 1e-6,
             update: 0.0,
             max_iterations: 30,
-            barrier_secant: 2,
+            barrier_secant: 3,
             linear_floor: 0.1,
             line_search: true,
             project: Projection::Never,
@@ -2035,17 +2036,21 @@ fn solve_with(
     }
     solver.set_residual_floor(system.point.floor);
     let setup = solver.factorize(a)?;
-    // The barrier's secant rounds where there are contacts and an iterative solver. A
-    // direct solver's factor is of `a` alone: conjugate gradients on the corrected matrix
-    // preconditioned by it took more back-substitutions than the Newton iterations they
-    // saved were worth (docs/theory.md, "Contact").
+    // The barrier's secant rounds where there are contacts. A direct solver's factor is of
+    // `a` alone: its rounds are a few conjugate-gradient iterations preconditioned by it
+    // (docs/theory.md, "Contact").
     let solved = match &system.secant {
-        Some(secant)
-            if secant.rounds > 0
-                && system.contact.is_some_and(|h| !h.is_empty())
-                && !matches!(spec, SolverSpec::Direct { .. }) =>
-        {
-            secant::solve(secant, solver.as_mut(), a, rhs, x, system.point.floor)
+        Some(secant) if secant.rounds > 0 && system.contact.is_some_and(|h| !h.is_empty()) => {
+            let direct = matches!(spec, SolverSpec::Direct { .. });
+            secant::solve(
+                secant,
+                solver.as_mut(),
+                a,
+                rhs,
+                x,
+                system.point.floor,
+                direct,
+            )
         }
         _ => solver.solve(a, rhs, x),
     };

@@ -44,7 +44,9 @@ pub struct SolveStats {
 }
 
 impl SolveStats {
-    pub(crate) fn new(solver: String, rhs_norm: f64) -> Self {
+    /// Empty statistics of a solve by `solver` of a right-hand side of norm `rhs_norm`, for
+    /// solvers written outside this crate.
+    pub fn new(solver: String, rhs_norm: f64) -> Self {
         Self {
             solver,
             iterations: 0,
