@@ -24,7 +24,7 @@ mod surface_contact;
 pub use barrier::Barrier;
 pub use contact::{
     ADAPT_BELOW, ADAPT_MAX, ContactError, ContactHessian, ContactModel, ContactSpec,
-    ContactSummary, CouplingBlock, MeshObstacle, STEP_MARGIN, SecantAt, VertexBlock,
+    ContactSummary, CouplingBlock, MeshObstacle, STEP_MARGIN, VertexBlock,
 };
 pub use friction::{FrictionLag, FrictionPair, FrictionSpec};
 pub use obstacle::{DistanceJet, Obstacle, ObstacleMotion, Surface};

@@ -72,17 +72,6 @@ struct LaggedPair {
     mu: f64,
 }
 
-/// A surface pair closer than `dhat` at a Newton iterate ([`SelfContact::close_pairs`]).
-#[derive(Debug, Clone)]
-pub(crate) struct ClosePair {
-    vertices: [usize; 4],
-    d: f64,
-    /// The distance with its derivatives in the pair's 12 coordinates.
-    distance: Jet,
-    /// IPC's mollifier of two edges (none for a point and a triangle).
-    mollifier: Option<Jet>,
-}
-
 /// A candidate pair by index: (surface vertex, triangle) or (edge, edge).
 #[derive(Debug, Clone, Copy)]
 enum Candidate {
@@ -611,75 +600,6 @@ impl SelfContact {
             }
         }
         Ok(())
-    }
-
-    /// The surface pairs closer than `dhat` at `x`, with their distances' derivatives: what
-    /// the secant rounds need of them, found once for all the rounds of a Newton solve.
-    pub(crate) fn close_pairs(&self, x: &[f64], dhat: f64) -> Vec<ClosePair> {
-        self.candidates(x, None, dhat, Place::End)
-            .into_iter()
-            .filter_map(|c| {
-                let p = self.points(c, x, Place::End);
-                let (d, form) = self.distance(c, &p);
-                if !(d > 0.0 && d < dhat) {
-                    return None;
-                }
-                let vars = variables(&p);
-                Some(ClosePair {
-                    vertices: self.indices(c),
-                    d,
-                    distance: squared_jet(form, &vars).sqrt(),
-                    mollifier: match c {
-                        Candidate::PointTriangle(..) => None,
-                        Candidate::EdgeEdge(..) => Some(self.mollified(c, &vars)),
-                    },
-                })
-            })
-            .collect()
-    }
-
-    /// [`crate::ContactModel::secant_correction`] for the surface pairs closer than `dhat`
-    /// (`pairs`, from [`SelfContact::close_pairs`]): each pair's projected Hessian with the
-    /// barrier's secant curvature less the one with `b''`, added to `out`; returns how many
-    /// pairs changed.
-    pub(crate) fn secant_correction(
-        &self,
-        pairs: &[ClosePair],
-        dx: &[f64],
-        b: Barrier,
-        out: &mut ContactHessian,
-    ) -> usize {
-        let mut changed = 0;
-        for pair in pairs {
-            let d = pair.d;
-            let mut predicted = d;
-            for (k, &v) in pair.vertices.iter().enumerate() {
-                if v < self.body {
-                    for r in 0..3 {
-                        predicted += pair.distance.gradient[3 * k + r] * dx[3 * v + r];
-                    }
-                }
-            }
-            let secant = b.secant(d, predicted);
-            if secant == b.second(d) {
-                continue;
-            }
-            let with = |curvature: f64| {
-                let energy = pair.distance.map(b.value(d), b.first(d), curvature);
-                let energy = match &pair.mollifier {
-                    None => energy,
-                    Some(m) => energy * *m,
-                };
-                project_psd(energy.hessian)
-            };
-            out.add_pair(
-                &pair.vertices,
-                &(with(secant) - with(b.second(d))),
-                self.body,
-            );
-            changed += 1;
-        }
-        changed
     }
 
     /// A pair's barrier energy with its derivatives in the pair's 12 coordinates.
