@@ -121,6 +121,13 @@ def test_an_experiment_returns_its_report(assets, tmp_path):
     assert abs(fit["young"] / 1e5 - 1) < 0.01 and abs(fit["poisson"] / 0.4 - 1) < 0.01
     # The dataset is written where asked.
     assert report["files"] and all((tmp_path / f).exists() for f in report["files"])
+    # And the report, rendered as the runner renders it: report.md and every plot it lists.
+    markdown = (tmp_path / "report.md").read_text()
+    assert markdown.startswith("# Experiment `fit_material`")
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert pngs and sorted(p.name for p in tmp_path.glob("*.svg")) == [
+        n.replace(".png", ".svg") for n in pngs
+    ]
 
 
 def test_bad_experiments_raise(tmp_path):
@@ -137,7 +144,7 @@ def test_the_solver_policy_pipeline_runs_from_python():
     # measuring it against the fixed solvers, Eisenstat-Walker and the hand schedule.
     from conftest import ROOT
 
-    e = deform.Experiment.load(ROOT / "crates" / "learn" / "tests" / "data" / "select_solver.ron")
+    e = deform.Experiment.load(ROOT / "crates" / "studies" / "tests" / "data" / "select_solver.ron")
     rows = e.run()["task"]["SelectSolver"]["cases"][0]["rows"]
     contenders = [r["contender"] if isinstance(r["contender"], str) else next(iter(r["contender"])) for r in rows]
     assert "Learned" in contenders and "EisenstatWalker" in contenders

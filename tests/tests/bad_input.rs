@@ -11,7 +11,7 @@ use std::sync::mpsc;
 use std::time::Duration;
 
 use deform_integrator::{NoObserver, simulate};
-use deform_learn::experiment::{self, Experiment, ExperimentObserver, Stage};
+use deform_studies::{Experiment, ExperimentObserver, Stage};
 
 /// A scene that runs; cases replace parts of it.
 const SCENE: &str = r#"Scene(
@@ -393,7 +393,7 @@ fn feed(input: Input, dir: &Path) -> Result<(), String> {
             write("scene.ron", SCENE.as_bytes());
             let path = write("bad.ron", text.as_bytes());
             let e = Experiment::load(&path).map_err(|e| e.to_string())?;
-            experiment::run(&e, Some(&out), &mut Quiet)
+            deform_studies::run(&e, Some(&out), &mut Quiet)
                 .map(drop)
                 .map_err(|e| e.to_string())
         }

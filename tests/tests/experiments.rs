@@ -2,7 +2,7 @@
 //! the file and the problem.
 
 use deform_integrator::Scene;
-use deform_learn::experiment::Experiment;
+use deform_studies::Experiment;
 use deform_tests::asset;
 
 #[test]

@@ -176,7 +176,7 @@ proptest! {
         let files = ron_files("experiments");
         let bytes = muts.iter().fold(files[file.index(files.len())].clone(), apply);
         let text = String::from_utf8_lossy(&bytes);
-        let _ = deform_learn::experiment::Experiment::parse(&text, Path::new("f.ron"));
+        let _ = deform_studies::Experiment::parse(&text, Path::new("f.ron"));
     }
 
     #[test]
@@ -195,7 +195,7 @@ fn the_unmutated_files_parse() {
     }
     for (i, f) in ron_files("experiments").iter().enumerate() {
         let text = String::from_utf8_lossy(f);
-        deform_learn::experiment::Experiment::parse(&text, Path::new("f.ron"))
+        deform_studies::Experiment::parse(&text, Path::new("f.ron"))
             .unwrap_or_else(|e| panic!("experiment {i}: {e}"));
     }
     let a = deform_learn::npy::parse(&npy_file()).unwrap();

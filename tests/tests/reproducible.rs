@@ -105,8 +105,8 @@ fn the_bundled_experiments_name_scenes_that_load() {
     // Held-out and extra training scenes of solver selection, not only the base scene.
     for entry in std::fs::read_dir(asset("experiments")).unwrap() {
         let path = entry.unwrap().path();
-        let e = deform_learn::experiment::Experiment::load(&path).unwrap();
-        if let deform_learn::experiment::Task::SelectSolver {
+        let e = deform_studies::Experiment::load(&path).unwrap();
+        if let deform_studies::Task::SelectSolver {
             held_out,
             also_train,
             ..

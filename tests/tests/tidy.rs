@@ -120,6 +120,7 @@ fn crate_dependencies_match_the_architecture_doc() {
     .chain([
         "crates/integrator",
         "crates/learn",
+        "crates/studies",
         "crates/python",
         "xtask",
         "tests",

@@ -160,9 +160,9 @@ pub fn run(task: BenchTask) -> Result<()> {
 /// The fine beam's data (the default scene's material, damping and Newton options, clamped
 /// at x = 0, released with the demo's coarsening variations), carried onto the coarse
 /// beam, and the coarse fits timed by
-/// [`deform_learn::experiment::coarsen::fit_coarse_models`].
+/// [`deform_studies::coarsen::fit_coarse_models`].
 fn coarsen(args: CoarsenArgs) -> Result<()> {
-    use deform_learn::experiment::coarsen::{CoarseSettings, fit_coarse_models};
+    use deform_studies::coarsen::{CoarseSettings, fit_coarse_models};
     let text = format!(
         r#"Scene(name: "fine", mesh: Beam({}), material: NeoHookean(Young(e: 1e6, nu: 0.4)),
             density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
@@ -200,12 +200,7 @@ fn coarsen(args: CoarsenArgs) -> Result<()> {
         ..CoarseSettings::new(fine.integrator.newton.max_iterations, options)
     };
     let started = Instant::now();
-    let fits = fit_coarse_models(
-        &data,
-        origin,
-        &settings,
-        &mut deform_learn::experiment::NoProgress,
-    )?;
+    let fits = fit_coarse_models(&data, origin, &settings, &mut deform_studies::NoProgress)?;
     let total = started.elapsed().as_secs_f64();
     for m in fits
         .models

@@ -1,16 +1,13 @@
 //! `cargo xtask experiment EXPERIMENT.ron [--out DIR]`: runs an experiment with
-//! `deform_learn::experiment::run` behind progress bars, then renders its report:
+//! `deform_studies::run` behind progress bars, then renders its report:
 //! `report.md`, CSV files and SVG/PNG plots beside the files the experiment wrote.
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use deform_fs::write_atomic;
-use deform_learn::experiment::{self, Experiment, ExperimentObserver, ExperimentReport, Stage};
+use deform_studies::{Experiment, ExperimentObserver, ExperimentReport, Stage};
 use indicatif::{ProgressBar, ProgressStyle};
-
-use crate::render;
 
 /// Arguments of `experiment`.
 #[derive(Debug, Args)]
@@ -129,11 +126,6 @@ impl ExperimentObserver for Bars {
     }
 }
 
-pub(crate) fn write_text(path: &Path, text: &str) -> Result<()> {
-    write_atomic(path, |w| w.write_all(text.as_bytes()))
-        .with_context(|| format!("writing {}", path.display()))
-}
-
 /// Runs the experiment and renders it into its folder; returns the report and its
 /// markdown.
 pub fn run(args: ExperimentArgs) -> Result<(ExperimentReport, String)> {
@@ -142,9 +134,8 @@ pub fn run(args: ExperimentArgs) -> Result<(ExperimentReport, String)> {
         .out
         .clone()
         .unwrap_or_else(|| Path::new("target/deform/experiments").join(&e.name));
-    let report = experiment::run(&e, Some(&out), &mut Bars::new(args.quiet))?;
-    let markdown = render::render(&report, &out)?;
-    write_text(&out.join("report.md"), &markdown)?;
+    let report = deform_studies::run(&e, Some(&out), &mut Bars::new(args.quiet))?;
+    let markdown = deform_studies::write_report(&report, &out)?;
     println!("{markdown}");
     println!("results: {}", out.display());
     Ok((report, markdown))

@@ -6,8 +6,6 @@ mod bench;
 mod demo;
 mod experiment;
 mod mesh;
-mod plots;
-mod render;
 mod simulate;
 mod test;
 

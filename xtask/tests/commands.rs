@@ -10,7 +10,7 @@ fn root() -> PathBuf {
 }
 
 fn tiny(name: &str) -> PathBuf {
-    root().join("crates/learn/tests/data").join(name)
+    root().join("crates/studies/tests/data").join(name)
 }
 
 fn xtask(args: &[&str]) -> Output {

@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use deform_integrator::benchmark::median;
 use deform_integrator::{
     IntegratorOptions, OnStep, RunOptions, Scene, SolverPolicy, State, StepReport,
 };
@@ -254,10 +255,4 @@ impl Measured {
             choices: first.choices,
         }
     }
-}
-
-/// The median of `v` (the upper one of an even count); `v` is not empty.
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }

@@ -240,7 +240,7 @@ pub(crate) fn split_of(k: usize, count: usize, fractions: (f64, f64)) -> Split {
 }
 
 /// Trajectories in the train, validation and test splits of `count` by `fractions`.
-pub(crate) fn split_counts(count: usize, fractions: (f64, f64)) -> (usize, usize, usize) {
+pub fn split_counts(count: usize, fractions: (f64, f64)) -> (usize, usize, usize) {
     let train = ((fractions.0 * count as f64).round() as usize).clamp(1, count.max(1));
     let val = ((fractions.1 * count as f64).round() as usize).min(count.saturating_sub(train));
     (train, val, count.saturating_sub(train + val))

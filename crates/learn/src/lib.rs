@@ -2,9 +2,9 @@
 //! `((x^n, v^n), (x^n+1, v^n+1))` produced by a base model (any scene) or imported from
 //! elsewhere; they fit material parameters and Rayleigh damping ([`fit`], [`output`]),
 //! weighted ensembles of energy models ([`ensemble`]), a learned linear-solver policy
-//! ([`solver_data`], [`policy`]) and solver parameters ([`tuning`]). Every workflow the
-//! runner offers is a library function here: [`experiment::run`] runs an experiment file
-//! and returns a typed report; [`compare`] measures policies on whole simulations;
+//! ([`solver_data`], [`policy`]) and solver parameters ([`tuning`]). These are the methods;
+//! the studies built on them (experiment files, tasks, reports) are the `deform-studies`
+//! crate above this one. [`compare`] measures policies on whole simulations;
 //! [`rollout`] holds the one definition of the rollout error; [`coarsen`] carries a fine
 //! model's trajectories onto a coarse mesh, so a cheap model learns from an accurate one, with
 //! coefficient fields per element, per region or smooth ([`basis`]).
@@ -19,7 +19,6 @@ pub mod compare;
 pub mod dataset;
 pub mod ensemble;
 mod error;
-pub mod experiment;
 pub mod fit;
 pub mod import;
 mod lanes;

@@ -7,13 +7,13 @@ use std::path::PathBuf;
 
 use deform_learn::dataset::generate;
 use deform_learn::ensemble::Member;
-use deform_learn::experiment::{Experiment as RustExperiment, NoProgress, run};
 use deform_learn::import::{ArrayVelocities, Source, from_trajectories, trajectory_from_arrays};
 use deform_learn::npy::Array;
 use deform_learn::{
     DatasetSpec, EquationErrorOptions, FitError, OutputErrorOptions, Variations,
     fit_equation_error, fit_output_error, term_coefficients,
 };
+use deform_studies::{Experiment as RustExperiment, NoProgress, run};
 use numpy::PyArrayDyn;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -503,7 +503,7 @@ impl Dataset {
         save: Option<PathBuf>,
         name: String,
     ) -> PyResult<Bound<'py, PyAny>> {
-        use deform_learn::experiment::coarsen::{CoarseSettings, fit_coarse_models};
+        use deform_studies::coarsen::{CoarseSettings, fit_coarse_models};
         let scene = &self.dataset.meta.scene;
         let options = OutputErrorOptions {
             rollout,
@@ -695,6 +695,10 @@ impl Experiment {
         let report = py
             .detach(|| run(e, out.as_deref(), &mut NoProgress))
             .map_err(errors::learn)?;
+        if let Some(out) = &out {
+            py.detach(|| deform_studies::write_report(&report, out))
+                .map_err(errors::os)?;
+        }
         to_python(py, &report)
     }
 

@@ -1,9 +1,9 @@
 //! The report's tables as CSV files (`name.csv`, one row per record, full precision), which
-//! [`super::run`] writes beside the datasets when given a results folder.
+//! [`crate::run`] writes beside the datasets when given a results folder.
 
 use std::fmt::Write as _;
 
-use super::report::{ExperimentReport, Series, TaskReport};
+use crate::report::{ExperimentReport, Series, TaskReport};
 
 impl ExperimentReport {
     /// Every table of the report as `(file name, CSV text)`.

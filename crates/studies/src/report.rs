@@ -5,13 +5,13 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
-use super::coarsen::{CoarseModel, CoarsenReport};
-use super::fit_material::FitMaterialReport;
-use super::select_model::SelectModelReport;
-use super::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
-use super::story::StoryReport;
-use super::tune_solver::TuneSolverReport;
-use crate::compare::Choice;
+use crate::coarsen::{CoarseModel, CoarsenReport};
+use crate::fit_material::FitMaterialReport;
+use crate::select_model::SelectModelReport;
+use crate::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
+use crate::story::StoryReport;
+use crate::tune_solver::TuneSolverReport;
+use deform_learn::compare::Choice;
 
 /// A named sequence of values, one per step (or iteration): a line of a plot, a column of a
 /// CSV file.
@@ -100,7 +100,7 @@ pub struct ExperimentReport {
     /// The base scene's material.
     pub material: deform_materials::MaterialSpec,
     /// Where the data came from.
-    pub data: super::Data,
+    pub data: crate::Data,
     /// The learned model's time step (`subsample` x the base's).
     pub learned_dt: f64,
     /// The task's results.

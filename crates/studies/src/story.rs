@@ -17,18 +17,20 @@ use deform_mesh::TetMesh;
 use deform_mesh::io::{Pvd, Vtu};
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Stage, Task, with_lame};
-use crate::dataset::{Split, Trajectory};
-use crate::ensemble::{FittedMember, Member, fit_ensemble, refine_ensemble};
-use crate::error::LearnError;
-use crate::fit::fit_equation_error;
-use crate::output::{OutputErrorFit, fit_output_error};
-use crate::policy::{
+use crate::{Context, ExperimentObserver, Stage, Task, with_lame};
+use deform_learn::LearnError;
+use deform_learn::dataset::{Split, Trajectory};
+use deform_learn::ensemble::{FittedMember, Member, fit_ensemble, refine_ensemble};
+use deform_learn::fit::fit_equation_error;
+use deform_learn::output::{OutputErrorFit, fit_output_error};
+use deform_learn::policy::{
     DEFAULT_FORCING, DEFAULT_MIN_SUCCESS, DEFAULT_NEIGHBOURS, LearnedPolicy, PolicyOptions,
 };
-use crate::rollout::{free_rollout_failure, mean_error, mean_rollout_errors, rollout, stable_or};
-use crate::solver_data::{Run, collect_runs};
-use crate::tuning::{Tuning, TuningResult, tune_policy};
+use deform_learn::rollout::{
+    free_rollout_failure, mean_error, mean_rollout_errors, rollout, stable_or,
+};
+use deform_learn::solver_data::{Run, collect_runs};
+use deform_learn::tuning::{Tuning, TuningResult, tune_policy};
 
 /// Runs of each model whose whole-step times are reduced to their median (tiny problems:
 /// one run's time varies by tens of percent here).
@@ -389,7 +391,7 @@ fn learn_policy(
     weights: WorkWeights,
     fitted: Lame,
     observer: &mut dyn ExperimentObserver,
-) -> Result<(LearnedPolicy, crate::solver_data::SolverDataset), LearnError> {
+) -> Result<(LearnedPolicy, deform_learn::solver_data::SolverDataset), LearnError> {
     let total: usize = runs.iter().map(|r| r.2).sum();
     observer.start(Stage::SolverData, total as u64);
     let logged = collect_runs(runs, candidates, |_| observer.advance(1))?;
@@ -457,7 +459,7 @@ fn select(
     members: &[Member],
     train: &[&Trajectory],
     validation: &[&Trajectory],
-    options: crate::output::OutputErrorOptions,
+    options: deform_learn::output::OutputErrorOptions,
     observer: &mut dyn ExperimentObserver,
 ) -> Result<(Selection, Scene), LearnError> {
     observer.start(Stage::Ensemble, options.max_evaluations as u64);

@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 
 use deform_integrator::Scene;
 use deform_learn::LearnError;
-use deform_learn::experiment::{Data, Experiment, NoProgress, TaskReport, run};
 use deform_learn::npy;
+use deform_studies::{Data, Experiment, NoProgress, TaskReport, run};
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

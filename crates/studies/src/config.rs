@@ -5,11 +5,11 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{DatasetSpec, Noise};
-use crate::error::LearnError;
-use crate::fit::EquationErrorOptions;
-use crate::import::ImportSpec;
-use crate::output::OutputErrorOptions;
+use deform_learn::LearnError;
+use deform_learn::dataset::{DatasetSpec, Noise};
+use deform_learn::fit::EquationErrorOptions;
+use deform_learn::import::ImportSpec;
+use deform_learn::output::OutputErrorOptions;
 
 /// What to learn.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -30,10 +30,10 @@ pub enum Task {
         #[serde(default)]
         start: Option<deform_materials::Moduli>,
     },
-    /// Model selection: an ensemble of these models ([`crate::ensemble::Member`]).
+    /// Model selection: an ensemble of these models ([`deform_learn::ensemble::Member`]).
     SelectModel {
         /// The candidate models.
-        members: Vec<crate::ensemble::Member>,
+        members: Vec<deform_learn::ensemble::Member>,
         /// Stage 2 for the ensemble and each single model; `None` stops after stage 1.
         #[serde(default)]
         output_error: Option<OutputErrorOptions>,
@@ -94,11 +94,11 @@ pub enum Task {
         equation_error: EquationErrorOptions,
         /// Stage-2 options of the material fit.
         output_error: OutputErrorOptions,
-        /// Model selection: an ensemble of these models ([`crate::ensemble::Member`]),
+        /// Model selection: an ensemble of these models ([`deform_learn::ensemble::Member`]),
         /// fitted by both stages with the fitted damping, replaces the single model when its
         /// validation rollout error is lower. Empty: no selection.
         #[serde(default)]
-        members: Vec<crate::ensemble::Member>,
+        members: Vec<deform_learn::ensemble::Member>,
         /// Solver candidates of the learned policy.
         candidates: Vec<deform_solvers::SolverSpec>,
         /// Work of a factorisation flop relative to a solve flop.
@@ -160,7 +160,7 @@ pub enum Task {
         #[serde(default)]
         mass_scale: bool,
         /// Also fit a smooth field: trilinear hat functions with these node counts along
-        /// x, y and z over the rest shape (see [`crate::basis`]), a row of its own.
+        /// x, y and z over the rest shape (see [`deform_learn::basis`]), a row of its own.
         #[serde(default)]
         smooth: Option<[usize; 3]>,
         /// The fitted coarse models' material, whose term coefficients every field fits
@@ -192,7 +192,7 @@ pub enum Task {
         solver: deform_solvers::SolverSpec,
         /// What to tune, jointly (default: the relative tolerance).
         #[serde(default = "relative_tolerance")]
-        parameters: Vec<crate::tuning::SolverParameter>,
+        parameters: Vec<deform_learn::tuning::SolverParameter>,
         /// Work of a factorisation flop relative to a solve flop.
         #[serde(default = "unit")]
         factor_weight: f64,
@@ -229,12 +229,12 @@ fn yes() -> bool {
     true
 }
 
-fn relative_tolerance() -> Vec<crate::tuning::SolverParameter> {
-    vec![crate::tuning::SolverParameter::RelativeTolerance]
+fn relative_tolerance() -> Vec<deform_learn::tuning::SolverParameter> {
+    vec![deform_learn::tuning::SolverParameter::RelativeTolerance]
 }
 
 fn five() -> usize {
-    crate::policy::DEFAULT_NEIGHBOURS
+    deform_learn::policy::DEFAULT_NEIGHBOURS
 }
 
 fn twenty_usize() -> usize {
@@ -283,7 +283,7 @@ fn unit() -> f64 {
 }
 
 fn success() -> f64 {
-    crate::policy::DEFAULT_MIN_SUCCESS
+    deform_learn::policy::DEFAULT_MIN_SUCCESS
 }
 
 fn accuracy() -> f64 {
@@ -682,7 +682,7 @@ impl Experiment {
         if test.is_none() {
             let (a, b) = self.data.split();
             let count = self.data.trajectories();
-            if crate::dataset::split_counts(count, (a, b)).2 == 0 {
+            if deform_learn::dataset::split_counts(count, (a, b)).2 == 0 {
                 return Err((
                     "task.test",
                     format!(
@@ -781,14 +781,14 @@ impl Experiment {
             Task::TuneBackwardEuler { members, .. } => !members.is_empty(),
             _ => false,
         };
-        let (_, validation, _) = crate::dataset::split_counts(count, (a, b));
+        let (_, validation, _) = deform_learn::dataset::split_counts(count, (a, b));
         if needs_validation && validation == 0 {
             return Err((
                 split,
                 format!("({a}, {b}) of {count} trajectories leaves no validation trajectory"),
             ));
         }
-        if needs_test && crate::dataset::split_counts(count, (a, b)).2 == 0 {
+        if needs_test && deform_learn::dataset::split_counts(count, (a, b)).2 == 0 {
             return Err((
                 split,
                 format!("({a}, {b}) of {count} trajectories leaves no test trajectory"),

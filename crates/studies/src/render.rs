@@ -2,22 +2,70 @@
 //! Nothing here computes a figure: every number comes from the report or its methods.
 
 use std::fmt::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::Result;
-use deform_learn::experiment::coarsen::{CoarseModel, CoarsenReport};
-use deform_learn::experiment::fit_material::{ContactParameters, FitMaterialReport};
-use deform_learn::experiment::select_model::{ROUNDING_LEVEL, SelectModelReport};
-use deform_learn::experiment::select_solver::{CaseReport, Key, SelectSolverReport};
-use deform_learn::experiment::story::{StoryModel, StoryReport, TIME_REPEATS};
-use deform_learn::experiment::tune_solver::TuneSolverReport;
-use deform_learn::experiment::{Data, ExperimentReport, TaskReport};
+use crate::coarsen::{CoarseModel, CoarsenReport};
+use crate::fit_material::{ContactParameters, FitMaterialReport};
+use crate::select_model::{ROUNDING_LEVEL, SelectModelReport};
+use crate::select_solver::{CaseReport, Key, SelectSolverReport};
+use crate::story::{StoryModel, StoryReport, TIME_REPEATS};
+use crate::tune_solver::TuneSolverReport;
+use crate::{Data, ExperimentReport, TaskReport};
 use deform_learn::output::{OutputErrorFit, Termination};
 use deform_learn::rollout::mean_error;
 
-use crate::plots::plot;
+use crate::plot::plot;
+
+/// What rendering returns.
+pub type Result<T, E = RenderError> = std::result::Result<T, E>;
+
+/// Why a report could not be rendered or written.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RenderError {
+    /// Formatting the markdown (it is written into a string, so not expected).
+    #[error("formatting the report: {0}")]
+    Format(#[from] std::fmt::Error),
+    /// Drawing a plot.
+    #[error("plot {title}: {reason}")]
+    Plot {
+        /// The plot's title.
+        title: String,
+        /// The drawing backend's message.
+        reason: String,
+    },
+    /// Writing a file.
+    #[error("writing {}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Writing `report.md`.
+    #[error(transparent)]
+    Write(#[from] deform_fs::WriteError),
+    /// Writing a material as RON.
+    #[error("writing a material as RON: {0}")]
+    Ron(#[from] ron::Error),
+}
+
+/// Renders `report` into `out` (its plots as SVG and PNG, its markdown as `report.md`,
+/// written atomically); returns the markdown. The runner and the Python module both write
+/// reports through it, so they write the same files.
+///
+/// # Errors
+/// A plot that cannot be drawn, or a file that cannot be written.
+pub fn write_report(report: &ExperimentReport, out: &Path) -> Result<String> {
+    let markdown = render(report, out)?;
+    deform_fs::write_text(&out.join("report.md"), &markdown)?;
+    Ok(markdown)
+}
 
 /// Draws the plots of `report` into `out`; returns its markdown.
+///
+/// # Errors
+/// A plot that cannot be drawn or written.
 pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     let data = match &report.data {
         Data::Generate(d) => format!(

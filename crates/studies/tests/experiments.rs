@@ -8,8 +8,8 @@
 
 use std::path::{Path, PathBuf};
 
-use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
 use deform_learn::rollout::mean_error;
+use deform_studies::{Experiment, NoProgress, TaskReport, run};
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -58,7 +58,7 @@ fn same(what: &str, got: f64, want: f64) {
 }
 
 /// The material-fit report of the bundled experiment `assets/experiments/{name}.ron`.
-fn bundled_fit(name: &str) -> deform_learn::experiment::fit_material::FitMaterialReport {
+fn bundled_fit(name: &str) -> deform_studies::fit_material::FitMaterialReport {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../assets/experiments/{name}.ron"));
     let e = Experiment::load(&path).unwrap();
@@ -68,7 +68,7 @@ fn bundled_fit(name: &str) -> deform_learn::experiment::fit_material::FitMateria
     r
 }
 
-fn report(name: &str) -> deform_learn::experiment::ExperimentReport {
+fn report(name: &str) -> deform_studies::ExperimentReport {
     let e = Experiment::load(&data(&format!("{name}.ron"))).unwrap();
     run(&e, None, &mut NoProgress).unwrap()
 }
@@ -498,7 +498,7 @@ fn a_rerun_replaces_the_previous_runs_files_and_keeps_the_users() {
     std::fs::write(out.join("notes.csv"), "mine").unwrap();
     assert!(out.join("case1_work.svg").exists() && out.join("solver_data").is_dir());
     // The rerun has one case fewer: the held-out case's plots must not linger.
-    let deform_learn::experiment::Task::SelectSolver { held_out, .. } = &mut e.task else {
+    let deform_studies::Task::SelectSolver { held_out, .. } = &mut e.task else {
         panic!("task")
     };
     held_out.clear();
@@ -516,7 +516,7 @@ fn a_rerun_replaces_the_previous_runs_files_and_keeps_the_users() {
 
 #[test]
 fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
-    use deform_learn::experiment::coarsen::CoarseModel;
+    use deform_studies::coarsen::CoarseModel;
     let dir = tempfile::tempdir().unwrap();
     let e = Experiment::load(&data("coarsen.ron")).unwrap();
     let report = run(&e, Some(dir.path()), &mut NoProgress).unwrap();
@@ -632,7 +632,7 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
 /// these per-element regularisation weights.
 fn small_coarsen(weights: Vec<f64>) -> Experiment {
     let mut e = Experiment::load(&data("coarsen.ron")).unwrap();
-    let deform_learn::experiment::Task::Coarsen {
+    let deform_studies::Task::Coarsen {
         dt_factors,
         smooth,
         regularisation,
@@ -651,7 +651,7 @@ fn small_coarsen(weights: Vec<f64>) -> Experiment {
 fn the_fits_newton_cap_is_the_one_their_rollouts_run_with() {
     let with_cap = |cap| {
         let mut e = small_coarsen(vec![0.0]);
-        let deform_learn::experiment::Task::Coarsen {
+        let deform_studies::Task::Coarsen {
             fit_newton_iterations,
             ..
         } = &mut e.task
@@ -687,11 +687,11 @@ fn each_regularisation_weight_fits_the_same_alone_or_beside_others() {
 
 #[test]
 fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untuned() {
-    use deform_learn::experiment::coarsen::CoarseModel;
+    use deform_studies::coarsen::CoarseModel;
     let dir = tempfile::tempdir().unwrap();
     let mut e = small_coarsen(vec![1e-2]);
     let plain = run(&e, None, &mut NoProgress).unwrap();
-    let deform_learn::experiment::Task::Coarsen { material, .. } = &mut e.task else {
+    let deform_studies::Task::Coarsen { material, .. } = &mut e.task else {
         panic!("task")
     };
     use deform_materials::{EnsembleMember, MaterialSpec, Moduli};
@@ -717,15 +717,13 @@ fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untu
     assert_eq!(r.material.as_ref(), Some(&ensemble));
     let (before, c) = (&plain.cases[0], &r.cases[0]);
     // The untuned row is the base's material on the coarse mesh, whatever is fitted.
-    let untuned = |c: &deform_learn::experiment::coarsen::CoarsenCase| {
+    let untuned = |c: &deform_studies::coarsen::CoarsenCase| {
         c.row(CoarseModel::Untuned).unwrap().errors.clone()
     };
     assert_eq!(untuned(c), untuned(before));
     // 24 coarse tets x 2 members x (mu, lambda), and alpha, gamma; the homogeneous fit
     // starts from the ensemble, not from the base's single model.
-    let fit = |c: &deform_learn::experiment::coarsen::CoarsenCase, m| {
-        c.row(m).unwrap().fit.clone().unwrap()
-    };
+    let fit = |c: &deform_studies::coarsen::CoarsenCase, m| c.row(m).unwrap().fit.clone().unwrap();
     assert_eq!(fit(c, CoarseModel::PerElement).coefficients, 98);
     assert_eq!(fit(c, CoarseModel::Homogeneous).coefficients, 6);
     assert_ne!(

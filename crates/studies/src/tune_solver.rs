@@ -1,12 +1,12 @@
 //! Solver optimisation: a solver's parameters tuned jointly for the least work with the
-//! trajectory within `accuracy` of the direct solver's ([`crate::tuning::tune_solver`]).
+//! trajectory within `accuracy` of the direct solver's ([`deform_learn::tuning::tune_solver`]).
 
 use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
-use super::{Context, Task};
-use crate::error::LearnError;
-use crate::tuning::{SolverParameter, SolverTuning, TuningResult, tune_solver};
+use crate::{Context, Task};
+use deform_learn::LearnError;
+use deform_learn::tuning::{SolverParameter, SolverTuning, TuningResult, tune_solver};
 
 /// What solver tuning found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -70,8 +70,8 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
     // The scene's own motion; imported data have none written, so their first trajectory's.
     let scene = match cx.experiment.data {
-        super::Data::Generate(_) => cx.scene.clone(),
-        super::Data::Import(_) => cx.data.scene_of(0, &cx.scene)?,
+        crate::Data::Generate(_) => cx.scene.clone(),
+        crate::Data::Import(_) => cx.data.scene_of(0, &cx.scene)?,
     };
     let result = tune_solver(
         &scene,

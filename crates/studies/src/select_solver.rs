@@ -2,7 +2,7 @@
 //! trajectories (counterfactual logging), a policy is learned from the logs (and its Newton
 //! settings optionally tuned), and it is measured against each fixed candidate, the
 //! Eisenstat-Walker rule and the hand schedule on the test trajectories and on held-out
-//! scenes ([`crate::compare`]).
+//! scenes ([`deform_learn::compare`]).
 
 use std::path::PathBuf;
 
@@ -12,13 +12,13 @@ use deform_integrator::{
 use deform_solvers::{SolverSpec, WorkWeights};
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Stage, Task};
-use crate::compare::{Case, Contestant, Measured, measure_all};
-use crate::dataset::Split;
-use crate::error::LearnError;
-use crate::policy::{LearnedPolicy, PolicyOptions};
-use crate::solver_data::{Run, collect_runs};
-use crate::tuning::{Tuning, TuningSample, tune_policy};
+use crate::{Context, ExperimentObserver, Stage, Task};
+use deform_learn::LearnError;
+use deform_learn::compare::{Case, Contestant, Measured, measure_all};
+use deform_learn::dataset::Split;
+use deform_learn::policy::{LearnedPolicy, PolicyOptions};
+use deform_learn::solver_data::{Run, collect_runs};
+use deform_learn::tuning::{Tuning, TuningSample, tune_policy};
 
 /// The learned policy's tuned settings: Newton's relative tolerance, the largest forcing
 /// term and the tangent projection.
@@ -464,7 +464,7 @@ fn baselines(candidates: &[SolverSpec], refactor_above: usize) -> Vec<Contender>
 fn tune_learned(
     learned: &LearnedPolicy,
     runs: &[Run<'_>],
-    t: &super::PolicyTune,
+    t: &crate::PolicyTune,
     forcing: Option<(f64, f64)>,
     weights: WorkWeights,
     observer: &mut dyn ExperimentObserver,

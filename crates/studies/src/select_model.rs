@@ -7,12 +7,12 @@ use deform_integrator::Scene;
 use deform_materials::MaterialSpec;
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout};
-use crate::dataset::{Split, Trajectory};
-use crate::ensemble::{EnsembleFit, Member, fit_ensemble, refine_ensemble};
-use crate::error::LearnError;
-use crate::output::OutputErrorFit;
-use crate::rollout::{mean_error, stable_or};
+use crate::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout};
+use deform_learn::LearnError;
+use deform_learn::dataset::{Split, Trajectory};
+use deform_learn::ensemble::{EnsembleFit, Member, fit_ensemble, refine_ensemble};
+use deform_learn::output::OutputErrorFit;
+use deform_learn::rollout::{mean_error, stable_or};
 
 /// A model (one member alone, or the ensemble) and its mean rollout errors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -186,4 +186,40 @@ pub fn run(
         models,
         rollouts,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A report whose single models all failed (infinite validation errors) names none best.
+    #[test]
+    fn a_report_whose_single_models_all_failed_names_none_best() {
+        let names = [Member::CorotatedLinear, Member::NeoHookean];
+        let mut report = SelectModelReport {
+            ensemble: EnsembleFit {
+                members: Vec::new(),
+                relative_residual: 0.0,
+                excluded: Vec::new(),
+            },
+            stage2: None,
+            models: names
+                .iter()
+                .map(|&m| ModelErrors {
+                    member: Some(m),
+                    validation: f64::INFINITY,
+                    test: f64::INFINITY,
+                    unstable: None,
+                })
+                .collect(),
+            rollouts: Vec::new(),
+        };
+        assert!(report.best_single().is_none());
+        report.models[1].validation = 2.0;
+        report.models[0].validation = 3.0;
+        assert_eq!(
+            report.best_single().and_then(|m| m.member),
+            Some(Member::NeoHookean)
+        );
+    }
 }

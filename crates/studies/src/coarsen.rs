@@ -1,5 +1,5 @@
 //! Coarse models that learn from fine ones: the base (fine) model's trajectories are carried
-//! onto a coarse mesh of the same body ([`crate::coarsen`]), at the base's step and at
+//! onto a coarse mesh of the same body ([`deform_learn::coarsen`]), at the base's step and at
 //! multiples of it, and the coarse model is fitted to them by output error with the adjoint:
 //! one homogeneous Lame pair, a pair per region, a pair per element (its regularisation
 //! weight chosen on the validation trajectories), each with Rayleigh damping when asked. All
@@ -16,16 +16,16 @@ use deform_mesh::TetMesh;
 use deform_mesh::io::Vtu;
 use serde::{Deserialize, Serialize};
 
-use super::{Context, ExperimentObserver, Series, Stage, Task};
-use crate::basis::Basis;
-use crate::coarsen::{Constraints, Mapping, coarsen_embedded, save_model};
-use crate::compare::median;
-use crate::dataset::{Dataset, Split, Trajectory, generate};
-use crate::error::LearnError;
-use crate::output::{
+use crate::{Context, ExperimentObserver, Series, Stage, Task};
+use deform_integrator::benchmark::median;
+use deform_learn::LearnError;
+use deform_learn::basis::Basis;
+use deform_learn::coarsen::{Constraints, Mapping, coarsen_embedded, save_model};
+use deform_learn::dataset::{Dataset, Split, Trajectory, generate};
+use deform_learn::output::{
     Field, OutputErrorOptions, Regularisation, Termination, face_neighbours, fit_output_error_field,
 };
-use crate::rollout::{free_rollout_failure, mean_error, mean_rollout_errors};
+use deform_learn::rollout::{free_rollout_failure, mean_error, mean_rollout_errors};
 
 /// Which model a row of the table is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -218,7 +218,7 @@ impl CoarsenReport {
                 .map(|row| Series::new(row.model.name(), row.errors.clone()))
                 .collect();
             let name = format!("rollout_error_{}x_dt.csv", c.dt_factor);
-            files.push((name, super::tables::series_csv("coarse_step", &series)));
+            files.push((name, crate::tables::series_csv("coarse_step", &series)));
         }
         files.push(("models.csv".to_owned(), csv));
         files
@@ -343,7 +343,7 @@ pub fn run(
     };
     let coarse_mesh = coarse.build_mesh(origin)?;
     let embedding = match embedding {
-        Some(files) => Some(crate::coarsen::read_embedding(
+        Some(files) => Some(deform_learn::coarsen::read_embedding(
             &files.elements,
             &files.weights,
             &fine_mesh,
@@ -491,7 +491,7 @@ pub struct CoarseFits {
 }
 
 /// Fits the coarse models of the coarse-data `data` (its scene is the coarse model; see
-/// [`crate::coarsen::coarsen_embedded`]) on its training trajectories, choosing on its
+/// [`deform_learn::coarsen::coarsen_embedded`]) on its training trajectories, choosing on its
 /// validation ones: homogeneous, per region (`settings.tags` or slabs), smooth (when
 /// asked) and per element (each regularisation weight, concurrently; the least validation
 /// error kept). Every fitted model must run freely over every training and validation
@@ -812,7 +812,7 @@ impl PerElement<'_> {
             .expect("validated: at least one weight");
         let fit_alone = |w: f64| -> Result<WeightFit, LearnError> {
             let mut sim = data.meta.scene.build(origin)?.integrator;
-            self.fit(&mut sim, w, &mut super::NoProgress)
+            self.fit(&mut sim, w, &mut crate::NoProgress)
         };
         if rayon::current_num_threads() < 2 {
             let mut fits = vec![self.fit(sim, first, observer)?];
@@ -840,7 +840,7 @@ impl PerElement<'_> {
 
 fn set_materials(sim: &mut Integrator, materials: MaterialField) -> Result<(), LearnError> {
     let result = sim.assembly_mut().set_materials(materials);
-    Ok(result.map_err(crate::fit::FitError::from)?)
+    Ok(result.map_err(deform_learn::fit::FitError::from)?)
 }
 
 /// Fits `field` on `train` from the model in `sim`, which keeps the result; the fitted
@@ -942,7 +942,7 @@ fn read_tags(file: &Path, tets: usize) -> Result<Vec<u32>, LearnError> {
             reason,
         })
     };
-    let a = crate::npy::read(file).map_err(|e| bad(e.to_string()))?;
+    let a = deform_learn::npy::read(file).map_err(|e| bad(e.to_string()))?;
     if a.shape != [tets] {
         return Err(bad(format!(
             "shape {:?}, expected [{tets}] (coarse tets)",
@@ -1068,7 +1068,7 @@ mod tests {
             integrator: (dt: 0.01, max_retries: 2), steps: 3)"#;
         let origin = Path::new("t.ron");
         let scene = Scene::parse(text, origin).unwrap();
-        let spec = crate::dataset::DatasetSpec::new(2, 60, 5);
+        let spec = deform_learn::dataset::DatasetSpec::new(2, 60, 5);
         let data = generate(&scene, origin, &spec, |_, _| ()).unwrap();
         let train: Vec<&Trajectory> = data.trajectories.iter().collect();
         let mut sim = scene.build(origin).unwrap().integrator;

@@ -5,13 +5,13 @@
 //!
 //! One function per task: [`fit_material`](fit_material::run) (force-model optimisation),
 //! [`select_model`](select_model::run) (ensembles), [`select_solver`](select_solver::run)
-//! (a learned solver policy against fixed solvers and schedules, [`crate::compare`]),
+//! (a learned solver policy against fixed solvers and schedules, [`deform_learn::compare`]),
 //! [`tune_solver`](tune_solver::run) (a solver's parameters) and
 //! [`tune_backward_euler`](story::run) (all of them on one coarse model) and
 //! [`coarsen`](coarsen::run) (a coarse mesh and step fitted to a fine model, field by field).
 //!
 //! ```no_run
-//! use deform_learn::experiment::{Experiment, NoProgress, TaskReport, run};
+//! use deform_studies::{Experiment, NoProgress, TaskReport, run};
 //!
 //! let experiment = Experiment::load("assets/experiments/fit_material.ron".as_ref())?;
 //! let report = run(&experiment, None, &mut NoProgress)?;
@@ -24,6 +24,8 @@
 pub mod coarsen;
 mod config;
 pub mod fit_material;
+pub mod plot;
+pub mod render;
 mod report;
 pub mod select_model;
 pub mod select_solver;
@@ -38,13 +40,14 @@ use deform_integrator::Scene;
 use deform_integrator::scene::Built;
 
 pub use config::{Data, Experiment, PolicyTune, SceneRun, Task};
+pub use render::{RenderError, render, write_report};
 pub use report::{ExperimentReport, Plot, Series, TaskReport};
 
-pub use crate::dataset::DatasetSpec;
-pub use crate::import::ImportSpec;
+pub use deform_learn::dataset::DatasetSpec;
+pub use deform_learn::import::ImportSpec;
 
-use crate::dataset::{self, Dataset};
-use crate::error::LearnError;
+use deform_learn::LearnError;
+use deform_learn::dataset::{self, Dataset};
 
 /// A stage of an experiment, for progress displays.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -285,7 +288,7 @@ fn make_data(
         }
         Data::Import(spec) => {
             observer.start(Stage::Dataset, spec.trajectories.len() as u64);
-            let data = crate::import::import(spec, scene, origin)?;
+            let data = deform_learn::import::import(spec, scene, origin)?;
             observer.finish();
             (spec.scene(scene), data)
         }
@@ -351,8 +354,8 @@ pub(crate) fn with_friction(scene: &Scene, mu: &[f64]) -> Result<Scene, LearnErr
 pub(crate) fn mean_rollout(
     scene: &Scene,
     origin: &Path,
-    trajectories: &[&crate::dataset::Trajectory],
+    trajectories: &[&deform_learn::dataset::Trajectory],
 ) -> Result<Vec<f64>, LearnError> {
     let mut sim = scene.build(origin)?.integrator;
-    crate::rollout::mean_rollout_errors(&mut sim, trajectories)
+    deform_learn::rollout::mean_rollout_errors(&mut sim, trajectories)
 }

@@ -5,8 +5,8 @@
 use std::path::Path;
 use std::sync::Once;
 
-use anyhow::{Context, Result, anyhow};
-use deform_learn::experiment::{Plot, Series};
+use crate::render::{RenderError, Result};
+use crate::{Plot, Series};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::{FontStyle, register_font};
@@ -27,7 +27,7 @@ fn register() {
         let _ = register_font(
             "sans-serif",
             FontStyle::Normal,
-            include_bytes!("../../assets/fonts/DejaVuSansMono.ttf"),
+            include_bytes!("../../../assets/fonts/DejaVuSansMono.ttf"),
         );
     });
 }
@@ -75,7 +75,7 @@ pub fn plot(stem: &Path, p: &Plot) -> Result<()> {
         &points,
     )?;
     for (tmp, path) in [(svg_tmp, svg), (png_tmp, png)] {
-        std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::rename(&tmp, &path).map_err(|source| RenderError::Io { path, source })?;
     }
     Ok(())
 }
@@ -88,7 +88,10 @@ fn draw<DB: DrawingBackend>(
 where
     DB::ErrorType: 'static,
 {
-    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| anyhow!("plot {title}: {e}");
+    let err = |e: DrawingAreaErrorKind<DB::ErrorType>| RenderError::Plot {
+        title: title.to_owned(),
+        reason: e.to_string(),
+    };
     let ys = series.iter().flat_map(|(_, p)| p.iter().map(|q| q.1));
     let (lo, hi) = ys.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
         (a.min(v), b.max(v))

@@ -7,14 +7,14 @@ use std::time::Instant;
 use deform_materials::Lame;
 use serde::{Deserialize, Serialize};
 
-use super::{
+use crate::{
     Context, ExperimentObserver, Series, Stage, Task, mean_rollout, with_friction, with_lame,
 };
-use crate::dataset::Split;
-use crate::error::LearnError;
-use crate::fit::{Unusable, fit_equation_error};
-use crate::output::{Field, OutputError, OutputErrorFit, fit_output_error_field};
-use crate::rollout::{mean_error, stable_or};
+use deform_learn::LearnError;
+use deform_learn::dataset::Split;
+use deform_learn::fit::{Unusable, fit_equation_error};
+use deform_learn::output::{Field, OutputError, OutputErrorFit, fit_output_error_field};
+use deform_learn::rollout::{mean_error, stable_or};
 
 /// Which parameters a row of the fit table holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -68,7 +68,7 @@ pub struct FitMaterialReport {
     /// Why the stage-1 estimate is no model, when it is not: stage 2 then starts from the
     /// task's `start`, or else from the scene's own moduli.
     #[serde(default)]
-    pub stage1_unusable: Option<crate::fit::Unusable>,
+    pub stage1_unusable: Option<deform_learn::fit::Unusable>,
     /// Why stage 2's model was rejected, when it was: its free rollout of a training
     /// trajectory failed. The rows then end with stage 2's start (its fit is still in
     /// `output_error`), and the fitted rollouts are the start's.
@@ -104,7 +104,7 @@ impl ContactParameters {
     /// The scene's contact against stage 1's `fit`.
     fn of(
         sim: &deform_integrator::Integrator,
-        fit: Option<&crate::EquationErrorFit>,
+        fit: Option<&deform_learn::EquationErrorFit>,
     ) -> Option<Self> {
         let model = sim.contact()?;
         let scene_mu = |i: usize| model.friction().map_or(0.0, |(mu, _)| mu[i]);
@@ -172,9 +172,16 @@ impl FitMaterialReport {
 /// took. Stage 1 needs whole states: on data of markers only it does not run.
 fn stage1(
     sim: &deform_integrator::Integrator,
-    train: &[&crate::Trajectory],
-    options: crate::EquationErrorOptions,
-) -> Result<(Option<crate::EquationErrorFit>, Option<Unusable>, f64), LearnError> {
+    train: &[&deform_learn::Trajectory],
+    options: deform_learn::EquationErrorOptions,
+) -> Result<
+    (
+        Option<deform_learn::EquationErrorFit>,
+        Option<Unusable>,
+        f64,
+    ),
+    LearnError,
+> {
     let started = Instant::now();
     if let Some(trajectory) = train.iter().position(|t| t.observed.is_some()) {
         return Ok((None, Some(Unusable::MarkersOnly { trajectory }), 0.0));
@@ -209,8 +216,8 @@ struct Stage2 {
 /// freely over the training and validation data, or its start stands instead.
 fn stage2(
     sim: &mut deform_integrator::Integrator,
-    data: &crate::dataset::Dataset,
-    options: crate::OutputErrorOptions,
+    data: &deform_learn::dataset::Dataset,
+    options: deform_learn::OutputErrorOptions,
     from: &Start<'_>,
     report: &FitMaterialReport,
     observer: &mut dyn ExperimentObserver,
@@ -310,7 +317,7 @@ pub fn run(
     let (e0, nu0) = truth.to_young();
     let (e1, nu1) = young(mu1, lambda1);
     // Imported data were made by a model deform does not know: the scene's moduli are a guess.
-    let known = matches!(cx.experiment.data, super::Data::Generate(_));
+    let known = matches!(cx.experiment.data, crate::Data::Generate(_));
     let mut rows = vec![
         ModuliRow {
             estimate: if known {

@@ -2,12 +2,12 @@
 //! the report as data (printed here as its headline figures and as JSON-like debug output).
 //!
 //! ```sh
-//! cargo run --release -p deform-learn --example experiment -- assets/experiments/tune_solver.ron [OUT]
+//! cargo run --release -p deform-studies --example experiment -- assets/experiments/tune_solver.ron [OUT]
 //! ```
 
 use std::path::PathBuf;
 
-use deform_learn::experiment::{Experiment, ExperimentObserver, Stage, TaskReport, run};
+use deform_studies::{Experiment, ExperimentObserver, Stage, TaskReport, run};
 
 /// Prints each stage as it starts.
 struct Print;
