@@ -278,3 +278,188 @@ fn nothing_names_files_outside_the_repository() {
         "name files outside the repository: {outside:?}"
     );
 }
+
+/// The longest a source file may be: what a reader holds in mind at once.
+const MAX_FILE_LINES: usize = 1000;
+
+#[test]
+fn no_source_file_is_longer_than_the_limit() {
+    let long: Vec<String> = sources()
+        .iter()
+        .filter_map(|p| {
+            let lines = std::fs::read_to_string(p).unwrap().lines().count();
+            (lines > MAX_FILE_LINES).then(|| format!("{}: {lines} lines", relative(p)))
+        })
+        .collect();
+    assert!(
+        long.is_empty(),
+        "files over {MAX_FILE_LINES} lines: {long:#?}"
+    );
+}
+
+/// A crate's modules: path segments (`["amg"]` for `amg/mod.rs` or `amg.rs`) to file.
+fn modules(src: &Path) -> std::collections::BTreeMap<Vec<String>, PathBuf> {
+    let mut out = std::collections::BTreeMap::new();
+    for file in files(&relative(src), ".rs") {
+        let rel = file.strip_prefix(src).unwrap().with_extension("");
+        let mut parts: Vec<String> = rel.iter().map(|s| s.to_string_lossy().into()).collect();
+        match parts.last().map(String::as_str) {
+            Some("lib" | "main") => parts.clear(),
+            Some("mod") => {
+                parts.pop();
+            }
+            _ => {}
+        }
+        out.insert(parts, file);
+    }
+    out
+}
+
+/// The `crate::`, `super::` and `self::` paths of `text` (comments left out), each as its
+/// root and segments; `use crate::{a::b, c}` groups give one path per item.
+fn module_paths(text: &str) -> Vec<(String, Vec<String>)> {
+    let code: String = text
+        .lines()
+        .map(|l| l.split("//").next().unwrap_or(""))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let ident = |c: char| c.is_alphanumeric() || c == '_';
+    let mut out = Vec::new();
+    for root in ["crate", "super", "self"] {
+        let pattern = format!("{root}::");
+        for (at, _) in code.match_indices(&pattern) {
+            if code[..at].chars().next_back().is_some_and(ident) {
+                continue;
+            }
+            let rest = &code[at + pattern.len()..];
+            if let Some(group) = rest.strip_prefix('{') {
+                let group = &group[..group.find('}').unwrap_or(group.len())];
+                for item in group.split(',') {
+                    let item = item.split(" as ").next().unwrap().trim();
+                    let segs: Vec<String> = item
+                        .split("::")
+                        .filter(|s| !s.is_empty() && *s != "*" && s.chars().all(ident))
+                        .map(String::from)
+                        .collect();
+                    out.push((root.to_owned(), segs));
+                }
+            } else {
+                let end = rest
+                    .find(|c: char| !ident(c) && c != ':')
+                    .unwrap_or(rest.len());
+                let segs = rest[..end].split("::").filter(|s| !s.is_empty());
+                out.push((root.to_owned(), segs.map(String::from).collect()));
+            }
+        }
+    }
+    out
+}
+
+/// Which module files each module file of `src` imports (its own children and the
+/// modules above it, whose re-exports these are, left out).
+fn module_edges(src: &Path) -> Vec<(PathBuf, BTreeSet<PathBuf>)> {
+    let modules = modules(src);
+    let mut edges = Vec::new();
+    for (m, file) in &modules {
+        let text = std::fs::read_to_string(file).unwrap();
+        let mut targets = BTreeSet::new();
+        for (root, mut segs) in module_paths(&text) {
+            let mut base: Vec<String> = match root.as_str() {
+                "crate" => Vec::new(),
+                "super" => m[..m.len().saturating_sub(1)].to_vec(),
+                _ => m.clone(),
+            };
+            while segs.first().is_some_and(|s| s == "super") {
+                base.pop();
+                segs.remove(0);
+            }
+            let target = (0..=segs.len()).rev().find_map(|k| {
+                let key: Vec<String> = base.iter().chain(&segs[..k]).cloned().collect();
+                modules.contains_key(&key).then_some(key)
+            });
+            let Some(t) = target else { continue };
+            let above = t.len() <= m.len() && m[..t.len()] == t[..];
+            if !above && !(t.len() > m.len() && t[..m.len()] == m[..]) {
+                targets.insert(modules[&t].clone());
+            }
+        }
+        edges.push((file.clone(), targets));
+    }
+    edges
+}
+
+/// Files that import each other, directly or round a longer circle (Tarjan's strongly
+/// connected components of more than one file).
+fn circles(edges: &[(PathBuf, BTreeSet<PathBuf>)]) -> Vec<Vec<String>> {
+    let index_of = |p: &PathBuf| edges.iter().position(|(f, _)| f == p);
+    let graph: Vec<Vec<usize>> = edges
+        .iter()
+        .map(|(_, t)| t.iter().filter_map(index_of).collect())
+        .collect();
+    // Reachability by repeated search: the graphs are a few dozen files.
+    let reach = |from: usize| {
+        let (mut seen, mut stack) = (vec![false; graph.len()], vec![from]);
+        while let Some(v) = stack.pop() {
+            for &w in &graph[v] {
+                if !seen[w] {
+                    seen[w] = true;
+                    stack.push(w);
+                }
+            }
+        }
+        seen
+    };
+    let reached: Vec<Vec<bool>> = (0..graph.len()).map(reach).collect();
+    let mut done = vec![false; graph.len()];
+    let mut out = Vec::new();
+    for v in 0..graph.len() {
+        if done[v] || !reached[v][v] {
+            continue;
+        }
+        let comp: Vec<usize> = (0..graph.len())
+            .filter(|&w| reached[v][w] && reached[w][v])
+            .collect();
+        comp.iter().for_each(|&w| done[w] = true);
+        out.push(comp.iter().map(|&w| relative(&edges[w].0)).collect());
+    }
+    out
+}
+
+#[test]
+fn no_two_source_files_import_each_other() {
+    let mut found = Vec::new();
+    for dir in files("crates", "Cargo.toml")
+        .iter()
+        .chain(&files("xtask", "Cargo.toml"))
+    {
+        let src = dir.parent().unwrap().join("src");
+        if src.is_dir() {
+            found.extend(circles(&module_edges(&src)));
+        }
+    }
+    assert!(found.is_empty(), "circles between files: {found:#?}");
+}
+
+#[test]
+fn the_circle_check_finds_a_circle() {
+    let (a, b, c) = (
+        PathBuf::from("a.rs"),
+        PathBuf::from("b.rs"),
+        PathBuf::from("c.rs"),
+    );
+    let edges = vec![
+        (a.clone(), BTreeSet::from([b.clone()])),
+        (b.clone(), BTreeSet::from([a.clone(), c.clone()])),
+        (c.clone(), BTreeSet::new()),
+    ];
+    assert_eq!(
+        circles(&edges),
+        vec![vec!["a.rs".to_owned(), "b.rs".to_owned()]]
+    );
+    let paths = module_paths("use crate::{a::B, c};\nlet x = super::d::e(); // crate::f\n");
+    let names: Vec<String> = paths
+        .iter()
+        .map(|(r, s)| format!("{r}:{}", s.join("/")))
+        .collect();
+    assert_eq!(names, ["crate:a/B", "crate:c", "super:d/e"]);
+}

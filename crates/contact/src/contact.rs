@@ -6,6 +6,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, SymmetricEigen, Vector3};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::obstacle::{carried, relative_path};
 use crate::surface_contact::SelfContact;
 use crate::{Barrier, FrictionSpec, Obstacle, ObstacleMotion, Surface, SurfacePair};
 
@@ -788,27 +789,6 @@ impl ContactModel {
         }
         bound
     }
-}
-
-/// The straight path, in the frame of an obstacle that moves by `step` over a step, of a
-/// point that starts at `p` and moves by `dp`: from `p` to `step^-1 (p + dp)`.
-pub(crate) fn relative_path(
-    step: &Isometry3<f64>,
-    p: &Vector3<f64>,
-    dp: &Vector3<f64>,
-) -> Vector3<f64> {
-    step.inverse_transform_point(&Point3::from(p + dp)).coords - p
-}
-
-/// The displacement of a point from `p` that goes a fraction `s` along its path `relative`
-/// in an obstacle's frame and then moves with the obstacle (by `step`).
-pub(crate) fn carried(
-    step: &Isometry3<f64>,
-    p: &Vector3<f64>,
-    relative: &Vector3<f64>,
-    s: f64,
-) -> Vector3<f64> {
-    (step * Point3::from(p + relative * s)).coords - p
 }
 
 /// The centre of the bounding box of flat positions.

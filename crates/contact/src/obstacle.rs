@@ -1,6 +1,6 @@
 //! Analytic obstacles: convex solids described by their signed distance.
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// A fixed convex solid that bodies stay outside of, acting on the body's surface vertices.
@@ -480,6 +480,27 @@ fn box_jet(p: &Vector3<f64>, lo: &Vector3<f64>, hi: &Vector3<f64>) -> DistanceJe
         gradient,
         hessian: Matrix3::zeros(),
     }
+}
+
+/// The straight path, in the frame of an obstacle that moves by `step` over a step, of a
+/// point that starts at `p` and moves by `dp`: from `p` to `step^-1 (p + dp)`.
+pub(crate) fn relative_path(
+    step: &Isometry3<f64>,
+    p: &Vector3<f64>,
+    dp: &Vector3<f64>,
+) -> Vector3<f64> {
+    step.inverse_transform_point(&Point3::from(p + dp)).coords - p
+}
+
+/// The displacement of a point from `p` that goes a fraction `s` along its path `relative`
+/// in an obstacle's frame and then moves with the obstacle (by `step`).
+pub(crate) fn carried(
+    step: &Isometry3<f64>,
+    p: &Vector3<f64>,
+    relative: &Vector3<f64>,
+    s: f64,
+) -> Vector3<f64> {
+    (step * Point3::from(p + relative * s)).coords - p
 }
 
 #[cfg(test)]

@@ -10,9 +10,9 @@ use serde::{Deserialize, Serialize};
 use std::ops::AddAssign;
 
 use crate::bvh::{Aabb, Bvh};
-use crate::contact::{carried, relative_path};
 use crate::distance::{Form, closest_weights, edge_edge, mollifier, point_triangle, squared_jet};
 use crate::jet::{Jet, JetPoint, variables};
+use crate::obstacle::{carried, relative_path};
 use crate::{Barrier, ContactError, ContactHessian, ContactSummary, STEP_MARGIN};
 
 /// Two primitives of the surface that a self-contact distance is measured between.

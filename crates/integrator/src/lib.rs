@@ -40,6 +40,7 @@ mod conditions;
 mod contact;
 mod integrator;
 mod matrix_free;
+mod observer;
 mod policy;
 mod report;
 mod run;
@@ -62,12 +63,13 @@ pub use integrator::{
     Projection,
 };
 pub use matrix_free::MatrixFreeNewton;
+pub use observer::{NoObserver, Observer, OnStep};
 pub use policy::{
     Decision, EisenstatWalker, Fixed, PolicyContext, PolicyError, PolicySpec, Schedule,
     SolverPolicy, StaleFactor,
 };
 pub use report::{CandidateOutcome, IterationReport, StageSeconds, StepError, StepReport};
-pub use run::{NoObserver, Observer, OnStep, RunError, RunOptions, RunSummary, Termination, Until};
+pub use run::{RunError, RunOptions, RunSummary, Termination, Until};
 pub use scene::{Scene, SceneError};
 pub use simulate::{SimulateError, Simulation, simulate};
 pub use state::{Constraint, Motion, State};

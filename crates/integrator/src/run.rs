@@ -6,14 +6,14 @@
 //! [`RunSummary`] with a typed [`Termination`]. Every loop over steps (simulation, datasets,
 //! fits, tuning, benchmarks) uses it, so each figure of a run is summed in one place.
 
-use std::ops::ControlFlow;
 use std::time::Instant;
 
 use deform_solvers::WorkWeights;
 use serde::{Deserialize, Serialize};
 
 use crate::integrator::Integrator;
-use crate::report::{IterationReport, StepError, StepReport};
+use crate::observer::Observer;
+use crate::report::{StepError, StepReport};
 use crate::state::State;
 
 /// When a run ends.
@@ -150,34 +150,6 @@ pub struct RunError {
     pub step: usize,
     /// Why.
     pub source: Box<StepError>,
-}
-
-/// Watches a run: every Newton iteration and every step, with the state after it. All
-/// methods do nothing by default.
-pub trait Observer {
-    /// After each Newton iteration.
-    fn iteration(&mut self, _report: &IterationReport) {}
-    /// After each step, with the state it produced; `Break` ends the run
-    /// ([`Termination::Stopped`]).
-    fn step(&mut self, _report: &StepReport, _state: &State) -> ControlFlow<()> {
-        ControlFlow::Continue(())
-    }
-}
-
-/// The observer that watches nothing.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct NoObserver;
-
-impl Observer for NoObserver {}
-
-/// An observer of steps from a closure: `OnStep(|report, state| { ... })`.
-pub struct OnStep<F>(pub F);
-
-impl<F: FnMut(&StepReport, &State)> Observer for OnStep<F> {
-    fn step(&mut self, report: &StepReport, state: &State) -> ControlFlow<()> {
-        (self.0)(report, state);
-        ControlFlow::Continue(())
-    }
 }
 
 impl Integrator {

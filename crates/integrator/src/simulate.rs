@@ -15,8 +15,9 @@ use deform_mesh::io::{Pvd, Vtu};
 use thiserror::Error;
 
 use crate::Integrator;
+use crate::observer::Observer;
 use crate::report::{IterationReport, StepError, StepReport};
-use crate::run::{Observer, RunOptions, RunSummary};
+use crate::run::{RunOptions, RunSummary};
 use crate::scene::{Scene, SceneError};
 use crate::state::State;
 

@@ -9,7 +9,7 @@
 
 use deform_mesh::TetMesh;
 
-use crate::fit::FitError;
+use crate::error::FitError;
 
 /// Basis functions over a mesh's elements: row `e` lists the functions that are non-zero
 /// on element `e` with their values.

@@ -24,7 +24,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::observe::{Marker, Observed};
+use crate::markers::{Marker, Observed};
 use crate::rng::Rng;
 use deform_fs::npy::{self, NpyError};
 

@@ -12,10 +12,10 @@ use deform_assembly::Grouping;
 use deform_integrator::Integrator;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use thiserror::Error;
 
 use crate::basis::Basis;
 use crate::dataset::Trajectory;
+pub use crate::error::FitError;
 
 /// Options of the equation-error fit.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -133,131 +133,6 @@ impl EquationErrorFit {
                 pair: (c[0], c[1]),
             })
     }
-}
-
-impl FitError {
-    /// Whether simulating the model failed (a step, a retried step, an adjoint solve):
-    /// what a trial point of an optimiser may do, and be backed off from.
-    pub fn is_failed_simulation(&self) -> bool {
-        matches!(
-            self,
-            FitError::Step { .. } | FitError::Retried { .. } | FitError::Solve { .. }
-        )
-    }
-}
-
-/// Why a fit failed.
-#[derive(Debug, Error)]
-#[non_exhaustive]
-pub enum FitError {
-    /// No pair in the data.
-    #[error("no data pairs to fit")]
-    NoData,
-    /// A trajectory does not match the mesh.
-    #[error("trajectory {index}: {reason}")]
-    Data {
-        /// Trajectory index.
-        index: usize,
-        /// What is wrong.
-        reason: String,
-    },
-    /// The assembly failed on a data state (e.g. an inverted element for Neo-Hookean).
-    #[error("trajectory {trajectory}, step {step}: {source}")]
-    Assembly {
-        /// Trajectory index.
-        trajectory: usize,
-        /// Step of the state.
-        step: usize,
-        /// The cause.
-        source: deform_assembly::AssemblyError,
-    },
-    /// The least-squares problem is singular (the data do not excite a parameter).
-    #[error("the data do not determine the parameters (rank-deficient least squares)")]
-    Singular,
-    /// The fit's input or options cannot work (a non-uniform material for the output
-    /// error, a parameter that does not apply to the solver, a simplex of the wrong size).
-    #[error("{0}")]
-    Invalid(String),
-    /// Coefficients that make no valid material.
-    #[error("coefficients {coefficients:?}: {reason}")]
-    Coefficients {
-        /// The coefficients.
-        coefficients: Vec<f64>,
-        /// Why.
-        reason: String,
-    },
-    /// The budget of loss evaluations is spent.
-    #[error("the budget of {evaluations} loss evaluations is spent")]
-    Budget {
-        /// The budget.
-        evaluations: usize,
-    },
-    /// The best loss has not dropped by a relative
-    /// [`crate::output::STALL_IMPROVEMENT`] in `patience` loss evaluations.
-    #[error("no progress in the last {patience} loss evaluations")]
-    Stalled {
-        /// The evaluations without progress.
-        patience: usize,
-    },
-    /// The optimiser asked for this many trial points without spending its budget of
-    /// simulations (points it could not use: not finite, or whose projection onto the step
-    /// bound was seen before).
-    #[error("the optimiser asked for {calls} trial points, most of them not simulated")]
-    Trials {
-        /// Trial points asked for.
-        calls: usize,
-    },
-    /// A step of a rollout from trajectory `trajectory` failed.
-    #[error("trajectory {trajectory}, step {step}: {source}")]
-    Step {
-        /// Trajectory index.
-        trajectory: usize,
-        /// The failed step.
-        step: usize,
-        /// Why.
-        source: Box<deform_integrator::StepError>,
-    },
-    /// A step of a rollout converged only in halved substeps: it is not the Backward-Euler
-    /// step of `dt` the data and the adjoint assume, so the fit refuses it (at a trial point
-    /// of the optimiser this counts as a failed simulation, which it backs off from).
-    #[error(
-        "trajectory {trajectory}, step {step}: converged only after {retries} halvings of dt, not the scheme being fitted"
-    )]
-    Retried {
-        /// Trajectory index.
-        trajectory: usize,
-        /// The step.
-        step: usize,
-        /// Halvings of dt.
-        retries: usize,
-    },
-    /// A step of the direct-solver reference simulation failed.
-    #[error("reference simulation, step {step}: {source}")]
-    Reference {
-        /// The failed step.
-        step: usize,
-        /// Why.
-        source: Box<deform_integrator::StepError>,
-    },
-    /// An adjoint solve failed.
-    #[error("trajectory {trajectory}, adjoint solve at step {step}: {source}")]
-    Solve {
-        /// Trajectory index.
-        trajectory: usize,
-        /// The step.
-        step: usize,
-        /// Why.
-        source: deform_solvers::SolverError,
-    },
-    /// A scene (a fit's model variant) does not build.
-    #[error(transparent)]
-    Scene(#[from] deform_integrator::SceneError),
-    /// The model cannot be assembled on the mesh.
-    #[error(transparent)]
-    Model(#[from] deform_assembly::AssemblyError),
-    /// The optimiser failed to start.
-    #[error("optimiser: {0}")]
-    Optimiser(String),
 }
 
 /// Fits the coefficients of the integrator's material (its term split) and optionally the

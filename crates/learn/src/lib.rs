@@ -22,6 +22,7 @@ mod error;
 pub mod fit;
 pub mod import;
 mod lanes;
+mod markers;
 pub mod observe;
 pub mod output;
 /// `.npy` arrays (re-exported from `deform-fs`, where the integrator reads coefficient fields).

@@ -6,7 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::error::MeshError;
-use crate::topology::check_conforming;
+use crate::topology::{TET_EDGES, check_conforming};
 
 /// What to do with vertices that no tetrahedron uses.
 ///
@@ -326,9 +326,6 @@ pub(crate) fn edge_matrix(points: &[Vector3<f64>], t: &[usize; 4]) -> Matrix3<f6
     let x0 = points[t[0]];
     Matrix3::from_columns(&[points[t[1]] - x0, points[t[2]] - x0, points[t[3]] - x0])
 }
-
-/// The six edges of a tetrahedron as local index pairs.
-pub(crate) const TET_EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
 
 /// Length of the longest edge of element `t`.
 pub(crate) fn longest_edge(points: &[Vector3<f64>], t: &[usize; 4]) -> f64 {

@@ -5,7 +5,9 @@
 
 use crate::TetMesh;
 use crate::error::MeshError;
-use crate::mesh::TET_EDGES;
+
+/// The six edges of a tetrahedron as local index pairs.
+pub(crate) const TET_EDGES: [[usize; 2]; 6] = [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]];
 
 /// Local faces of a positively oriented tetrahedron, each ordered so that its right-hand
 /// normal points out of the element. Face `k` is opposite local vertex `k`.

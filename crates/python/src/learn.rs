@@ -21,7 +21,7 @@ use pyo3::types::PyDict;
 use crate::arrays::{array, values};
 use crate::errors;
 use crate::materials::member;
-use crate::simulation::Scene;
+use crate::scene::Scene;
 
 /// A trajectory: positions and velocities at every step.
 #[pyclass(module = "deform._deform", name = "Trajectory", frozen)]

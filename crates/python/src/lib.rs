@@ -14,6 +14,7 @@ mod learn;
 mod materials;
 mod mesh;
 mod policy;
+mod scene;
 mod simulation;
 
 /// The extension module.
@@ -23,6 +24,7 @@ fn _deform(m: &Bound<'_, PyModule>) -> PyResult<()> {
     mesh::register(m)?;
     materials::register(m)?;
     assembly::register(m)?;
+    scene::register(m)?;
     simulation::register(m)?;
     learn::register(m)?;
     policy::register(m)?;

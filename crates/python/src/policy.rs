@@ -9,7 +9,7 @@ use deform_learn::solver_data::{SolverDataset, collect};
 use pyo3::prelude::*;
 
 use crate::errors;
-use crate::simulation::Scene;
+use crate::scene::Scene;
 
 /// Every candidate's outcome on every Newton iteration's linear system of a scene (the
 /// trajectory is the scene's own policy's).

@@ -5,7 +5,6 @@ use std::time::Instant;
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
-use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
     CholeskySymbolicParams, LdltRef, LltRef, SymbolicCholesky, SymbolicCholeskyRaw,
@@ -17,6 +16,7 @@ use faer::{Conj, MatMut, Par, Side};
 use serde::{Deserialize, Serialize};
 
 use crate::error::check_vector;
+use crate::llt::{PARALLEL_TASKS, factor_counts, numeric_llt};
 use crate::operator::LinearOperator;
 use crate::ordering::{Elimination, Ordering, order_rows};
 use crate::split::{Failure, Split};
@@ -342,31 +342,6 @@ impl Cholesky {
     }
 }
 
-/// `L L^T` of `matrix` into `values` (sized to the analysis), in the precision of `T`; the
-/// outer error is an allocation failure, the inner one faer's non-positive pivot.
-pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
-    symbolic: &SymbolicCholesky<usize>,
-    values: &mut Vec<T>,
-    matrix: SparseColMatRef<'_, usize, T>,
-    par: Par,
-) -> Result<Result<(), faer::linalg::cholesky::llt::factor::LltError>, SolverError> {
-    values.clear();
-    values.resize(symbolic.len_val(), T::default());
-    let req = symbolic.factorize_numeric_llt_scratch::<T>(par, Default::default());
-    let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-    Ok(symbolic
-        .factorize_numeric_llt(
-            values,
-            matrix,
-            Side::Lower,
-            LltRegularization::default(),
-            par,
-            MemStack::new(&mut mem),
-            Default::default(),
-        )
-        .map(|_| ()))
-}
-
 /// Factorises a split analysis: `Ok(Ok(kind))` when done (its cost added to `setup`),
 /// `Ok(Err(order))` when the matrix is indefinite and `policy` asks for `L D L^T` of the
 /// whole matrix in `order`.
@@ -463,39 +438,6 @@ fn spent(symbolic: &SymbolicCholesky<usize>, mut setup: SetupStats, start: Insta
     setup.factor_nnz = nnz;
     setup.seconds += start.elapsed().as_secs_f64();
     setup
-}
-
-/// `(nnz(L), flops of the numeric factorisation)` from the symbolic structure.
-pub(crate) fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) {
-    match symbolic.raw() {
-        SymbolicCholeskyRaw::Simplicial(s) => {
-            let cp = s.col_ptr();
-            let mut flops = 0u64;
-            for j in 0..s.nrows() {
-                let c = (cp[j + 1] - cp[j]) as u64;
-                flops += c * c;
-            }
-            (s.len_val(), flops)
-        }
-        SymbolicCholeskyRaw::Supernodal(s) => {
-            let (begin, end, rp) = (
-                s.supernode_begin(),
-                s.supernode_end(),
-                s.col_ptr_for_row_idx(),
-            );
-            let (mut nnz, mut flops) = (0usize, 0u64);
-            for k in 0..s.n_supernodes() {
-                let w = end[k] - begin[k];
-                let below = rp[k + 1] - rp[k];
-                nnz += w * (w + 1) / 2 + w * below;
-                for c in 0..w {
-                    let rows = (w - c + below) as u64;
-                    flops += rows * rows;
-                }
-            }
-            (nnz, flops)
-        }
-    }
 }
 
 impl LinearSolver for Cholesky {
@@ -839,11 +781,6 @@ fn permuted_row(symbolic: &SymbolicCholesky<usize>, index: usize) -> usize {
         .perm()
         .map_or(index, |p| p.arrays().0.get(index).copied().unwrap_or(index))
 }
-
-/// Tasks a parallel factorisation is split into, whatever the pool's size: faer's
-/// parallel kernels partition by this number, so fixing it (rather than asking rayon for its
-/// thread count) makes the factor's bits independent of the thread count.
-pub(crate) const PARALLEL_TASKS: usize = 2;
 
 /// Rows below which factorisations and solves run on one thread.
 const PARALLEL_MIN_ROWS: usize = 20_000;

@@ -4,8 +4,9 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
+use crate::bsr3::fast_operator;
 use crate::error::check_vector;
-use crate::operator::{LinearOperator, fast_operator, positive_diagonal};
+use crate::operator::{LinearOperator, positive_diagonal};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
 use crate::vector::{dot, for_each_entry, norm, update_and_norm};

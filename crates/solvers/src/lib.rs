@@ -41,10 +41,12 @@
 
 mod amg;
 mod blocks;
+mod bsr3;
 mod direct;
 mod error;
 mod ic0;
 mod iterative;
+mod llt;
 mod operator;
 mod ordering;
 mod precond;

@@ -31,7 +31,7 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use faer::{Accum, MatMut, MatRef, Par, Side};
 
 use crate::SolverError;
-use crate::direct::{factor_counts, numeric_llt};
+use crate::llt::{PARALLEL_TASKS, factor_counts, numeric_llt};
 use crate::ordering::Elimination;
 
 /// The two precisions a half is factorised in.
@@ -204,7 +204,7 @@ impl Split {
             schur[d] -= data[k];
         }
         let s = self.sep();
-        let par = Par::rayon(crate::direct::PARALLEL_TASKS);
+        let par = Par::rayon(PARALLEL_TASKS);
         let req = cholesky_in_place_scratch::<f64>(s, par, Default::default());
         let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
         let factor = MatMut::from_column_major_slice_mut(&mut schur, s, s);

@@ -218,7 +218,7 @@ impl CoarsenReport {
                 .map(|row| Series::new(row.model.name(), row.errors.clone()))
                 .collect();
             let name = format!("rollout_error_{}x_dt.csv", c.dt_factor);
-            files.push((name, crate::tables::series_csv("coarse_step", &series)));
+            files.push((name, crate::series::series_csv("coarse_step", &series)));
         }
         files.push(("models.csv".to_owned(), csv));
         files

@@ -23,12 +23,14 @@
 
 pub mod coarsen;
 mod config;
+mod error;
 pub mod fit_material;
 pub mod plot;
 pub mod render;
 mod report;
 pub mod select_model;
 pub mod select_solver;
+mod series;
 pub mod story;
 mod tables;
 pub mod tune_solver;
@@ -40,8 +42,10 @@ use deform_integrator::Scene;
 use deform_integrator::scene::Built;
 
 pub use config::{Data, Experiment, PolicyTune, SceneRun, Task};
-pub use render::{RenderError, render, write_report};
-pub use report::{ExperimentReport, Plot, Series, TaskReport};
+pub use error::RenderError;
+pub use render::{render, write_report};
+pub use report::{ExperimentReport, Plot, TaskReport};
+pub use series::Series;
 
 pub use deform_learn::dataset::DatasetSpec;
 pub use deform_learn::import::ImportSpec;

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::sync::Once;
 
-use crate::render::{RenderError, Result};
+use crate::error::{RenderError, Result};
 use crate::{Plot, Series};
 use plotters::coord::Shift;
 use plotters::prelude::*;

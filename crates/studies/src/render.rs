@@ -2,7 +2,7 @@
 //! Nothing here computes a figure: every number comes from the report or its methods.
 
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::coarsen::{CoarseModel, CoarsenReport};
 use crate::fit_material::{ContactParameters, FitMaterialReport};
@@ -14,41 +14,8 @@ use crate::{Data, ExperimentReport, TaskReport};
 use deform_learn::output::{OutputErrorFit, Termination};
 use deform_learn::rollout::mean_error;
 
+use crate::error::Result;
 use crate::plot::plot;
-
-/// What rendering returns.
-pub type Result<T, E = RenderError> = std::result::Result<T, E>;
-
-/// Why a report could not be rendered or written.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum RenderError {
-    /// Formatting the markdown (it is written into a string, so not expected).
-    #[error("formatting the report: {0}")]
-    Format(#[from] std::fmt::Error),
-    /// Drawing a plot.
-    #[error("plot {title}: {reason}")]
-    Plot {
-        /// The plot's title.
-        title: String,
-        /// The drawing backend's message.
-        reason: String,
-    },
-    /// Writing a file.
-    #[error("writing {}: {source}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// Writing `report.md`.
-    #[error(transparent)]
-    Write(#[from] deform_fs::WriteError),
-    /// Writing a material as RON.
-    #[error("writing a material as RON: {0}")]
-    Ron(#[from] ron::Error),
-}
 
 /// Renders `report` into `out` (its plots as SVG and PNG, its markdown as `report.md`,
 /// written atomically); returns the markdown. The runner and the Python module both write

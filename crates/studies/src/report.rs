@@ -9,29 +9,10 @@ use crate::coarsen::{CoarseModel, CoarsenReport};
 use crate::fit_material::FitMaterialReport;
 use crate::select_model::SelectModelReport;
 use crate::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
+use crate::series::Series;
 use crate::story::StoryReport;
 use crate::tune_solver::TuneSolverReport;
 use deform_learn::compare::Choice;
-
-/// A named sequence of values, one per step (or iteration): a line of a plot, a column of a
-/// CSV file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Series {
-    /// Its name in legends and headers.
-    pub name: String,
-    /// The values.
-    pub values: Vec<f64>,
-}
-
-impl Series {
-    /// A series.
-    pub fn new(name: impl Into<String>, values: Vec<f64>) -> Self {
-        Self {
-            name: name.into(),
-            values,
-        }
-    }
-}
 
 /// A line plot of a report: what to draw (values against their index), not how.
 #[derive(Debug, Clone, PartialEq)]

@@ -3,7 +3,8 @@
 
 use std::fmt::Write as _;
 
-use crate::report::{ExperimentReport, Series, TaskReport};
+use crate::report::{ExperimentReport, TaskReport};
+use crate::series::series_csv;
 
 impl ExperimentReport {
     /// Every table of the report as `(file name, CSV text)`.
@@ -132,21 +133,4 @@ impl ExperimentReport {
         }
         files
     }
-}
-
-/// Series side by side, one row per index.
-pub(super) fn series_csv(first: &str, series: &[Series]) -> String {
-    let mut csv = first.to_owned();
-    for s in series {
-        csv += &format!(",{}", s.name);
-    }
-    csv.push('\n');
-    for n in 0..series.first().map_or(0, |s| s.values.len()) {
-        csv += &n.to_string();
-        for s in series {
-            csv += &format!(",{:e}", s.values[n]);
-        }
-        csv.push('\n');
-    }
-    csv
 }
