@@ -379,7 +379,8 @@ fn module_edges(src: &Path) -> Vec<(PathBuf, BTreeSet<PathBuf>)> {
             });
             let Some(t) = target else { continue };
             let above = t.len() <= m.len() && m[..t.len()] == t[..];
-            if !above && !(t.len() > m.len() && t[..m.len()] == m[..]) {
+            let child = t.len() > m.len() && t[..m.len()] == m[..];
+            if !(above || child) {
                 targets.insert(modules[&t].clone());
             }
         }
