@@ -5,19 +5,15 @@
 //! weight chosen on the validation trajectories), each with Rayleigh damping when asked. All
 //! are compared on held-out motions of another kind, simulated by the fine model: the truth.
 
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::time::Instant;
+mod per_element;
+mod regions;
 
-use deform_assembly::MaterialField;
-use deform_integrator::{Integrator, IntegratorOptions, Scene};
-use deform_materials::MaterialSpec;
-use deform_mesh::TetMesh;
-use deform_mesh::io::Vtu;
-use serde::{Deserialize, Serialize};
-
+use self::per_element::*;
+use self::regions::*;
 use crate::{Context, ExperimentObserver, Series, Stage, Task};
+use deform_assembly::MaterialField;
 use deform_integrator::benchmark::median;
+use deform_integrator::{Integrator, IntegratorOptions, Scene};
 use deform_learn::LearnError;
 use deform_learn::basis::Basis;
 use deform_learn::coarsen::{Constraints, Mapping, coarsen_embedded, save_model};
@@ -26,6 +22,13 @@ use deform_learn::output::{
     Field, OutputErrorOptions, Regularisation, Termination, face_neighbours, fit_output_error_field,
 };
 use deform_learn::rollout::{free_rollout_failure, mean_error, mean_rollout_errors};
+use deform_materials::MaterialSpec;
+use deform_mesh::TetMesh;
+use deform_mesh::io::Vtu;
+use serde::{Deserialize, Serialize};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 /// Which model a row of the table is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -731,145 +734,6 @@ impl CoarseSettings {
     }
 }
 
-/// The per-element fit at one regularisation weight.
-struct WeightFit {
-    weight: f64,
-    /// Mean validation rollout error (m).
-    validation: f64,
-    coefficients: Vec<f64>,
-    summary: FitSummary,
-    model: FittedModel,
-}
-
-/// What every per-element fit shares.
-struct PerElement<'d> {
-    train: &'d [&'d Trajectory],
-    validation: &'d [&'d Trajectory],
-    homogeneous: &'d FittedModel,
-    neighbours: Vec<[usize; 2]>,
-    labels: &'d [u32],
-    settings: &'d CoarseSettings,
-}
-
-impl PerElement<'_> {
-    /// The fit at weight `w` from the homogeneous model, left in `sim`.
-    fn fit(
-        &self,
-        sim: &mut Integrator,
-        w: f64,
-        observer: &mut dyn ExperimentObserver,
-    ) -> Result<WeightFit, LearnError> {
-        restore(sim, self.homogeneous)?;
-        let regularisation = Regularisation {
-            towards: w,
-            smooth: w,
-            neighbours: self.neighbours.clone(),
-        };
-        let field = Field {
-            mass: self.settings.mass_scale,
-            ..self.settings.field(self.labels.to_vec(), regularisation)
-        };
-        let (coefficients, mut summary) = fit(sim, self.train, &field, self.settings, observer)?;
-        let model = fitted_model(sim);
-        restore(sim, &self.settings.running(&model))?;
-        // A model that does not run freely is not chosen.
-        let validation = match free_rollout_failure(sim, &[self.train]) {
-            Some(why) => Err(why),
-            None => mean_rollout_errors(sim, self.validation)
-                .map(|e| mean_error(&e))
-                .map_err(|e| e.to_string()),
-        };
-        let validation = validation.unwrap_or_else(|why| {
-            summary.unstable = Some(why);
-            f64::INFINITY
-        });
-        restore(sim, &model)?;
-        Ok(WeightFit {
-            weight: w,
-            validation,
-            coefficients,
-            summary,
-            model,
-        })
-    }
-
-    /// Every weight's fit, in the order of the weights. They are independent: the first
-    /// runs in `sim` with the observer, each other one in a thread of its own with an
-    /// integrator built from the data's scene, so the results do not depend on how many
-    /// run at once. On one thread (`RAYON_NUM_THREADS=1`) they run one after another, each
-    /// in an integrator of its own as well.
-    fn fit_every_weight(
-        &self,
-        sim: &mut Integrator,
-        data: &Dataset,
-        origin: &Path,
-        observer: &mut dyn ExperimentObserver,
-    ) -> Result<Vec<WeightFit>, LearnError> {
-        let (&first, rest) = self
-            .settings
-            .regularisation
-            .split_first()
-            .expect("validated: at least one weight");
-        let fit_alone = |w: f64| -> Result<WeightFit, LearnError> {
-            let mut sim = data.meta.scene.build(origin)?.integrator;
-            self.fit(&mut sim, w, &mut crate::NoProgress)
-        };
-        if rayon::current_num_threads() < 2 {
-            let mut fits = vec![self.fit(sim, first, observer)?];
-            for &w in rest {
-                fits.push(fit_alone(w)?);
-            }
-            return Ok(fits);
-        }
-        std::thread::scope(|scope| {
-            let others: Vec<_> = rest
-                .iter()
-                .map(|&w| scope.spawn(move || fit_alone(w)))
-                .collect();
-            let mut fits = vec![self.fit(sim, first, observer)?];
-            for handle in others {
-                let fit = handle
-                    .join()
-                    .unwrap_or_else(|p| std::panic::resume_unwind(p));
-                fits.push(fit?);
-            }
-            Ok(fits)
-        })
-    }
-}
-
-fn set_materials(sim: &mut Integrator, materials: MaterialField) -> Result<(), LearnError> {
-    let result = sim.assembly_mut().set_materials(materials);
-    Ok(result.map_err(deform_learn::fit::FitError::from)?)
-}
-
-/// Fits `field` on `train` from the model in `sim`, which keeps the result; the fitted
-/// coefficients and what the fit took.
-fn fit(
-    sim: &mut Integrator,
-    train: &[&Trajectory],
-    field: &Field,
-    settings: &CoarseSettings,
-    observer: &mut dyn ExperimentObserver,
-) -> Result<(Vec<f64>, FitSummary), LearnError> {
-    observer.start(Stage::Fit, settings.options.max_evaluations as u64);
-    let started = Instant::now();
-    let fit = fit_output_error_field(sim, train, field, settings.options, |k, loss| {
-        observer.advance(1);
-        observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
-    })?;
-    observer.finish();
-    let summary = FitSummary {
-        coefficients: fit.coefficients.len(),
-        losses: (fit.initial_loss, fit.loss),
-        evaluations: fit.evaluations,
-        seconds: started.elapsed().as_secs_f64(),
-        termination: fit.termination,
-        unstable: None,
-    };
-    Ok((fit.coefficients, summary))
-}
-
 /// Rounds of timing behind each cost figure, the median reported: one timing of a model
 /// varies by up to 1.5x between runs on this 2-core VM, and the machine's speed drifts
 /// over minutes, so each round times every model once, back to back.
@@ -917,73 +781,6 @@ fn time_in_rounds(
         },
     );
     Ok((median(fine_costs), rows.collect()))
-}
-
-/// Each element's position along the rest shape's longest axis, from 0 to 1 (by its
-/// centroid).
-fn along_axis(mesh: &TetMesh) -> Vec<f64> {
-    let p = mesh.rest_positions();
-    let (lo, hi) = p
-        .iter()
-        .fold((p[0], p[0]), |(lo, hi), q| (lo.inf(q), hi.sup(q)));
-    let extent = hi - lo;
-    let axis = extent.imax();
-    let centroid = |t: &[usize; 4]| t.iter().map(|&v| p[v][axis]).sum::<f64>() / 4.0;
-    let along = |t: &[usize; 4]| (centroid(t) - lo[axis]) / extent[axis].max(f64::MIN_POSITIVE);
-    mesh.tets().iter().map(along).collect()
-}
-
-/// Region tags of `tets` coarse elements from an `.npy` of integers.
-fn read_tags(file: &Path, tets: usize) -> Result<Vec<u32>, LearnError> {
-    let bad = |reason: String| {
-        LearnError::Scene(deform_integrator::SceneError::Invalid {
-            path: file.to_owned(),
-            field: "region_tags".into(),
-            reason,
-        })
-    };
-    let a = deform_learn::npy::read(file).map_err(|e| bad(e.to_string()))?;
-    if a.shape != [tets] {
-        return Err(bad(format!(
-            "shape {:?}, expected [{tets}] (coarse tets)",
-            a.shape
-        )));
-    }
-    let tags = a.indices().map_err(bad)?;
-    tags.into_iter()
-        .map(|t| u32::try_from(t).map_err(|_| bad(format!("tag {t} is beyond u32"))))
-        .collect()
-}
-
-/// Labels of `regions` slabs of equal length along the rest shape's longest axis, by each
-/// element's centroid.
-fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
-    let slab = |s: &f64| ((s * regions as f64) as u32).min(regions - 1);
-    along_axis(mesh).iter().map(slab).collect()
-}
-
-/// The per-element field as series, one per term, with the elements ordered by their
-/// position along the rest shape's longest axis.
-fn field_series(mesh: &TetMesh, coefficients: &[f64]) -> Vec<Series> {
-    let along = along_axis(mesh);
-    let mut order: Vec<usize> = (0..along.len()).collect();
-    order.sort_by(|&a, &b| along[a].total_cmp(&along[b]).then(a.cmp(&b)));
-    let terms = coefficients.len() / along.len().max(1);
-    let values = |j: usize| order.iter().map(|&e| coefficients[e * terms + j]).collect();
-    let names = term_names(terms).into_iter().enumerate();
-    names.map(|(j, n)| Series::new(n, values(j))).collect()
-}
-
-/// Names of the term coefficients of a model with `terms` of them: Lame pairs (`mu`,
-/// `lambda`, numbered per ensemble member) or `c0, c1, ...`.
-fn term_names(terms: usize) -> Vec<String> {
-    match terms {
-        2 => vec!["mu".into(), "lambda".into()],
-        t if t % 2 == 0 => (0..t)
-            .map(|j| format!("{}_{}", ["mu", "lambda"][j % 2], j / 2))
-            .collect(),
-        t => (0..t).map(|j| format!("c{j}")).collect(),
-    }
 }
 
 fn save_case(
@@ -1055,61 +852,4 @@ impl CoarseFits {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A fitted model whose free rollout fails (here one far too soft: its elements
-    /// invert under gravity) is rejected for the model the fit started from, and the reason
-    /// names the trajectory and step; a model that runs is kept.
-    #[test]
-    fn a_fitted_model_that_fails_its_free_rollout_is_rejected() {
-        let text = r#"Scene(name: "t", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)),
-            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
-            integrator: (dt: 0.01, max_retries: 2), steps: 3)"#;
-        let origin = Path::new("t.ron");
-        let scene = Scene::parse(text, origin).unwrap();
-        let spec = deform_learn::dataset::DatasetSpec::new(2, 60, 5);
-        let data = generate(&scene, origin, &spec, |_, _| ()).unwrap();
-        let train: Vec<&Trajectory> = data.trajectories.iter().collect();
-        let mut sim = scene.build(origin).unwrap().integrator;
-        let good = fitted_model(&sim);
-        let soft = deform_materials::MaterialSpec::NeoHookean(deform_materials::Moduli::Young {
-            e: 1e-4,
-            nu: 0.4,
-        });
-        let bad = (
-            MaterialField::Uniform(soft.build().unwrap()),
-            good.1.clone(),
-            None,
-        );
-        let settings = CoarseSettings {
-            damping: false,
-            ..CoarseSettings::new(good.1.newton.max_iterations, OutputErrorOptions::default())
-        };
-        let mut summary = FitSummary {
-            coefficients: 2,
-            losses: (1.0, 0.5),
-            evaluations: 1,
-            seconds: 0.0,
-            termination: Termination::Converged,
-            unstable: None,
-        };
-        let sets = [train.as_slice()];
-        let kept = settings
-            .keep_stable(&mut sim, &sets, bad, &good, &mut summary)
-            .unwrap();
-        let why = summary.unstable.clone().expect("rejected");
-        assert!(
-            why.contains("training trajectory 0") && why.contains("step"),
-            "{why}"
-        );
-        assert_eq!(kept.0, good.0);
-        assert_eq!(sim.assembly().materials(), &good.0);
-        summary.unstable = None;
-        let kept = settings
-            .keep_stable(&mut sim, &sets, good.clone(), &good, &mut summary)
-            .unwrap();
-        assert!(summary.unstable.is_none());
-        assert_eq!(kept.0, good.0);
-    }
-}
+mod tests;
