@@ -12,6 +12,7 @@
 
 use deform_assembly::DofMap;
 use deform_contact::{ContactHessian, ContactModel};
+use deform_solvers::pcg::{Applied, Stop, pcg, pcg_error};
 use deform_solvers::{LinearOperator, LinearSolver, SolveStats, SolverError, Termination};
 use nalgebra::{Matrix3, Vector3};
 
@@ -175,7 +176,8 @@ pub(crate) fn solve(
 /// gradients find first.
 ///
 /// # Errors
-/// The factor's solve failing, or a breakdown (`op` or the factor not positive definite).
+/// The factor's solve failing, a breakdown (`op` or the factor not positive definite) or a
+/// divergence (a non-finite value), as [`pcg`] says.
 fn factor_cg(
     solver: &mut dyn LinearSolver,
     a: &dyn LinearOperator,
@@ -184,55 +186,24 @@ fn factor_cg(
     du: &mut [f64],
     stop: f64,
 ) -> Result<SolveStats, SolverError> {
-    use deform_solvers::vector::{dot, norm};
     let started = std::time::Instant::now();
-    let n = rhs.len();
-    let mut stats = SolveStats::new(format!("{}+cg", solver.name()), norm(rhs));
-    let (mut r, mut z, mut p, mut q) = (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-    op.apply(du, &mut r);
-    r.iter_mut().zip(rhs).for_each(|(ri, bi)| *ri = bi - *ri);
-    stats.residuals.push(norm(&r));
-    stats.matvecs += 1;
-    stats.flops += op.apply_flops();
-    let mut rz_old = 0.0;
-    for k in 0..FACTOR_CG_CAP {
-        if stats.final_residual() <= stop {
-            break;
-        }
-        z.iter_mut().for_each(|v| *v = 0.0);
-        let applied = solver.solve(a, &r, &mut z)?;
-        // The factor's solve and the product, and about 12n for the dots and updates.
-        stats.flops += applied.flops + op.apply_flops() + 12 * n as u64;
-        let rz = dot(&r, &z);
-        let beta = if k == 0 { 0.0 } else { rz / rz_old };
-        p.iter_mut()
-            .zip(&z)
-            .for_each(|(pi, zi)| *pi = zi + beta * *pi);
-        op.apply(&p, &mut q);
-        let pq = dot(&p, &q);
-        if !(pq > 0.0) {
-            // Not positive definite (an indefinite factor, or a non-finite value).
-            stats.termination = Termination::Breakdown;
-            return Err(SolverError::Breakdown {
-                curvature: pq,
-                stats: Box::new(stats),
-            });
-        }
-        let alpha = rz / pq;
-        du.iter_mut().zip(&p).for_each(|(d, pi)| *d += alpha * pi);
-        r.iter_mut().zip(&q).for_each(|(ri, qi)| *ri -= alpha * qi);
-        rz_old = rz;
-        stats.iterations += 1;
-        stats.matvecs += 1;
-        stats.residuals.push(norm(&r));
-    }
-    stats.termination = if stats.final_residual() <= stop {
-        Termination::Converged
-    } else {
-        Termination::MaxIterations
+    let mut stats = SolveStats::new(
+        format!("{}+cg", solver.name()),
+        deform_solvers::vector::norm(rhs),
+    );
+    let mut precondition = |r: &[f64], z: &mut [f64]| {
+        z.fill(0.0);
+        let done = solver.solve(a, r, z)?;
+        Ok(Applied::new(done.flops, done.sweep_flops))
     };
+    let stop = Stop::new(stop, FACTOR_CG_CAP);
+    let curvature = pcg(op, rhs, du, &mut precondition, stop, &mut stats)?;
     stats.seconds = started.elapsed().as_secs_f64();
-    Ok(stats)
+    match stats.termination {
+        // A round is capped: its last iterate is the round's result.
+        Termination::Converged | Termination::MaxIterations => Ok(stats),
+        _ => Err(pcg_error(stats, curvature)),
+    }
 }
 
 /// Conjugate-gradient iterations a round takes at most with a factor as preconditioner.

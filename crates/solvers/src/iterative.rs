@@ -7,9 +7,10 @@ use serde::{Deserialize, Serialize};
 use crate::bsr3::fast_operator;
 use crate::error::check_vector;
 use crate::operator::{LinearOperator, positive_diagonal};
+use crate::pcg::{Applied, Stop, pcg, pcg_error};
 use crate::precond::{Preconditioner, PreconditionerSpec};
 use crate::stats::{SetupStats, SolveStats, Termination};
-use crate::vector::{dot, for_each_entry, norm, update_and_norm};
+use crate::vector::norm;
 use crate::{LinearSolver, SolverError};
 
 /// Stopping rule: converged when `||b - A x|| <= max(abs, rel ||b||)`.
@@ -235,71 +236,6 @@ impl Iterative {
             stats.iterations += 1;
         }
     }
-
-    /// Returns the curvature `p^T A p` when it broke down.
-    fn pcg(
-        &self,
-        a: &dyn LinearOperator,
-        b: &[f64],
-        x: &mut [f64],
-        m: &Preconditioner,
-        stats: &mut SolveStats,
-    ) -> Option<f64> {
-        let n = b.len();
-        let threshold = self.threshold(stats.rhs_norm);
-        let (mut r, mut z, mut ap) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-        a.apply(x, &mut r);
-        stats.matvecs += 1;
-        stats.flops += a.apply_flops() + n as u64;
-        for (ri, bi) in r.iter_mut().zip(b) {
-            *ri = bi - *ri;
-        }
-        let mut rn = norm(&r);
-        stats.residuals.push(rn);
-        if rn <= threshold {
-            stats.termination = Termination::Converged;
-            return None;
-        }
-        m.apply(a, &r, &mut z);
-        let mut p = z.clone();
-        let mut rz = dot(&r, &z);
-        let per_iteration = a.apply_flops() + m.flops(a, n) + 12 * n as u64;
-        let sweeps_per_iteration = m.sweep_flops(a, n);
-        while stats.iterations < self.tolerance.max_iterations {
-            a.apply(&p, &mut ap);
-            stats.matvecs += 1;
-            stats.flops += per_iteration;
-            stats.sweep_flops += sweeps_per_iteration;
-            let curvature = dot(&p, &ap);
-            if !(curvature > 0.0) {
-                stats.termination = if curvature.is_nan() {
-                    Termination::Diverged
-                } else {
-                    Termination::Breakdown
-                };
-                return Some(curvature);
-            }
-            let alpha = rz / curvature;
-            rn = update_and_norm(x, &mut r, alpha, &p, &ap);
-            stats.iterations += 1;
-            stats.residuals.push(rn);
-            if !rn.is_finite() {
-                stats.termination = Termination::Diverged;
-                return None;
-            }
-            if rn <= threshold {
-                stats.termination = Termination::Converged;
-                return None;
-            }
-            m.apply(a, &r, &mut z);
-            let rz_new = dot(&r, &z);
-            let beta = rz_new / rz;
-            rz = rz_new;
-            for_each_entry(&mut p, |i, pi| *pi = z[i] + beta * *pi);
-        }
-        stats.termination = Termination::MaxIterations;
-        None
-    }
 }
 
 impl LinearSolver for Iterative {
@@ -444,21 +380,22 @@ impl LinearSolver for Iterative {
                         "this preconditioner needs an assembled CSR matrix",
                     ));
                 }
-                if let Some(c) = self.pcg(a, b, x, m, &mut stats) {
-                    curvature = c;
-                }
+                let stop = Stop::new(
+                    self.threshold(stats.rhs_norm),
+                    self.tolerance.max_iterations,
+                );
+                let cost = Applied::new(m.flops(a, n), m.sweep_flops(a, n));
+                let mut precondition = |r: &[f64], z: &mut [f64]| {
+                    m.apply(a, r, z);
+                    Ok(cost)
+                };
+                curvature = pcg(a, b, x, &mut precondition, stop, &mut stats)?;
             }
         }
         stats.seconds = start.elapsed().as_secs_f64();
         match stats.termination {
             Termination::Converged => Ok(stats),
-            Termination::Breakdown => Err(SolverError::Breakdown {
-                curvature,
-                stats: Box::new(stats),
-            }),
-            _ => Err(SolverError::NotConverged {
-                stats: Box::new(stats),
-            }),
+            _ => Err(pcg_error(stats, curvature)),
         }
     }
 }

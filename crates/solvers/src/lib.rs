@@ -49,6 +49,7 @@ mod iterative;
 mod llt;
 mod operator;
 mod ordering;
+pub mod pcg;
 mod precond;
 mod spec;
 mod split;

@@ -10,7 +10,7 @@ use crate::direct::{Cholesky, Indefinite, Precision};
 use crate::ic0::{self, Ic0};
 use crate::operator::{LinearOperator, positive_diagonal};
 use crate::ordering::Ordering;
-use crate::vector::for_each_entry;
+use crate::vector::update_from2;
 use crate::{LinearSolver, SolverError};
 
 /// Which preconditioner PCG uses.
@@ -200,7 +200,7 @@ impl Preconditioner {
     pub fn apply(&self, a: &dyn LinearOperator, r: &[f64], z: &mut [f64]) {
         match self {
             Preconditioner::Identity => z.copy_from_slice(r),
-            Preconditioner::Jacobi(inv) => for_each_entry(z, |i, zi| *zi = r[i] * inv[i]),
+            Preconditioner::Jacobi(inv) => update_from2(z, r, inv, |zi, ri, di| *zi = ri * di),
             Preconditioner::BlockJacobi(blocks) => {
                 for (v, b) in blocks.iter().enumerate() {
                     let y = b * Vector3::new(r[3 * v], r[3 * v + 1], r[3 * v + 2]);

@@ -32,7 +32,7 @@ impl Integrator {
             let mut trial = std::mem::take(&mut w.trial);
             let mut xt = std::mem::take(&mut w.xt);
             let du = &w.du;
-            for_each_entry(&mut trial, |i, t| *t = u[i] + step_length * du[i]);
+            update_from2(&mut trial, u, du, |t, ui, di| *t = ui + step_length * di);
             self.positions_into(mode, state, &trial, &mut xt);
             let mut e = 0.0;
             let outputs = Outputs {
@@ -98,7 +98,7 @@ impl Integrator {
     /// Positions of the iterate `u`, into `x`.
     pub(super) fn positions_into(&self, mode: Mode, state: &State, u: &[f64], x: &mut [f64]) {
         match mode {
-            Mode::Dynamic { dt } => for_each_entry(x, |i, xi| *xi = state.x[i] + dt * u[i]),
+            Mode::Dynamic { dt } => update_from2(x, &state.x, u, |xi, x0, ui| *xi = x0 + dt * ui),
             Mode::Static => x.copy_from_slice(u),
         }
     }
@@ -118,7 +118,7 @@ impl Integrator {
         let gravity = dot(u, self.external());
         match mode {
             Mode::Dynamic { dt } => {
-                for_each_entry(&mut w.dv, |i, d| *d = u[i] - state.v[i]);
+                update_from2(&mut w.dv, u, &state.v, |d, ui, vi| *d = ui - vi);
                 self.asm
                     .mass_apply(&self.mass, &w.dv, &mut w.mdv)
                     .expect("sizes match");

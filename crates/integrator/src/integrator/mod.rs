@@ -27,7 +27,7 @@ use deform_mesh::TetMesh;
 use deform_solvers::{
     Indefinite, LinearOperator, LinearSolver, Ordering, SetupStats, SolveStats, SolverError,
     SolverSpec,
-    vector::{dot, for_each_entry, norm},
+    vector::{dot, norm, update_from, update_from2, update_from3},
 };
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};

@@ -333,18 +333,16 @@ impl Integrator {
                 let gamma = self.options.stiffness_damping(dt);
                 let alpha = self.options.alpha;
                 self.asm.mass_apply(&self.mass, u, &mut w.fd)?;
-                let ku = &w.ku;
-                for_each_entry(&mut w.fd, |i, d| {
-                    *d = -(alpha * *d + if gamma == 0.0 { 0.0 } else { gamma * ku[i] });
+                update_from(&mut w.fd, &w.ku, |d, ku| {
+                    *d = -(alpha * *d + if gamma == 0.0 { 0.0 } else { gamma * ku });
                 });
-                for_each_entry(&mut w.dv, |i, d| *d = u[i] - state.v[i]);
+                update_from2(&mut w.dv, u, &state.v, |d, ui, vi| *d = ui - vi);
                 self.asm.mass_apply(&self.mass, &w.dv, &mut w.r)?;
-                let (f, fd) = (&w.f, &w.fd);
-                for_each_entry(&mut w.r, |i, r| *r -= dt * (f[i] + fd[i] + external[i]));
+                let inputs = [&w.f[..], &w.fd, external];
+                update_from3(&mut w.r, inputs, |r, f, fd, e| *r -= dt * (f + fd + e));
             }
             Mode::Static => {
-                let f = &w.f;
-                for_each_entry(&mut w.r, |i, r| *r = -(f[i] + external[i]));
+                update_from2(&mut w.r, &w.f, external, |r, f, e| *r = -(f + e));
             }
         }
         self.dofs

@@ -28,7 +28,7 @@ use crate::blocks::Blocks;
 use crate::direct::{Cholesky, Indefinite};
 use crate::operator::{LinearOperator, positive_diagonal};
 use crate::ordering::Ordering;
-use crate::vector::{dot, for_each_entry, norm};
+use crate::vector::{dot, for_each_entry, norm, update_from, update_from2};
 use crate::{LinearSolver, SolverError};
 
 /// The smoother on every level of the multigrid cycle.
@@ -264,7 +264,7 @@ impl Amg {
         self.cycle(l + 1, &s.bc, &mut s.xc, deeper);
         level.p.multiply_vector(&s.xc, &mut s.work);
         let work = &s.work;
-        for_each_entry(x, |i, xi| *xi += work[i]);
+        update_from(x, work, |xi, wi| *xi += wi);
         self.smooth(level, b, x, false, s);
     }
 
@@ -279,11 +279,11 @@ impl Amg {
                 let omega = 4.0 / (3.0 * level.lambda);
                 for s in 0..sweeps {
                     if zero && s == 0 {
-                        for_each_entry(work, |i, w| *w = d[i] * b[i]);
+                        update_from2(work, d, b, |w, di, bi| *w = di * bi);
                     } else {
                         a.multiply_vector_with(x, work, |i, ax, w| *w = d[i] * (b[i] - ax));
                     }
-                    for_each_entry(x, |i, xi| *xi += omega * work[i]);
+                    update_from(x, work, |xi, wi| *xi += omega * wi);
                 }
             }
             AmgSmoother::Chebyshev { degree } => {
@@ -293,12 +293,12 @@ impl Amg {
                 let sigma = theta / delta;
                 let mut rho = 1.0 / sigma;
                 if zero {
-                    for_each_entry(step, |i, v| *v = d[i] * b[i] / theta);
+                    update_from2(step, d, b, |v, di, bi| *v = di * bi / theta);
                 } else {
                     a.multiply_vector_with(x, step, |i, ax, v| *v = d[i] * (b[i] - ax) / theta);
                 }
                 for _ in 1..degree {
-                    for_each_entry(x, |i, xi| *xi += step[i]);
+                    update_from(x, step, |xi, si| *xi += si);
                     let rho_next = 1.0 / (2.0 * sigma - rho);
                     let (c1, c2) = (rho_next * rho, 2.0 * rho_next / delta);
                     // step = c1 step + c2 D^-1 (b - A x)
@@ -307,7 +307,7 @@ impl Amg {
                     });
                     rho = rho_next;
                 }
-                for_each_entry(x, |i, xi| *xi += step[i]);
+                update_from(x, step, |xi, si| *xi += si);
             }
         }
     }
@@ -424,11 +424,13 @@ fn largest_eigenvalue(a: &Blocks<f32>, inv_diag: &[f64]) -> f64 {
     let (mut alphas, mut betas) = (Vec::new(), Vec::new());
     let mut beta = 0.0;
     for _ in 0..LANCZOS_STEPS {
-        for_each_entry(&mut u, |i, x| *x = scale[i] * v[i]);
+        update_from2(&mut u, &scale, &v, |x, si, vi| *x = si * vi);
         a.apply(&u, &mut w);
-        for_each_entry(&mut w, |i, x| *x *= scale[i]);
+        update_from(&mut w, &scale, |x, si| *x *= si);
         let alpha = dot(&w, &v);
-        for_each_entry(&mut w, |i, x| *x -= alpha * v[i] + beta * previous[i]);
+        update_from2(&mut w, &v, &previous, |x, vi, pi| {
+            *x -= alpha * vi + beta * pi
+        });
         alphas.push(alpha);
         beta = norm(&w);
         if !(beta > 1e-12 * alpha.abs()) {
@@ -436,7 +438,7 @@ fn largest_eigenvalue(a: &Blocks<f32>, inv_diag: &[f64]) -> f64 {
         }
         betas.push(beta);
         std::mem::swap(&mut previous, &mut v);
-        for_each_entry(&mut v, |i, x| *x = w[i] / beta);
+        update_from(&mut v, &w, |x, wi| *x = wi / beta);
     }
     let k = alphas.len();
     let tridiagonal = nalgebra::DMatrix::from_fn(k, k, |i, j| match i.abs_diff(j) {
