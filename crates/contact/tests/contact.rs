@@ -20,6 +20,11 @@ fn model() -> ContactModel {
             min: [-0.6, -0.1, 0.0],
             max: [-0.4, 0.1, 0.2],
         },
+        Obstacle::OrientedBox {
+            center: [0.0, 0.6, 0.15],
+            half_extents: [0.1, 0.05, 0.1],
+            rotation: [0.3, 0.2, 0.5],
+        },
     ];
     let barrier = Barrier {
         dhat: 0.05,
@@ -43,7 +48,7 @@ fn frictional_model(spec: &deform_contact::FrictionSpec, turning: bool) -> Conta
         angular_velocity: [10.0, -20.0, 20.0],
         ..Default::default()
     };
-    let mut m = m.with_motions((0..3).map(turn).collect()).unwrap();
+    let mut m = m.with_motions((0..4).map(turn).collect()).unwrap();
     m.set_step(0.0, 0.01);
     m
 }
@@ -185,7 +190,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
         let m = frictional_model(&spec, turning);
         let start = positions(t);
         let dt = 0.01;
@@ -250,7 +255,7 @@ proptest! {
         step in proptest::collection::vec(-1.0f64..1.0, 12),
         back in 0.0f64..3.0,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
         let m = frictional_model(&spec, false);
         let start = positions(t);
         let lag = m.lag_friction(&start, 0.01);
@@ -486,7 +491,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
         let m = frictional_model(&spec, turning);
         let x0 = positions(t);
         let scale = if far { 1e-3 } else { 1e-5 };
