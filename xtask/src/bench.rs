@@ -157,62 +157,22 @@ pub fn run(task: BenchTask) -> Result<()> {
     }
 }
 
-/// The fine beam's data (the default scene's material, damping and Newton options, clamped
-/// at x = 0, released with the demo's coarsening variations), carried onto the coarse
-/// beam, and the coarse fits timed by
-/// [`deform_studies::coarsen::fit_coarse_models`].
+/// Times the coarse fits ([`deform_studies::coarsen::bench::bench_coarse_fits`]) and prints
+/// a JSON line per fitted model, then the totals.
 fn coarsen(args: CoarsenArgs) -> Result<()> {
-    use deform_studies::coarsen::{CoarseSettings, fit_coarse_models};
-    let text = format!(
-        r#"Scene(name: "fine", mesh: Beam({}), material: NeoHookean(Young(e: 1e6, nu: 0.4)),
-            density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
-            integrator: (dt: 0.01, alpha: 0.5, newton: (rel: 1e-6, max_iterations: 20)), steps: 1)"#,
-        args.fine
-    );
-    let origin = std::path::Path::new("bench_coarsen.ron");
-    let fine = deform_integrator::Scene::parse(&text, origin)?;
-    let count = args.trajectories + 1;
-    let spec = deform_learn::DatasetSpec {
-        split: (args.trajectories as f64 / count as f64, 1.0 / count as f64),
-        variations: deform_learn::Variations {
-            speed: 0.5,
-            spin: 1.0,
-            stretch: 0.05,
-            rest: false,
-        },
-        ..deform_learn::DatasetSpec::new(count, args.steps, 3)
-    };
-    let started = Instant::now();
-    let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
-    let generate = started.elapsed().as_secs_f64();
-    let coarse = deform_integrator::Scene {
-        mesh: deform_integrator::scene::MeshSource::Beam(args.coarse),
-        ..fine.clone()
-    };
-    let constraints = deform_learn::coarsen::Constraints::FromFine;
-    let (data, mapping) = deform_learn::coarsen::coarsen(&data, &coarse, origin, constraints)?;
-    let options = deform_learn::OutputErrorOptions {
-        rollout: args.rollout,
-        ..Default::default()
-    };
-    let settings = CoarseSettings {
-        regularisation: args.weights.clone(),
-        ..CoarseSettings::new(fine.integrator.newton.max_iterations, options)
-    };
-    let started = Instant::now();
-    let fits = fit_coarse_models(&data, origin, &settings, &mut deform_studies::NoProgress)?;
-    let total = started.elapsed().as_secs_f64();
-    for m in fits
-        .models
-        .iter()
-        .filter_map(|m| Some((m.model, m.fit.as_ref()?)))
-    {
-        let (model, fit) = m;
+    use deform_studies::coarsen::bench::{CoarsenBench, bench_coarse_fits};
+    let mut bench = CoarsenBench::default();
+    (bench.fine, bench.coarse) = (args.fine, args.coarse);
+    (bench.trajectories, bench.steps) = (args.trajectories, args.steps);
+    (bench.rollout, bench.weights) = (args.rollout, args.weights.clone());
+    let t = bench_coarse_fits(&bench)?;
+    let fitted = t.fits.models.iter();
+    for (model, fit) in fitted.filter_map(|m| Some((m.model, m.fit.as_ref()?))) {
         println!(
             r#"{{"what": "coarsen", "model": "{}", "fine_tets": {}, "coarse_tets": {}, "trajectories": {}, "steps": {}, "rollout": {}, "coefficients": {}, "evaluations": {}, "fit_seconds": {:.1}, "termination": "{}"}}"#,
             model.name(),
             deform_mesh::generate::BoxGrid::beam(args.fine).num_tets(),
-            mapping.tets,
+            t.coarse_tets,
             args.trajectories,
             args.steps,
             args.rollout,
@@ -223,7 +183,8 @@ fn coarsen(args: CoarsenArgs) -> Result<()> {
         );
     }
     println!(
-        r#"{{"what": "coarsen", "model": "all", "generate_seconds": {generate:.1}, "fit_seconds": {total:.1}}}"#
+        r#"{{"what": "coarsen", "model": "all", "generate_seconds": {:.1}, "fit_seconds": {:.1}}}"#,
+        t.generate_seconds, t.fit_seconds
     );
     Ok(())
 }

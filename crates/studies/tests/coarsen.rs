@@ -229,3 +229,19 @@ fn the_coarse_fits_are_a_library_function_with_the_experiments_figures() {
         deform_assembly::MaterialField::PerElement { .. }
     ));
 }
+
+/// The coarse-fit benchmark, at its smallest: the fine data carried onto the coarse beam and
+/// every coarse model fitted, with the timings `cargo xtask bench coarsen` prints.
+#[test]
+fn the_coarse_fit_benchmark_fits_every_model_on_a_tiny_beam() {
+    use deform_studies::coarsen::bench::{CoarsenBench, bench_coarse_fits};
+    let mut b = CoarsenBench::default();
+    (b.fine, b.coarse, b.trajectories, b.steps, b.rollout) = (2, 1, 1, 4, 2);
+    let t = bench_coarse_fits(&b).unwrap();
+    assert_eq!(
+        t.coarse_tets,
+        deform_mesh::generate::BoxGrid::beam(1).num_tets()
+    );
+    assert!(t.fits.models.iter().filter(|m| m.fit.is_some()).count() >= 3);
+    assert!(t.generate_seconds > 0.0 && t.fit_seconds > 0.0);
+}

@@ -5,6 +5,7 @@
 //! weight chosen on the validation trajectories), each with Rayleigh damping when asked. All
 //! are compared on held-out motions of another kind, simulated by the fine model: the truth.
 
+pub mod bench;
 mod per_element;
 mod regions;
 
