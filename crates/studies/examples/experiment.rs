@@ -1,5 +1,6 @@
 //! Runs an experiment file from Rust, without the runner: the dataset, the learning, and
-//! the report as data (printed here as its headline figures and as JSON-like debug output).
+//! the report as data (printed here as its headline figures); given a folder, the report is
+//! also written there as the runner writes it (report.md and its plots).
 //!
 //! ```sh
 //! cargo run --release -p deform-studies --example experiment -- assets/experiments/tune_solver.ron [OUT]
@@ -60,6 +61,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         TaskReport::TuneSolver(r) => println!("tuned / configured work: {:.3}", r.work_ratio()),
         TaskReport::Coarsen(r) => println!("{}", r.headline()),
+    }
+    if let Some(out) = &out {
+        deform_studies::write_report(&report, out)?;
+        println!("report: {}", out.join("report.md").display());
     }
     Ok(())
 }
