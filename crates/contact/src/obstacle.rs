@@ -66,7 +66,7 @@ impl Obstacle {
         let finite = |a: &[f64]| a.iter().all(|v| v.is_finite());
         match self {
             Obstacle::Plane { point, normal } => {
-                if !finite(point) || !finite(normal) || Vector3::from(*normal).norm() == 0.0 {
+                if !finite(point) || !finite(normal) || Vector3::from(*normal).amax() == 0.0 {
                     return Err(format!(
                         "a plane needs a finite point and a non-zero normal, got {point:?}, {normal:?}"
                     ));
@@ -108,7 +108,7 @@ impl Obstacle {
     pub fn distance(&self, p: &Vector3<f64>) -> f64 {
         match self {
             Obstacle::Plane { point, normal } => {
-                let n = Vector3::from(*normal).normalize();
+                let n = unit_normal(normal);
                 n.dot(&(p - Vector3::from(*point)))
             }
             Obstacle::Sphere { center, radius } => (p - Vector3::from(*center)).norm() - radius,
@@ -131,7 +131,7 @@ impl Obstacle {
     pub fn jet(&self, p: &Vector3<f64>) -> DistanceJet {
         match self {
             Obstacle::Plane { point, normal } => {
-                let n = Vector3::from(*normal).normalize();
+                let n = unit_normal(normal);
                 DistanceJet {
                     distance: n.dot(&(p - Vector3::from(*point))),
                     gradient: n,
@@ -362,7 +362,7 @@ impl Obstacle {
     pub fn surface(&self, extent: f64) -> Surface {
         match self {
             Obstacle::Plane { point, normal } => {
-                let n = Vector3::from(*normal).normalize();
+                let n = unit_normal(normal);
                 // Any unit vector not parallel to n, then the plane's two axes.
                 let helper = if n.x.abs() < 0.9 {
                     Vector3::x()
@@ -501,6 +501,19 @@ pub(crate) fn carried(
     s: f64,
 ) -> Vector3<f64> {
     (step * Point3::from(p + relative * s)).coords - p
+}
+
+/// A plane's normal of any finite non-zero length as a unit vector. Lengths whose square
+/// overflows or underflows (1e200, 1e-200) are scaled by their largest entry first; others
+/// are normalised directly, so their bits are those of `normalize`.
+fn unit_normal(normal: &[f64; 3]) -> Vector3<f64> {
+    let n = Vector3::from(*normal);
+    let length = n.norm();
+    if length.is_finite() && length > 1e-150 {
+        n.normalize()
+    } else {
+        (n / n.amax()).normalize()
+    }
 }
 
 #[cfg(test)]
@@ -701,6 +714,25 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// "Any length but zero": normals whose squared length overflows or underflows give the
+    /// plane of the unit normal, bit for bit.
+    #[test]
+    fn a_plane_normal_of_any_length_gives_the_same_plane() {
+        let plane = |normal| Obstacle::Plane {
+            point: [0.1, -0.2, 0.3],
+            normal,
+        };
+        let p = Vector3::new(0.4, 0.5, 0.9);
+        let unit = plane([0.0, 0.6, 0.8]);
+        for normal in [[0.0, 6e199, 8e199], [0.0, 6e-201, 8e-201], [0.0, 6.0, 8.0]] {
+            let o = plane(normal);
+            assert!(o.check().is_ok(), "{normal:?}");
+            assert_eq!(o.distance(&p), unit.distance(&p), "{normal:?}");
+            assert_eq!(o.jet(&p).gradient, unit.jet(&p).gradient, "{normal:?}");
+        }
+        assert!(plane([0.0; 3]).check().is_err());
     }
 
     #[test]
