@@ -598,6 +598,30 @@ impl ContactModel {
         &self.vertices
     }
 
+    /// [`ContactError::Penetration`] at the first vertex of the whole body, interior ones
+    /// included, on or inside an analytic obstacle. The barrier acts on surface vertices
+    /// only, so an obstacle wholly inside the body (a small sphere in a beam) touches none
+    /// of them: a starting state is checked with this too.
+    ///
+    /// # Errors
+    /// The first vertex (in order) on or inside an obstacle.
+    pub fn check_body_outside(&self, x: &[f64]) -> Result<(), ContactError> {
+        for (v, p) in x.chunks_exact(3).enumerate() {
+            let p = Vector3::new(p[0], p[1], p[2]);
+            for (i, o) in self.obstacles.iter().enumerate() {
+                let distance = o.distance(&p);
+                if !(distance > 0.0) {
+                    return Err(ContactError::Penetration {
+                        vertex: v,
+                        obstacle: i,
+                        distance,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// The potential at positions `x` (flat `3N`): its energy and summary; adds its forces
     /// `-grad B` to `forces` and, with `hessian`, replaces its content with the Hessian's
     /// nonzero blocks, each vertex's and each surface pair's projected to positive

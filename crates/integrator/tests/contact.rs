@@ -17,6 +17,13 @@ const GROUND: Obstacle = Obstacle::Plane {
 };
 
 /// A 10 cm cube of 3 x 3 x 3 cells, `lift` above the ground.
+fn mesh_x(mesh: &TetMesh) -> Vec<f64> {
+    mesh.rest_positions()
+        .iter()
+        .flat_map(|p| [p.x, p.y, p.z])
+        .collect()
+}
+
 fn cube(lift: f64) -> TetMesh {
     BoxGrid {
         cells: [3, 3, 3],
@@ -200,6 +207,22 @@ fn every_solver_takes_the_same_contact_step() {
 
 #[test]
 fn a_body_started_inside_is_refused_with_the_vertex() {
+    // A sphere wholly inside the body touches no surface vertex: an interior one is named.
+    let mesh = cube(0.0);
+    let inner = Obstacle::Sphere {
+        center: [0.05, 0.05, 0.05],
+        radius: 0.03,
+    };
+    let sim_inner = sim(&mesh, vec![inner], 1e-3, "Fixed(Direct())");
+    let surface = sim_inner.contact().unwrap().vertices().to_vec();
+    let err = sim_inner.contact_at(&mesh_x(&mesh)).unwrap().unwrap_err();
+    let deform_contact::ContactError::Penetration { vertex, .. } = err else {
+        panic!("{err}")
+    };
+    assert!(
+        !surface.contains(&vertex),
+        "vertex {vertex} is on the surface"
+    );
     let mesh = cube(-0.01);
     let sim = sim(&mesh, vec![GROUND], 1e-3, "Fixed(Direct())");
     let err = sim.contact_at(&sim.rest_state().x).unwrap().unwrap_err();

@@ -636,10 +636,11 @@ impl Integrator {
     /// refuses surfaces that pass through each other ([`ContactModel::check_crossings`]).
     ///
     /// # Errors
-    /// [`ContactError::Penetration`] naming the first vertex inside an obstacle; the pair of
-    /// surface primitives that touch or cross.
+    /// [`ContactError::Penetration`] naming the first vertex (interior ones included) inside
+    /// an obstacle; the pair of surface primitives that touch or cross.
     pub fn contact_at(&self, x: &[f64]) -> Option<Result<ContactSummary, ContactError>> {
         self.contact.as_ref().map(|c| {
+            c.model.check_body_outside(x)?;
             c.model.check_crossings(x)?;
             c.model.evaluate(x, None, None)
         })
