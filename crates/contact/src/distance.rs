@@ -53,6 +53,17 @@ fn point_triangle_form(
     b: &Vector3<f64>,
     c: &Vector3<f64>,
 ) -> Form {
+    if a == b || b == c || c == a {
+        // Coinciding corners: the triangle is a segment or a point, and the regions below
+        // would pick a line through two equal points (a NaN distance). The nearest of its
+        // edges, a zero-length one being a point.
+        let points = [*p, *a, *b, *c];
+        return [(1, 2), (2, 3), (3, 1)]
+            .into_iter()
+            .map(|(j, k)| point_segment_form(&points, 0, j, k))
+            .min_by(|f, g| squared(*f, &points).total_cmp(&squared(*g, &points)))
+            .expect("three edges");
+    }
     let (ab, ac, ap) = (b - a, c - a, p - a);
     let (d1, d2) = (ab.dot(&ap), ac.dot(&ap));
     if d1 <= 0.0 && d2 <= 0.0 {
@@ -116,6 +127,10 @@ pub(crate) fn edge_edge(
 /// The form of the distance from point `i` to the segment `j k`.
 fn point_segment_form(points: &[Vector3<f64>; 4], i: usize, j: usize, k: usize) -> Form {
     let e = points[k] - points[j];
+    if e == Vector3::zeros() {
+        // A segment of zero length is a point (t would be 0 / 0).
+        return Form::PointPoint(i, j);
+    }
     let t = (points[i] - points[j]).dot(&e) / e.norm_squared();
     if t <= 0.0 {
         Form::PointPoint(i, j)
@@ -273,6 +288,27 @@ mod tests {
     use super::*;
     use crate::jet::variables;
     use proptest::prelude::*;
+
+    /// A triangle with two or three coinciding corners is a segment or a point: finite
+    /// distances, the segment's or the point's (issue 58: NaN froze a body above such a
+    /// triangle). An edge of zero length is a point too.
+    #[test]
+    fn coinciding_corners_give_the_segment_or_point_distance() {
+        let p = Vector3::new(0.3, 0.4, 1.0);
+        let (a, c) = (Vector3::new(0.0, 0.0, 0.0), Vector3::new(1.0, 0.0, 0.0));
+        // Two equal corners: the segment a c, nearest at (0.3, 0, 0).
+        for (x, y, z) in [(a, a, c), (a, c, c), (c, a, a), (a, c, a)] {
+            let (d, _) = point_triangle(&p, &x, &y, &z);
+            assert!((d - (0.4f64.powi(2) + 1.0).sqrt()).abs() < 1e-15, "{d}");
+        }
+        // Three: the point.
+        let (d, form) = point_triangle(&p, &a, &a, &a);
+        assert_eq!(d, p.norm());
+        assert!(matches!(form, Form::PointPoint(0, _)));
+        // An edge of zero length against a segment: the point's distance to it.
+        let (d, _) = edge_edge(&p, &p, &a, &c);
+        assert!((d - (0.4f64.powi(2) + 1.0).sqrt()).abs() < 1e-15, "{d}");
+    }
 
     fn point() -> impl Strategy<Value = Vector3<f64>> {
         prop::array::uniform3(-1.0f64..1.0).prop_map(Vector3::from)

@@ -224,3 +224,32 @@ fn the_torus_across_the_ridge_sticks_and_slips_at_mu_one_half() {
         .fold(f64::INFINITY, f64::min);
     assert!(lowest > 0.0 && lowest < 0.01, "{lowest}");
 }
+
+/// A mesh obstacle holding triangles with coinciding corners (two, or all three) right under
+/// the falling cube: they are a segment and a point, which the cube lands on. Such triangles
+/// once gave a NaN distance that froze the body in mid-air, every step accepted with its
+/// residual unchanged (issue 58).
+#[test]
+fn triangles_with_coinciding_corners_are_a_segment_and_a_point() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bad.obj");
+    let extra = "v 0.07 0.07 0.0625\nv 0.07 0.07 0.0625\nv 0.09 0.07 0.0625\nf 6 7 8\n\
+                 v 0.08 0.02 0.0625\nv 0.08 0.02 0.0625\nv 0.08 0.02 0.0625\nf 9 10 11\n";
+    std::fs::write(&path, format!("{SPIKE}{extra}")).unwrap();
+    let mesh = cube(0.065);
+    let mut sim = sim(&mesh, &path, "Fixed(Direct())");
+    let mut s = sim.rest_state();
+    s.v.chunks_mut(3).for_each(|v| v[2] = -1.0);
+    let mut touched = 0;
+    for step in 0..10 {
+        let before = s.x.clone();
+        let report = sim.step(&mut s).unwrap();
+        assert!(s.x.iter().all(|v| v.is_finite()), "step {step}");
+        assert_ne!(before, s.x, "step {step}: the cube froze");
+        touched += usize::from(report.contact.unwrap().active > 0);
+    }
+    assert!(
+        touched > 0,
+        "the cube never touched the segment or the point"
+    );
+}
