@@ -609,14 +609,7 @@ impl ContactModel {
         for (v, p) in x.chunks_exact(3).enumerate() {
             let p = Vector3::new(p[0], p[1], p[2]);
             for (i, o) in self.obstacles.iter().enumerate() {
-                let distance = o.distance(&p);
-                if !(distance > 0.0) {
-                    return Err(ContactError::Penetration {
-                        vertex: v,
-                        obstacle: i,
-                        distance,
-                    });
-                }
+                outside(v, i, o.distance(&p))?;
             }
         }
         Ok(())
@@ -677,13 +670,7 @@ impl ContactModel {
             for (i, o) in self.obstacles.iter().enumerate() {
                 let distance = o.distance(&p);
                 summary.min_distance = summary.min_distance.min(distance);
-                if !(distance > 0.0) {
-                    return Err(ContactError::Penetration {
-                        vertex: v,
-                        obstacle: i,
-                        distance,
-                    });
-                }
+                outside(v, i, distance)?;
                 if distance >= b.dhat {
                     continue;
                 }
@@ -812,6 +799,20 @@ impl ContactModel {
             bound = bound.min(surface.step_bound(x, dx, self.barrier.dhat, relative));
         }
         bound
+    }
+}
+
+/// [`ContactError::Penetration`] unless `vertex` is at a positive `distance` (NaN is not)
+/// from `obstacle`.
+fn outside(vertex: usize, obstacle: usize, distance: f64) -> Result<(), ContactError> {
+    if distance > 0.0 {
+        Ok(())
+    } else {
+        Err(ContactError::Penetration {
+            vertex,
+            obstacle,
+            distance,
+        })
     }
 }
 
