@@ -1,5 +1,7 @@
 """Experiments run from Python return deform's report as Python data."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -128,6 +130,12 @@ def test_an_experiment_returns_its_report(assets, tmp_path):
     assert pngs and sorted(p.name for p in tmp_path.glob("*.svg")) == [
         n.replace(".png", ".svg") for n in pngs
     ]
+    # Every plot is embedded, and every file the report names exists.
+    for svg in tmp_path.glob("*.svg"):
+        assert f"]({svg.name})" in markdown
+    files = next(line for line in markdown.splitlines() if line.startswith("Files: "))
+    named = re.findall(r"`([^`]+)`", files)
+    assert named and all((tmp_path / n).exists() for n in named), files
 
 
 def test_bad_experiments_raise(tmp_path):

@@ -33,11 +33,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         report.name, report.vertices, report.tets, report.seconds
     );
     match &report.task {
-        TaskReport::FitMaterial(r) => println!(
-            "E off by {:.3} %, nu by {:.3} %",
-            100.0 * r.young_error(),
-            100.0 * r.poisson_error()
-        ),
+        TaskReport::FitMaterial(r) => println!("{}", r.headline()),
         TaskReport::SelectModel(r) => {
             for m in &r.ensemble.members {
                 println!("{}: {:.1} % of the energy", m.model, 100.0 * m.energy_share);

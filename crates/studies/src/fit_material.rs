@@ -47,9 +47,9 @@ impl Estimate {
 pub struct ModuliRow {
     /// Which.
     pub estimate: Estimate,
-    /// Young's modulus (Pa); NaN when the pair is not a valid material.
+    /// Young's modulus (Pa).
     pub young: f64,
-    /// Poisson's ratio; NaN likewise.
+    /// Poisson's ratio.
     pub poisson: f64,
     /// Time the fit took, seconds (`None` for the truth).
     pub seconds: Option<f64>,
@@ -58,7 +58,8 @@ pub struct ModuliRow {
 /// What a material fit found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FitMaterialReport {
-    /// Truth, stage 1 and (when run) stage 2, in that order.
+    /// Truth (or the scene's guess), stage 1 and (when run) stage 2, in that order; an
+    /// estimate that is no material is left out (`stage1_unusable` says why).
     pub rows: Vec<ModuliRow>,
     /// Stage 2's result, when it ran.
     pub output_error: Option<OutputErrorFit>,
@@ -74,8 +75,9 @@ pub struct FitMaterialReport {
     /// `output_error`), and the fitted rollouts are the start's.
     #[serde(default)]
     pub unstable: Option<String>,
-    /// Mean test rollout error per recorded state with the true, stage-1 and fitted
-    /// parameters.
+    /// Mean test rollout error per recorded state with the true (or the scene's), stage-1
+    /// and fitted parameters, each where it is a material; the fitted one is named
+    /// [`FITTED`].
     pub rollouts: Vec<Series>,
     /// Contact's parameters, in a scene with contact: the scene's and stage 1's.
     #[serde(default)]
@@ -146,27 +148,72 @@ impl FitMaterialReport {
         )
     }
 
-    /// The last estimate's relative error in Young's modulus.
-    pub fn young_error(&self) -> f64 {
-        self.errors(self.rows.len() - 1).0
+    /// The last estimate's relative error in Young's modulus; `None` without an estimate
+    /// (stage 1 unusable and no stage 2).
+    pub fn young_error(&self) -> Option<f64> {
+        (self.rows.len() > 1).then(|| self.errors(self.rows.len() - 1).0)
     }
 
-    /// The last estimate's relative error in Poisson's ratio.
-    pub fn poisson_error(&self) -> f64 {
-        self.errors(self.rows.len() - 1).1
+    /// The last estimate's relative error in Poisson's ratio; `None` likewise.
+    pub fn poisson_error(&self) -> Option<f64> {
+        (self.rows.len() > 1).then(|| self.errors(self.rows.len() - 1).1)
     }
 
-    /// Mean rollout error of the fitted parameters over the true parameters'; NaN when the
-    /// true parameters reproduce the data exactly (clean data made by deform), where no
-    /// ratio means anything.
-    pub fn rollout_ratio(&self) -> f64 {
-        let truth = mean_error(&self.rollouts[0].values);
-        match truth > 0.0 {
-            true => mean_error(&self.rollouts[2].values) / truth,
-            false => f64::NAN,
+    /// Mean rollout error of the fitted parameters over the true (or the scene's); `None`
+    /// without a fitted material, or when the true parameters reproduce the data exactly
+    /// (clean data made by deform), where no ratio means anything.
+    pub fn rollout_ratio(&self) -> Option<f64> {
+        let truth = mean_error(&self.rollouts.first()?.values);
+        let fitted = self.rollouts.iter().find(|s| s.name == FITTED)?;
+        (truth > 0.0).then(|| mean_error(&fitted.values) / truth)
+    }
+}
+
+impl FitMaterialReport {
+    /// The fitted over the true (or the scene's) rollout error as a phrase; where there is
+    /// no ratio, why.
+    pub fn rollout_phrase(&self) -> String {
+        let against = if self.truth_known() {
+            "true"
+        } else {
+            "scene's guess"
+        };
+        match self.rollout_ratio() {
+            Some(ratio) => format!("rollout error fitted / {against} {ratio:.3}"),
+            None if self.rows.len() < 2 => "no fitted material to roll out".to_owned(),
+            None => "no rollout ratio: the true parameters reproduce the data exactly".to_owned(),
+        }
+    }
+
+    /// The one-line summary: the estimate's error (or, with imported data, the estimate)
+    /// and the rollout ratio.
+    pub fn headline(&self) -> String {
+        let (Some(de), Some(dnu), Some(last)) =
+            (self.young_error(), self.poisson_error(), self.rows.last())
+        else {
+            let why = self.stage1_unusable.as_ref().map(ToString::to_string);
+            return format!(
+                "no estimate: stage 1 is unusable ({}) and stage 2 did not run",
+                why.unwrap_or_default()
+            );
+        };
+        let phrase = self.rollout_phrase();
+        match self.truth_known() {
+            true => format!(
+                "E off by {:.3} %, nu by {:.3} %; {phrase}",
+                100.0 * de,
+                100.0 * dnu
+            ),
+            false => format!(
+                "E = {:.5e} Pa, nu = {:.4} (imported data: the truth is the user's); {phrase}",
+                last.young, last.poisson
+            ),
         }
     }
 }
+
+/// The name of the fitted parameters' rollout series.
+pub const FITTED: &str = "fitted";
 
 /// Stage 1 on `train`, why its estimate is no model (when it is not) and the seconds it
 /// took. Stage 1 needs whole states: on data of markers only it does not run.
@@ -281,10 +328,16 @@ fn stage2(
     })
 }
 
-fn young(mu: f64, lambda: f64) -> (f64, f64) {
-    Lame::try_new(mu, lambda)
-        .map(|l| l.to_young())
-        .unwrap_or((f64::NAN, f64::NAN))
+/// A row of the fit table, when `(mu, lambda)` is a material.
+fn moduli_row(estimate: Estimate, (mu, lambda): (f64, f64), seconds: f64) -> Option<ModuliRow> {
+    let (young, poisson) = Lame::try_new(mu, lambda).ok()?.to_young();
+    let seconds = Some(seconds);
+    Some(ModuliRow {
+        estimate,
+        young,
+        poisson,
+        seconds,
+    })
 }
 
 /// Runs [`Task::FitMaterial`].
@@ -305,6 +358,14 @@ pub fn run(
     };
     let origin = cx.experiment.scene.as_path();
     let train = cx.data.split(Split::Train);
+    if let (None, Some(t)) = (
+        output_error,
+        train.iter().position(|t| t.observed.is_some()),
+    ) {
+        return Err(LearnError::Unsupported(format!(
+            "FitMaterial on marker data needs `output_error`: training trajectory {t} observes markers only, and equation error (stage 1) needs whole states"
+        )));
+    }
     let (stage1, stage1_unusable, stage1_seconds) =
         stage1(&cx.built.integrator, &train, *equation_error)?;
     let stage1_coefficients = stage1
@@ -315,27 +376,23 @@ pub fn run(
         LearnError::Unsupported("the scene's model has no single Lame pair".into())
     })?;
     let (e0, nu0) = truth.to_young();
-    let (e1, nu1) = young(mu1, lambda1);
     // Imported data were made by a model deform does not know: the scene's moduli are a guess.
     let known = matches!(cx.experiment.data, crate::Data::Generate(_));
-    let mut rows = vec![
-        ModuliRow {
-            estimate: if known {
-                Estimate::Truth
-            } else {
-                Estimate::SceneGuess
-            },
-            young: e0,
-            poisson: nu0,
-            seconds: None,
+    let mut rows = vec![ModuliRow {
+        estimate: if known {
+            Estimate::Truth
+        } else {
+            Estimate::SceneGuess
         },
-        ModuliRow {
-            estimate: Estimate::EquationError,
-            young: e1,
-            poisson: nu1,
-            seconds: stage1.is_some().then_some(stage1_seconds),
-        },
-    ];
+        young: e0,
+        poisson: nu0,
+        seconds: None,
+    }];
+    rows.extend(moduli_row(
+        Estimate::EquationError,
+        (mu1, lambda1),
+        stage1_seconds,
+    ));
     let mut fitted = (mu1, lambda1);
     let mut report = FitMaterialReport {
         rows: Vec::new(),
@@ -362,13 +419,11 @@ pub fn run(
         };
         let mut sim = cx.built.integrator;
         let s2 = stage2(&mut sim, &cx.data, *options, &from, &report, observer)?;
-        let (e2, nu2) = young(s2.coefficients[0], s2.coefficients[1]);
-        rows.push(ModuliRow {
-            estimate: Estimate::OutputError,
-            young: e2,
-            poisson: nu2,
-            seconds: Some(s2.seconds),
-        });
+        rows.extend(moduli_row(
+            Estimate::OutputError,
+            (s2.coefficients[0], s2.coefficients[1]),
+            s2.seconds,
+        ));
         fitted = (s2.coefficients[0], s2.coefficients[1]);
         if let (Some(c), Some(_)) = (report.contact.as_mut(), &friction) {
             c.output_error =
@@ -381,7 +436,6 @@ pub fn run(
     // Rollouts on the test trajectories with each parameter set.
     observer.start(Stage::Rollouts, 3);
     let tests = cx.data.split(Split::Test);
-    let states = tests.first().map_or(0, |t| t.x.len());
     let first = if known {
         "true parameters"
     } else {
@@ -395,20 +449,17 @@ pub fn run(
     for (name, (mu, lambda), mu_friction) in [
         (first, (truth.mu, truth.lambda), None),
         ("equation error", (mu1, lambda1), friction),
-        ("fitted", fitted, fitted_friction),
+        (FITTED, fitted, fitted_friction),
     ] {
         // An estimate that is no material (stage 1 on noisy data) has no rollout.
-        let errors = match Lame::try_new(mu, lambda) {
-            Ok(_) => {
-                let mut scene = with_lame(&cx.scene, mu, lambda)?;
-                if let Some(m) = &mu_friction {
-                    scene = with_friction(&scene, m)?;
-                }
-                mean_rollout(&scene, origin, &tests)?
+        if Lame::try_new(mu, lambda).is_ok() {
+            let mut scene = with_lame(&cx.scene, mu, lambda)?;
+            if let Some(m) = &mu_friction {
+                scene = with_friction(&scene, m)?;
             }
-            Err(_) => vec![f64::NAN; states],
-        };
-        report.rollouts.push(Series::new(name, errors));
+            let errors = mean_rollout(&scene, origin, &tests)?;
+            report.rollouts.push(Series::new(name, errors));
+        }
         observer.advance(1);
     }
     observer.finish();

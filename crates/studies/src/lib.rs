@@ -16,7 +16,9 @@
 //! let experiment = Experiment::load("assets/experiments/fit_material.ron".as_ref())?;
 //! let report = run(&experiment, None, &mut NoProgress)?;
 //! if let TaskReport::FitMaterial(fit) = &report.task {
-//!     println!("E off by {:.3} %", 100.0 * fit.young_error());
+//!     if let Some(error) = fit.young_error() {
+//!         println!("E off by {:.3} %", 100.0 * error);
+//!     }
 //! }
 //! # Ok::<(), deform_learn::LearnError>(())
 //! ```

@@ -37,8 +37,9 @@ type Points = Vec<(String, Vec<(f64, f64)>)>;
 
 /// A line plot of named series against their index, written to `stem.svg` and `stem.png`
 /// (each atomically: drawn to a temporary file, then renamed); with `log`, of the series'
-/// base-10 logarithms. Nothing is written when no series has a point.
-pub fn plot(stem: &Path, p: &Plot) -> Result<()> {
+/// base-10 logarithms. Nothing is written when no series has a point; returns whether the
+/// files were written.
+pub fn plot(stem: &Path, p: &Plot) -> Result<bool> {
     let (series, log) = (&p.series, p.log);
     let points: Points = series
         .iter()
@@ -53,7 +54,7 @@ pub fn plot(stem: &Path, p: &Plot) -> Result<()> {
         })
         .collect();
     if points.iter().all(|(_, p)| p.is_empty()) {
-        return Ok(());
+        return Ok(false);
     }
     let y_desc = if log {
         format!("log10 {}", p.y_label)
@@ -77,7 +78,7 @@ pub fn plot(stem: &Path, p: &Plot) -> Result<()> {
     for (tmp, path) in [(svg_tmp, svg), (png_tmp, png)] {
         std::fs::rename(&tmp, &path).map_err(|source| RenderError::Io { path, source })?;
     }
-    Ok(())
+    Ok(true)
 }
 
 fn draw<DB: DrawingBackend>(

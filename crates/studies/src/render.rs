@@ -68,11 +68,29 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
         TaskReport::TuneSolver(r) => tune_solver(r, &mut md)?,
         TaskReport::Coarsen(r) => coarsen(r, matches!(report.data, Data::Import(_)), &mut md)?,
     }
-    for p in report.plots() {
-        plot(&out.join(&p.stem), &p)?;
-    }
+    files(report, out, &mut md)?;
     writeln!(md, "\nTotal time {:.1} s.", report.seconds)?;
     Ok(md)
+}
+
+/// Draws the report's plots, embeds each one drawn (a plot without a point is not drawn)
+/// and lists the files: the tables' CSV and the plots, each of which exists.
+fn files(report: &ExperimentReport, out: &Path, md: &mut String) -> Result<()> {
+    let mut names: Vec<String> = report.csv_files().into_iter().map(|(n, _)| n).collect();
+    let mut embedded = Vec::new();
+    for p in report.plots() {
+        if plot(&out.join(&p.stem), &p)? {
+            embedded.push(format!("![{}]({}.svg)", p.title, p.stem));
+            names.push(format!("{}.svg", p.stem));
+            names.push(format!("{}.png", p.stem));
+        }
+    }
+    if !embedded.is_empty() {
+        writeln!(md, "\n## Plots\n\n{}", embedded.join("\n\n"))?;
+    }
+    let names: Vec<String> = names.iter().map(|n| format!("`{n}`")).collect();
+    writeln!(md, "\nFiles: {}.", names.join(", "))?;
+    Ok(())
 }
 
 /// Contact's parameters in a material fit: the scene's, stage 1's and (friction, when it
@@ -164,22 +182,18 @@ fn fit_material(r: &FitMaterialReport, md: &mut String) -> Result<()> {
         .collect();
     writeln!(
         md,
-        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}. Fitted / {} parameters: {}.\n\nFiles: `iterations.csv`, `loss.svg`/`.png`, `rollout_error.csv`, `rollout_error.svg`/`.png`.",
+        "\nRMS position error of free rollouts on the test trajectories, averaged over the predicted states: {}; {}.",
         errors.join(", "),
-        if r.truth_known() { "true" } else { "scene's" },
-        match r.rollout_ratio() {
-            ratio if ratio.is_nan() => "- (the true parameters reproduce the data exactly)".into(),
-            ratio => format!("{ratio:.3}"),
-        }
+        r.rollout_phrase()
     )?;
     Ok(())
 }
 
 /// Iterations, evaluations, initial and final loss and termination of an output-error fit.
-fn summary(fit: &OutputErrorFit) -> (usize, usize, f64, f64, &Termination) {
+fn summary(fit: &OutputErrorFit) -> (u64, usize, f64, f64, &Termination) {
     let f = fit;
     (
-        f.iterations.len(),
+        f.iteration_count(),
         f.evaluations,
         f.initial_loss,
         f.loss,
@@ -271,8 +285,8 @@ fn select_solver(r: &SelectSolverReport, md: &mut String) -> Result<()> {
             t.best.work, t.best.error
         )?;
     }
-    for (ci, case) in r.cases.iter().enumerate() {
-        policy_case(r, ci, case, md)?;
+    for case in &r.cases {
+        policy_case(r, case, md)?;
     }
     let (n, trajectories, scenes) = (r.logged, r.training_trajectories, r.also_train);
     writeln!(
@@ -283,12 +297,7 @@ fn select_solver(r: &SelectSolverReport, md: &mut String) -> Result<()> {
 }
 
 /// One case of the policy comparison: its table, CSV rows, plots and ratios.
-fn policy_case(
-    r: &SelectSolverReport,
-    ci: usize,
-    case: &CaseReport,
-    md: &mut String,
-) -> Result<()> {
+fn policy_case(r: &SelectSolverReport, case: &CaseReport, md: &mut String) -> Result<()> {
     let (label, weight, repeats) = (&case.label, r.weights, r.repeats);
     writeln!(
         md,
@@ -311,10 +320,6 @@ fn policy_case(
             writeln!(md, "(flops of `{name}` differed between repeats)")?;
         }
     }
-    writeln!(
-        md,
-        "\nPlots: `case{ci}_work.svg`/`.png` (work per step), `case{ci}_newton.svg`/`.png` (Newton iterations per step), `case{ci}_choices.svg`/`.png` and `.csv` (the learned policy's solver at every Newton iteration)."
-    )?;
     ratios(case, md)
 }
 
@@ -417,7 +422,7 @@ fn story(r: &StoryReport, md: &mut String) -> Result<()> {
     let ((e, w, t), against_base) = (r.ratios(), r.time_against_base());
     writeln!(
         md,
-        "\n**tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x**; against the base model the tuned one takes {against_base:.2}x the time.\n\nParaView: `frames/base/series.pvd`, `frames/untuned/series.pvd`, `frames/tuned/series.pvd` (the first test trajectory; open together). Files: `comparison.csv`, `rollout_error.svg`/`.png`, `solver_data/`, `tuning.csv`."
+        "\n**tuned / untuned: error {e:.2}x, work {w:.2}x, time {t:.2}x**; against the base model the tuned one takes {against_base:.2}x the time.\n\nParaView: `frames/base/series.pvd`, `frames/untuned/series.pvd`, `frames/tuned/series.pvd` (the first test trajectory; open together); the solver's training data in `solver_data/`."
     )?;
     Ok(())
 }

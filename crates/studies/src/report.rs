@@ -172,26 +172,7 @@ impl ExperimentReport {
     /// The one-line summary of an experiment's headline figure.
     pub fn headline(&self) -> String {
         match &self.task {
-            TaskReport::FitMaterial(r) if r.truth_known() => format!(
-                "E off by {:.3} %, nu by {:.3} %; {}",
-                100.0 * r.young_error(),
-                100.0 * r.poisson_error(),
-                match r.rollout_ratio() {
-                    ratio if ratio.is_nan() => {
-                        "the true parameters reproduce the data exactly".to_owned()
-                    }
-                    ratio => format!("rollout error fitted / true {ratio:.3}"),
-                }
-            ),
-            TaskReport::FitMaterial(r) => {
-                let last = r.rows.last().expect("a guess and an estimate");
-                format!(
-                    "E = {:.5e} Pa, nu = {:.4} (imported data: the truth is the user's); rollout error fitted / scene's guess {:.3}",
-                    last.young,
-                    last.poisson,
-                    r.rollout_ratio()
-                )
-            }
+            TaskReport::FitMaterial(r) => r.headline(),
             TaskReport::SelectModel(r) => {
                 let top = r
                     .ensemble

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use deform_integrator::Scene;
 use deform_learn::LearnError;
 use deform_learn::npy;
-use deform_studies::{Data, Experiment, NoProgress, TaskReport, run};
+use deform_studies::{Data, Experiment, NoProgress, TaskReport, run, write_report};
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -363,14 +363,42 @@ fn noisy_imported_positions_give_the_moduli_with_estimated_starts() {
     };
     let fit = r.output_error.as_ref().unwrap();
     eprintln!(
-        "E {:.3} %, nu {:.3} %, {} iterations, start correction {:?}",
-        100.0 * r.young_error(),
-        100.0 * r.poisson_error(),
-        fit.iterations.len(),
+        "{}, {} iterations, start correction {:?}",
+        r.headline(),
+        fit.iteration_count(),
         fit.start_correction
     );
     assert!(fit.start_correction.is_some());
-    assert!(r.young_error() < 0.005 && r.poisson_error() < 0.02);
+    assert!(r.young_error() < Some(0.005) && r.poisson_error() < Some(0.02));
+}
+
+/// No text file under `dir` holds a NaN (CSV, markdown, RON).
+fn assert_no_nan_written(dir: &Path) {
+    for entry in walk(dir) {
+        let ext = entry.extension().and_then(|e| e.to_str());
+        if matches!(ext, Some("csv" | "md" | "ron")) {
+            let text = std::fs::read_to_string(&entry).unwrap();
+            assert!(
+                !text.to_lowercase().contains("nan"),
+                "{}:\n{text}",
+                entry.display()
+            );
+        }
+    }
+}
+
+/// Every file under `dir`.
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            files.extend(walk(&path));
+        } else {
+            files.push(path);
+        }
+    }
+    files
 }
 
 /// `data` of `shape` as a little-endian float32 `.npy` (numpy's `astype(np.float32)`).
@@ -575,11 +603,41 @@ fn a_capture_of_markers_fits_the_moduli_from_the_runner() {
         "Experiment(name: \"capture\", scene: \"guess.ron\", import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{}], split: (0.5, 0.25)), task: FitMaterial(output_error: Some((rollout: 20, max_iterations: 150, max_evaluations: 150, starts: Some(())))))",
         list.join(", ")
     );
+    // Without output error there is nothing to fit from markers: refused, saying why.
+    let stage1_only = text.replace(
+        "FitMaterial(output_error: Some((rollout: 20, max_iterations: 150, max_evaluations: 150, starts: Some(()))))",
+        "FitMaterial()",
+    );
+    let err = run(
+        &load(dir.path(), &stage1_only).unwrap(),
+        None,
+        &mut NoProgress,
+    )
+    .unwrap_err();
+    assert!(
+        err.to_string().contains("needs `output_error`")
+            && err.to_string().contains("markers only"),
+        "{err}"
+    );
     let e = load(dir.path(), &text).unwrap();
-    let report = run(&e, None, &mut NoProgress).unwrap();
+    let out = dir.path().join("out");
+    let report = run(&e, Some(&out), &mut NoProgress).unwrap();
+    let markdown = write_report(&report, &out).unwrap();
+    // Stage 1 did not run: no row, no rollout, no NaN written anywhere.
+    assert!(!markdown.contains("| equation error |"), "{markdown}");
+    assert_no_nan_written(&out);
     let TaskReport::FitMaterial(r) = report.task else {
         panic!("task")
     };
+    assert_eq!(r.rows.len(), 2, "{:?}", r.rows);
+    let names: Vec<&str> = r.rollouts.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["scene's parameters", "fitted"]);
+    let fit = r.output_error.as_ref().unwrap();
+    assert_eq!(
+        (fit.iterations[0].iteration, fit.iterations[0].loss),
+        (0, fit.initial_loss),
+        "iterations.csv starts at the start"
+    );
     assert!(
         matches!(
             r.stage1_unusable,

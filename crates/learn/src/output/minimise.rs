@@ -281,17 +281,19 @@ impl Observe<IterState<Vec<f64>, Vec<f64>, (), (), (), f64>> for Recorder {
         state: &IterState<Vec<f64>, Vec<f64>, (), (), (), f64>,
         _kv: &KV,
     ) -> Result<(), ArgminError> {
-        let coefficients = state
-            .get_param()
-            .map(|p| from_log(&self.start, &self.lower, p))
-            .unwrap_or_default();
+        // A failed line search ends the run with the parameters taken out of the state:
+        // that iteration moved nowhere and has no iterate to record.
+        let Some(p) = state.get_param() else {
+            return Ok(());
+        };
         self.records
             .lock()
             .expect("not poisoned")
             .push(FitIteration {
-                iteration: state.get_iter(),
+                // Iteration 0 is the start, recorded before the run.
+                iteration: state.get_iter() + 1,
                 loss: state.get_cost(),
-                coefficients,
+                coefficients: from_log(&self.start, &self.lower, p),
             });
         Ok(())
     }
@@ -415,7 +417,11 @@ pub(super) fn minimise(
     let options = objective.options;
     let (initial_loss, _) = objective.evaluate(initial)?;
     *objective.stopped_by.borrow_mut() = None;
-    let records = Arc::new(Mutex::new(Vec::new()));
+    let records = Arc::new(Mutex::new(vec![FitIteration {
+        iteration: 0,
+        loss: initial_loss,
+        coefficients: initial.to_vec(),
+    }]));
     // More-Thuente finds good first steps where L-BFGS has no curvature yet; the evaluation
     // budget guards against line searches that thrash on a non-smooth loss.
     let problem = LogProblem::new(objective, initial);

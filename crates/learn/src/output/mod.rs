@@ -198,7 +198,7 @@ pub struct OutputErrorFit {
     pub initial_loss: f64,
     /// Loss at the end.
     pub loss: f64,
-    /// Every iteration.
+    /// The start (iteration 0) and every iteration that moved to an iterate.
     pub iterations: Vec<FitIteration>,
     /// Loss evaluations (each is one Backward-Euler step per pair).
     pub evaluations: usize,
@@ -212,6 +212,13 @@ pub struct OutputErrorFit {
     /// starts' free positions from the data (m).
     #[serde(default)]
     pub start_correction: Option<f64>,
+}
+
+impl OutputErrorFit {
+    /// The optimiser's iterations that moved to an iterate (the start not counted).
+    pub fn iteration_count(&self) -> u64 {
+        self.iterations.last().map_or(0, |i| i.iteration)
+    }
 }
 
 /// Coefficients with their loss and gradient.

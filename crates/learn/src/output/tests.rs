@@ -179,6 +179,15 @@ fn a_fit_stopped_by_its_budget_or_patience_reports_which() {
             Termination::Stalled { patience: 1 }
         };
         assert_eq!(fit.termination, expected, "{}", fit.termination.describe());
+        // The record starts at the start and holds no iterate without coefficients (the
+        // stopped line search's last iteration moved nowhere).
+        let first = &fit.iterations[0];
+        assert_eq!((first.iteration, first.loss), (0, fit.initial_loss));
+        assert_eq!(first.coefficients, start);
+        for it in &fit.iterations {
+            assert_eq!(it.coefficients.len(), start.len(), "{it:?}");
+            assert!(it.coefficients.iter().all(|c| c.is_finite()), "{it:?}");
+        }
     }
 }
 
