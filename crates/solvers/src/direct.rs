@@ -281,6 +281,10 @@ impl Cholesky {
 
     /// Solves with the held factor, in place (`x` holds `b` on entry).
     pub(crate) fn solve_in_place(&self, x: &mut [f64]) -> Result<(), SolverError> {
+        crate::kernels::confined(|| self.solve_here(x))
+    }
+
+    fn solve_here(&self, x: &mut [f64]) -> Result<(), SolverError> {
         let n = self.nrows().ok_or(SolverError::NotFactorized)?;
         if !self.is_factorized() {
             return Err(SolverError::NotFactorized);
@@ -409,26 +413,28 @@ fn numeric_ldlt(
     values.resize(symbolic.len_val(), 0.0);
     let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
     let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-    symbolic
-        .factorize_numeric_ldlt(
-            values,
-            matrix,
-            Side::Lower,
-            LdltRegularization::default(),
-            par,
-            MemStack::new(&mut mem),
-            Default::default(),
-        )
-        .map(|_| ())
-        .map_err(|e| match e {
-            faer::linalg::cholesky::ldlt::factor::LdltError::ZeroPivot { index } => {
-                SolverError::NotPositiveDefinite {
-                    pivot: permuted_row(symbolic, index),
-                    value: 0.0,
-                    spent: Some(Box::new(spent(symbolic, setup, start))),
-                }
+    let factor = || {
+        symbolic
+            .factorize_numeric_ldlt(
+                values,
+                matrix,
+                Side::Lower,
+                LdltRegularization::default(),
+                par,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .map(|_| ())
+    };
+    crate::kernels::confined(factor).map_err(|e| match e {
+        faer::linalg::cholesky::ldlt::factor::LdltError::ZeroPivot { index } => {
+            SolverError::NotPositiveDefinite {
+                pivot: permuted_row(symbolic, index),
+                value: 0.0,
+                spent: Some(Box::new(spent(symbolic, setup, start))),
             }
-        })
+        }
+    })
 }
 
 /// The set-up stats of a factorisation that failed: charged as a whole one.

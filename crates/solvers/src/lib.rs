@@ -46,6 +46,7 @@ mod direct;
 mod error;
 mod ic0;
 mod iterative;
+pub mod kernels;
 mod llt;
 mod operator;
 mod ordering;

@@ -11,7 +11,7 @@ use crate::SolverError;
 
 /// `L L^T` of `matrix` into `values` (sized to the analysis), in the precision of `T`; the
 /// outer error is an allocation failure, the inner one faer's non-positive pivot.
-pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
+pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy + Send + Sync>(
     symbolic: &SymbolicCholesky<usize>,
     values: &mut Vec<T>,
     matrix: SparseColMatRef<'_, usize, T>,
@@ -21,17 +21,20 @@ pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy>(
     values.resize(symbolic.len_val(), T::default());
     let req = symbolic.factorize_numeric_llt_scratch::<T>(par, Default::default());
     let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
-    Ok(symbolic
-        .factorize_numeric_llt(
-            values,
-            matrix,
-            Side::Lower,
-            LltRegularization::default(),
-            par,
-            MemStack::new(&mut mem),
-            Default::default(),
-        )
-        .map(|_| ()))
+    let factor = || {
+        symbolic
+            .factorize_numeric_llt(
+                values,
+                matrix,
+                Side::Lower,
+                LltRegularization::default(),
+                par,
+                MemStack::new(&mut mem),
+                Default::default(),
+            )
+            .map(|_| ())
+    };
+    Ok(crate::kernels::confined(factor))
 }
 
 /// `(nnz(L), flops of the numeric factorisation)` from the symbolic structure.

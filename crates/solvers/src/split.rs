@@ -191,6 +191,10 @@ impl Split {
     /// Factorises the matrix with values `data` (in the analysed pattern), the halves in
     /// single precision when `single`.
     pub fn factorize(&mut self, data: &[f64], single: bool) -> Result<(), Failure> {
+        crate::kernels::confined(|| self.factorize_here(data, single))
+    }
+
+    fn factorize_here(&mut self, data: &[f64], single: bool) -> Result<(), Failure> {
         self.sep_factor = Vec::new();
         let [h0, h1] = &mut self.halves;
         let (t0, t1) = rayon::join(|| h0.factorize(data, single), || h1.factorize(data, single));
@@ -229,6 +233,10 @@ impl Split {
 
     /// `x = A^-1 x` with the held factor.
     pub fn solve_in_place(&self, x: &mut [f64]) {
+        crate::kernels::confined(|| self.solve_here(x));
+    }
+
+    fn solve_here(&self, x: &mut [f64]) {
         let [h0, h1] = &self.halves;
         if self.single {
             self.solve_with(x, [&h0.values32, &h1.values32]);
