@@ -246,6 +246,30 @@ fn corpus() -> Vec<Case> {
             names: &["scene.ron", "policy"],
         },
         Case {
+            what: "scene: contact dhat 1e-300 (no default kappa)",
+            input: Scene(
+                scene(
+                    "steps: 2",
+                    "steps: 2, contact: Some((obstacles: [Plane(point: (0.0, 0.0, -1.0), normal: (0.0, 0.0, 1.0))], dhat: Some(1e-300)))",
+                ),
+                None,
+                vec![],
+            ),
+            names: &["scene.ron", "contact.dhat", "1e-300 m", "give kappa"],
+        },
+        Case {
+            what: "scene: contact dhat 1e300 (no default kappa)",
+            input: Scene(
+                scene(
+                    "steps: 2",
+                    "steps: 2, contact: Some((obstacles: [Plane(point: (0.0, 0.0, -1.0), normal: (0.0, 0.0, 1.0))], dhat: Some(1e300)))",
+                ),
+                None,
+                vec![],
+            ),
+            names: &["scene.ron", "contact.dhat", "1e300 m"],
+        },
+        Case {
             what: "experiment: no candidates",
             input: Experiment(experiment("[Direct()]", "[]")),
             names: &["bad.ron", "task.candidates"],

@@ -48,16 +48,28 @@ impl Contact {
         let vertices = deform_mesh::topology::surface_vertices(mesh);
         let (lo, hi) = mesh.bounding_box();
         let dhat = spec.dhat.unwrap_or(1e-3 * (hi - lo).norm());
+        let invalid = |e: deform_contact::ContactError| IntegratorError::Invalid {
+            field: "contact",
+            reason: e.to_string(),
+        };
         let kappa = match spec.kappa {
             Some(kappa) => kappa,
             None => {
                 let unit = Barrier { dhat, kappa: 1.0 };
-                rest_stiffness(mesh, asm, &vertices)? / unit.second(0.5 * dhat)
+                let kappa = rest_stiffness(mesh, asm, &vertices)? / unit.second(0.5 * dhat);
+                // A dhat far from the mesh's scale over- or underflows the barrier's
+                // curvature: say so of dhat, which the user set, not of the kappa derived.
+                if !(kappa > 0.0 && kappa.is_finite()) {
+                    return Err(invalid(deform_contact::ContactError::Invalid {
+                        field: "dhat".into(),
+                        reason: format!(
+                            "{dhat:e} m leaves no default kappa (derived {kappa:e}) on a body {:.3e} m across: choose dhat nearer that scale, or give kappa",
+                            (hi - lo).norm()
+                        ),
+                    }));
+                }
+                kappa
             }
-        };
-        let invalid = |e: deform_contact::ContactError| IntegratorError::Invalid {
-            field: "contact",
-            reason: e.to_string(),
         };
         let mut model =
             ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)

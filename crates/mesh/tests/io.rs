@@ -284,6 +284,37 @@ fn obj_reader_takes_polygons_relative_indices_and_slashes() {
     assert_eq!(s.triangles, vec![[0, 1, 2], [0, 2, 3], [0, 1, 4]]);
 }
 
+/// A UTF-8 byte-order mark before the first line is no part of it: the first vertex is
+/// read (it was dropped, its line unrecognised, and the face then named a missing vertex or
+/// the wrong one).
+#[test]
+fn a_byte_order_mark_does_not_hide_the_first_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bom.obj");
+    std::fs::write(
+        &path,
+        "\u{feff}v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n",
+    )
+    .unwrap();
+    let s = io::read_surface(&path).unwrap();
+    assert_eq!(s.positions.len(), 4);
+    assert_eq!(s.positions[0], nalgebra::Vector3::zeros());
+    assert_eq!(s.triangles, vec![[0, 1, 2]]);
+}
+
+/// A surface in a format deform does not read is refused naming the formats it does,
+/// `.obj` among them.
+#[test]
+fn an_unknown_surface_format_names_obj_among_those_read() {
+    let e = io::read_surface(Path::new("ground.stl")).unwrap_err();
+    assert!(matches!(e, ReadError::UnknownSurfaceFormat { .. }), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("ground.stl") && text.contains(".obj"),
+        "{text}"
+    );
+}
+
 #[test]
 fn bad_obj_files_name_the_file_and_line() {
     let dir = tempfile::tempdir().unwrap();

@@ -101,6 +101,12 @@ pub enum ReadError {
         /// The file.
         path: PathBuf,
     },
+    /// The extension names no surface format deform reads.
+    #[error("{}: unknown surface format (expected .obj, or a tet mesh: .msh, .node or .ele)", path.display())]
+    UnknownSurfaceFormat {
+        /// The file.
+        path: PathBuf,
+    },
 }
 
 /// Why a file could not be written.
@@ -214,11 +220,17 @@ fn parse_failure(path: &Path, data: &[u8], e: ParseError) -> ReadError {
     }
 }
 
+/// A file's bytes, without a UTF-8 byte-order mark (editors on Windows write one; left in,
+/// it hid the first line of an `.obj`, which then went unread).
 fn read_bytes(path: &Path) -> Result<Vec<u8>, ReadError> {
-    fs::read(path).map_err(|error| ReadError::Io {
+    let mut data = fs::read(path).map_err(|error| ReadError::Io {
         path: path.to_owned(),
         error,
-    })
+    })?;
+    if data.starts_with(b"\xEF\xBB\xBF") {
+        data.drain(..3);
+    }
+    Ok(data)
 }
 
 /// Parses `.msh` bytes without validation; `path` only labels errors.
@@ -354,14 +366,19 @@ pub fn read(path: &Path, options: &MeshOptions) -> Result<TetMesh, ReadError> {
 ///
 /// # Errors
 /// Any [`ReadError`] naming the file and line; [`ReadError::InvalidSurface`] for a file with
-/// no triangle.
+/// no triangle, [`ReadError::UnknownSurfaceFormat`] for another extension.
 pub fn read_surface(path: &Path) -> Result<Surface, ReadError> {
     let surface = match path.extension().and_then(|e| e.to_str()) {
         Some("obj") => {
             let data = read_bytes(path)?;
             obj::parse(&data).map_err(|e| parse_failure(path, &data, e))?
         }
-        _ => Surface::boundary(&read(path, &MeshOptions::default())?),
+        Some("msh" | "node" | "ele") => Surface::boundary(&read(path, &MeshOptions::default())?),
+        _ => {
+            return Err(ReadError::UnknownSurfaceFormat {
+                path: path.to_owned(),
+            });
+        }
     };
     surface
         .check()
