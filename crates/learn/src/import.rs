@@ -149,6 +149,10 @@ impl ImportSpec {
 /// [`DatasetError`] naming the file, or the scene's error.
 pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset, DatasetError> {
     let scene = spec.scene(scene);
+    // Positions are checked against the mesh before their velocities are read, so that
+    // transposed positions are blamed on the positions file, not on velocities that do
+    // not match them.
+    let vertices = scene.build_mesh(origin)?.num_vertices();
     let mut read = Vec::with_capacity(spec.trajectories.len());
     for t in &spec.trajectories {
         if let Some(files) = &t.markers {
@@ -166,7 +170,8 @@ pub fn import(spec: &ImportSpec, scene: &Scene, origin: &Path) -> Result<Dataset
                 t.positions.display()
             )));
         }
-        let (mut trajectory, stored) = read_trajectory(&t.positions, velocities, spec.dt)?;
+        let (mut trajectory, stored) =
+            read_trajectory(&t.positions, velocities, spec.dt, Some(vertices))?;
         trajectory.exact_start |= t.exact_start;
         trajectory.conditions = t.conditions.clone();
         let source = Source {
@@ -213,20 +218,32 @@ fn read_markers(
                 return Err(in_file(path, reason));
             }
             let ids = ids.indices().map_err(|r| in_file(path, r))?;
+            let n = built.mesh.num_vertices();
+            if let Some((k, v)) = ids.iter().enumerate().find(|&(_, &v)| v >= n) {
+                let reason = format!("marker {k}: vertex {v} is out of range for {n} vertices");
+                return Err(in_file(path, reason));
+            }
             ids.into_iter()
                 .map(crate::observe::Marker::Vertex)
                 .collect()
         }
         MarkerFiles::Inside { elements, weights } => {
             let (e, w) = (npy::read(elements)?, npy::read(weights)?);
-            if e.shape != [count] || w.shape != [count, 4] {
-                let reason = format!(
-                    "shapes {:?} and {:?}, expected [{count}] and [{count}, 4] (markers)",
-                    e.shape, w.shape
-                );
+            // Each file's own faults are blamed on it.
+            if e.shape != [count] {
+                let reason = format!("shape {:?}, expected [{count}] (markers)", e.shape);
                 return Err(in_file(elements, reason));
             }
+            if w.shape != [count, 4] {
+                let reason = format!("shape {:?}, expected [{count}, 4] (markers)", w.shape);
+                return Err(in_file(weights, reason));
+            }
             let ids = e.indices().map_err(|r| in_file(elements, r))?;
+            let n = built.mesh.num_tets();
+            if let Some((k, e)) = ids.iter().enumerate().find(|&(_, &e)| e >= n) {
+                let reason = format!("marker {k}: element {e} is out of range for {n} elements");
+                return Err(in_file(elements, reason));
+            }
             crate::observe::Marker::in_elements(&built.mesh, &ids, &w.data)
                 .map_err(|err| in_file(weights, err.to_string()))?
         }
@@ -412,7 +429,7 @@ pub fn import_trajectory(
     velocities: Velocities<'_>,
     dt: f64,
 ) -> Result<Trajectory, DatasetError> {
-    read_trajectory(positions, velocities, dt).map(|(t, _)| t)
+    read_trajectory(positions, velocities, dt, None).map(|(t, _)| t)
 }
 
 /// [`import_trajectory`], and how the positions were stored (their dtype, the values not
@@ -421,8 +438,22 @@ fn read_trajectory(
     positions: &Path,
     velocities: Velocities<'_>,
     dt: f64,
+    vertices: Option<usize>,
 ) -> Result<(Trajectory, Array), DatasetError> {
     let a = npy::read(positions)?;
+    if let (Some(n), [frames, found, 3]) = (vertices, &a.shape[..])
+        && *found != n
+    {
+        let hint = match *frames == n {
+            true => " (transposed? the first axis is the frames)",
+            false => "",
+        };
+        return Err(DatasetError::Inconsistent(format!(
+            "{}: shape {:?}, expected (frames, {n}, 3): the scene's mesh has {n} vertices{hint}",
+            positions.display(),
+            a.shape
+        )));
+    }
     let read_v;
     let v = match velocities {
         Velocities::File(path) => {

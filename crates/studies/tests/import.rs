@@ -711,3 +711,98 @@ fn derived_velocities_keep_the_time_of_a_moving_constraint() {
     let loaded = deform_learn::Dataset::load(&dir.path().join("saved")).unwrap();
     assert_eq!(loaded.trajectories[0].start_time, 0.01);
 }
+
+/// Each marker file is blamed for its own faults, saying what it holds: a vertex id out of
+/// range names the ids file (it named the positions), an element out of range the elements
+/// file and a wrong weights shape the weights file (the two were swapped).
+#[test]
+fn bad_marker_files_are_named_for_their_own_faults() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = data("tiny_beam.ron");
+    let scene = Scene::load(&scene_path).unwrap();
+    npy::write(&dir.path().join("x.npy"), &[3, 2, 3], &[0.5; 18]).unwrap();
+    let fail = |markers: &str, files: &[(&str, &[usize], &[f64])]| {
+        for (name, shape, values) in files {
+            npy::write(&dir.path().join(name), shape, values).unwrap();
+        }
+        let t = format!("(positions: \"x.npy\", velocities: Derived, markers: Some({markers}))");
+        let text = format!(
+            "Experiment(name: \"m\", scene: {scene_path:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{t}, {t}], split: (0.5, 0.0)), task: FitMaterial(output_error: Some(())))"
+        );
+        let e = load(dir.path(), &text).unwrap();
+        let Data::Import(spec) = &e.data else {
+            panic!("import")
+        };
+        match deform_learn::import::import(spec, &scene, &scene_path) {
+            Ok(_) => panic!("{markers}: accepted"),
+            Err(err) => err.to_string(),
+        }
+    };
+    let weights: &[f64] = &[0.25; 8];
+    let cases = [
+        (
+            "Vertices(\"ids.npy\")",
+            vec![("ids.npy", &[2][..], &[0.0, 9999.0][..])],
+            ["ids.npy", "vertex 9999 is out of range"],
+        ),
+        (
+            "Inside(elements: \"el.npy\", weights: \"w.npy\")",
+            vec![
+                ("el.npy", &[2][..], &[0.0, 9999.0][..]),
+                ("w.npy", &[2, 4], weights),
+            ],
+            ["el.npy", "element 9999 is out of range"],
+        ),
+        (
+            "Inside(elements: \"el.npy\", weights: \"w.npy\")",
+            vec![
+                ("el.npy", &[2][..], &[0.0, 1.0][..]),
+                ("w.npy", &[2, 3], &weights[..6]),
+            ],
+            ["w.npy", "shape [2, 3], expected [2, 4]"],
+        ),
+        (
+            "Inside(elements: \"el.npy\", weights: \"w.npy\")",
+            vec![
+                ("el.npy", &[3][..], &[0.0, 1.0, 2.0][..]),
+                ("w.npy", &[2, 4], weights),
+            ],
+            ["el.npy", "shape [3], expected [2]"],
+        ),
+    ];
+    for (markers, files, names) in cases {
+        let message = fail(markers, &files);
+        for name in names {
+            assert!(
+                message.contains(name),
+                "{markers}: {message:?} lacks {name:?}"
+            );
+        }
+    }
+}
+
+/// Positions with their first two axes swapped are blamed on the positions file, saying
+/// so, not on the velocities file whose shape then did not match them.
+#[test]
+fn transposed_positions_are_blamed_on_the_positions_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = data("tiny_beam.ron");
+    let scene = Scene::load(&scene_path).unwrap();
+    let n = scene.build_mesh(&scene_path).unwrap().num_vertices();
+    npy::write(&dir.path().join("x.npy"), &[n, 4, 3], &vec![0.5; 12 * n]).unwrap();
+    npy::write(&dir.path().join("v.npy"), &[4, n, 3], &vec![0.0; 12 * n]).unwrap();
+    let t = "(positions: \"x.npy\", velocities: File(\"v.npy\"))";
+    let text = format!(
+        "Experiment(name: \"t\", scene: {scene_path:?}, import: (dt: 0.01, gravity: (0, 0, -9.81), mass: Lumped, trajectories: [{t}, {t}], split: (0.5, 0.0)), task: FitMaterial(output_error: Some(())))"
+    );
+    let e = load(dir.path(), &text).unwrap();
+    let Data::Import(spec) = &e.data else {
+        panic!("import")
+    };
+    let err = deform_learn::import::import(spec, &scene, &scene_path).unwrap_err();
+    let message = err.to_string();
+    assert!(
+        message.contains("x.npy") && message.contains("transposed") && !message.contains("v.npy"),
+        "{message}"
+    );
+}
