@@ -51,10 +51,12 @@ struct DemoExperiment {
 }
 
 pub fn run(args: DemoArgs) -> Result<()> {
-    let file = args
-        .demo
-        .clone()
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/demo.ron"));
+    let file = args.demo.clone().unwrap_or_else(|| {
+        deform_fs::join_clean(
+            Path::new(env!("CARGO_MANIFEST_DIR")),
+            "../assets/demo.ron".as_ref(),
+        )
+    });
     let text =
         std::fs::read_to_string(&file).with_context(|| format!("reading {}", file.display()))?;
     let demo: Demo = ron::from_str(&text).with_context(|| format!("{}", file.display()))?;
@@ -67,7 +69,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     );
 
     let t = Instant::now();
-    let scene = dir.join(&demo.scene);
+    let scene = deform_fs::join_clean(dir, &demo.scene);
     let folder = scene
         .file_stem()
         .map_or("base".to_owned(), |s| s.to_string_lossy().into_owned());
@@ -90,7 +92,7 @@ pub fn run(args: DemoArgs) -> Result<()> {
     )?;
 
     for DemoExperiment { file, about: what } in demo.experiments {
-        let file = dir.join(file);
+        let file = deform_fs::join_clean(dir, &file);
         let name = file
             .file_stem()
             .map_or(String::new(), |s| s.to_string_lossy().into_owned());

@@ -17,6 +17,36 @@ use std::fs;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
+/// `relative` resolved against `dir` (an absolute `relative` stands alone), with `.`
+/// components dropped and each `name/..` pair removed, as users read paths: the runner
+/// printed `xtask/../assets/experiments/../scenes/beam.ron` for `assets/scenes/beam.ron`.
+/// Lexical, like cargo's own paths: a symbolic link followed by `..` is not resolved.
+///
+/// ```
+/// use std::path::Path;
+/// let p = deform_fs::join_clean(Path::new("xtask/../assets/experiments"), Path::new("../scenes/a.ron"));
+/// assert_eq!(p, Path::new("assets/scenes/a.ron"));
+/// ```
+pub fn join_clean(dir: &Path, relative: &Path) -> PathBuf {
+    use std::path::Component;
+    let mut out = PathBuf::new();
+    for c in dir.join(relative).components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir
+                if matches!(out.components().next_back(), Some(Component::Normal(_))) =>
+            {
+                out.pop();
+            }
+            other => out.push(other),
+        }
+    }
+    if out.as_os_str().is_empty() {
+        out.push(".");
+    }
+    out
+}
+
 /// A file that could not be written.
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {error}", path.display())]

@@ -50,7 +50,7 @@ impl MeshSource {
         };
         for file in files {
             if file.is_relative() {
-                *file = dir.join(&*file);
+                *file = deform_fs::join_clean(dir, file);
             }
         }
     }
@@ -276,7 +276,7 @@ impl Scene {
             .flatten()
         {
             if file.is_relative() {
-                *file = dir.join(&*file);
+                *file = deform_fs::join_clean(dir, file);
             }
         }
         for c in &mut scene.constraints {
@@ -287,7 +287,7 @@ impl Scene {
         }
         for m in scene.contact.iter_mut().flat_map(|c| &mut c.meshes) {
             if m.file.is_relative() {
-                m.file = dir.join(&m.file);
+                m.file = deform_fs::join_clean(dir, &m.file);
             }
         }
         scene.validate(path)?;

@@ -466,7 +466,7 @@ impl Experiment {
         let mut e = Self::parse(&text, path)?;
         let dir = path.parent().unwrap_or(Path::new("."));
         if e.scene.is_relative() {
-            e.scene = dir.join(&e.scene);
+            e.scene = deform_fs::join_clean(dir, &e.scene);
         }
         if let Task::SelectSolver {
             held_out,
@@ -478,7 +478,7 @@ impl Experiment {
             let tuned = tune.iter_mut().flat_map(|t| t.scenes.iter_mut());
             for h in held_out.iter_mut().chain(also_train).chain(tuned) {
                 if h.scene.is_relative() {
-                    h.scene = dir.join(&h.scene);
+                    h.scene = deform_fs::join_clean(dir, &h.scene);
                 }
             }
         }
@@ -495,7 +495,7 @@ impl Experiment {
                 .flat_map(|e| [&mut e.elements, &mut e.weights]);
             for file in embedding.chain(region_tags) {
                 if file.is_relative() {
-                    *file = dir.join(&*file);
+                    *file = deform_fs::join_clean(dir, file);
                 }
             }
         }
