@@ -270,6 +270,21 @@ fn corpus() -> Vec<Case> {
             names: &["scene.ron", "contact.dhat", "1e300 m"],
         },
         Case {
+            what: "scene: NaN offset of a mesh obstacle",
+            input: Scene(
+                scene(
+                    "steps: 2",
+                    "steps: 2, contact: Some((obstacles: [], meshes: [(file: \"ground.obj\", offset: (0.0, NaN, 0.0))]))",
+                ),
+                None,
+                vec![(
+                    "ground.obj",
+                    "v -1 -1 -1\nv 3 -1 -1\nv -1 3 -1\nf 1 2 3\n".into(),
+                )],
+            ),
+            names: &["scene.ron", "meshes[0].offset", "NaN"],
+        },
+        Case {
             what: "experiment: no candidates",
             input: Experiment(experiment("[Direct()]", "[]")),
             names: &["bad.ron", "task.candidates"],

@@ -164,6 +164,14 @@ fn read_meshes(meshes: &[MeshObstacle]) -> Result<Vec<deform_contact::Surface>, 
         .iter()
         .enumerate()
         .map(|(i, m)| {
+            // Checked before the file is read: a non-finite offset was reported as a
+            // vertex's non-finite coordinate, which the file does not hold.
+            if !m.offset.iter().all(|c| c.is_finite()) {
+                return Err(IntegratorError::Invalid {
+                    field: "contact",
+                    reason: format!("meshes[{i}].offset: {:?} must be finite", m.offset),
+                });
+            }
             let surface =
                 deform_mesh::io::read_surface(&m.file).map_err(|e| IntegratorError::Invalid {
                     field: "contact",
