@@ -53,6 +53,33 @@ def test_a_material_fit_on_data_made_in_python():
     assert alone["stage2"] is None and abs(alone["E"] / 1e5 - 1) < 1e-3
 
 
+def test_a_fit_stopped_on_its_cap_warns_and_starts_are_estimated_on_request():
+    """Noisy positions: `starts=True` estimates the rollouts' first states (the fit reports
+    their correction); a fit stopped by its iteration cap says so, as a UserWarning and in
+    `termination` and `warnings`."""
+    truth = deform.Simulation(deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4)))
+    rng = np.random.default_rng(5)
+    free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
+    noisy = []
+    for _ in range(2):
+        kick = np.zeros_like(truth.v)
+        kick[free] = rng.normal(0, 0.5, (len(free), 3))
+        truth.x = truth.mesh.vertices
+        x, _ = record(truth, 6, kick)
+        x[:, free] += rng.normal(0, 1e-4, x[:, free].shape)
+        noisy.append(deform.Trajectory(x, 0.01))
+    guess = deform.Scene.from_ron(SCENE.format(e=2e5, nu=0.3))
+    with pytest.warns(UserWarning, match="stopped on its iteration cap"):
+        fit = deform.fit_material(guess, noisy, rollout=5, max_iterations=1, starts=True)
+    assert fit["termination"] == "iteration cap"
+    assert any("iteration cap" in w for w in fit["warnings"])
+    assert fit["stage2"]["start_correction"] is not None
+    # Without starts, none are estimated; markers cannot go without them.
+    with pytest.warns(UserWarning):
+        plain = deform.fit_material(guess, noisy, rollout=5, max_iterations=1, starts=False)
+    assert plain["stage2"]["start_correction"] is None
+
+
 def test_a_capture_of_markers_gives_the_material():
     """Only markers seen (4 vertices, 2 points inside elements): the first state estimated,
     stage 1 skipped, stage 2 over whole trajectories refining their starts."""

@@ -207,11 +207,16 @@ fn stack<'py>(py: Python<'py>, frames: &[Vec<f64>]) -> PyResult<Bound<'py, PyArr
 
 /// Fits the scene's material (its Lame pair, and Rayleigh damping with `damping`) to
 /// `trajectories`: stage 1 by equation error, then (with `rollout > 0`) stage 2 by output
-/// error on `rollout`-step rollouts with adjoint gradients (L-BFGS, `max_iterations`),
-/// from stage 1's estimate when it is a material, else from the scene's. Returns a dict:
-/// `stage1` and `stage2` (deform's fit reports) and the fitted `E`, `nu`, `mu`, `lam`.
+/// error on `rollout`-step rollouts with adjoint gradients (L-BFGS, `max_iterations`, at
+/// most `max_evaluations` loss evaluations, 200 by default), from stage 1's estimate when it
+/// is a material, else from the scene's. `starts` estimates the rollouts' first free
+/// positions with the material (noisy data; by default only for markers, which need it).
+/// Returns a dict: `stage1` and `stage2` (deform's fit reports), `termination` (how stage 2
+/// stopped), `warnings`, and the fitted `E`, `nu`, `mu`, `lam`. A `UserWarning` is raised
+/// when stage 1 is unusable or stage 2 stops on its iteration cap or evaluation budget.
 #[pyfunction]
-#[pyo3(signature = (scene, trajectories, *, damping = false, rollout = 10, max_iterations = 40))]
+#[pyo3(signature = (scene, trajectories, *, damping = false, rollout = 10, max_iterations = 40, max_evaluations = None, starts = None))]
+#[allow(clippy::too_many_arguments)]
 fn fit_material<'py>(
     py: Python<'py>,
     scene: &Scene,
@@ -219,8 +224,17 @@ fn fit_material<'py>(
     damping: bool,
     rollout: usize,
     max_iterations: u64,
+    max_evaluations: Option<usize>,
+    starts: Option<bool>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let data: Vec<&deform_learn::Trajectory> = trajectories.iter().map(|t| &t.trajectory).collect();
+    let markers = data.iter().any(|t| t.observed.is_some());
+    if markers && starts == Some(false) {
+        return Err(pyo3::exceptions::PyValueError::new_err(
+            "starts=False with marker trajectories: their first states are estimates, which stage 2 must refine",
+        ));
+    }
+    let starts = starts.unwrap_or(markers);
     let built = scene.scene.build(&scene.origin).map_err(errors::scene)?;
     let mut sim = built.integrator;
     let (stage1, stage2) = py
@@ -231,7 +245,6 @@ fn fit_material<'py>(
             };
             // Markers only: no stage 1 (it needs whole states); stage 2 over whole
             // trajectories, refining their estimated first states.
-            let markers = data.iter().any(|t| t.observed.is_some());
             let stage1 = match markers {
                 false => Some(fit_equation_error(&sim, &data, options)?),
                 true => None,
@@ -251,12 +264,12 @@ fn fit_material<'py>(
             let options = OutputErrorOptions {
                 rollout: if markers { rollout.max(whole) } else { rollout },
                 max_iterations,
-                max_evaluations: if markers {
+                max_evaluations: max_evaluations.unwrap_or(if markers {
                     200.max(max_iterations as usize)
                 } else {
                     200
-                },
-                starts: markers.then(Default::default),
+                }),
+                starts: starts.then(Default::default),
                 ..Default::default()
             };
             let fit = fit_output_error(&mut sim, &data, &start, options, |_, _| {})?;
@@ -286,7 +299,41 @@ fn fit_material<'py>(
         Some(f) => out.set_item("stage2", to_python(py, f)?)?,
         None => out.set_item("stage2", py.None())?,
     }
+    let termination = stage2.as_ref().map(|f| f.termination.describe());
+    out.set_item("termination", termination)?;
+    let warnings = fit_warnings(stage1.as_ref(), stage2.as_ref());
+    for w in &warnings {
+        let message = std::ffi::CString::new(w.as_str()).unwrap_or_default();
+        let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+        PyErr::warn(py, &category, &message, 1)?;
+    }
+    out.set_item("warnings", warnings)?;
     Ok(out.into_any())
+}
+
+/// What a user of a material fit must know: stage 1's estimate unusable, stage 2 stopped by
+/// its iteration cap or evaluation budget rather than converged.
+fn fit_warnings(
+    stage1: Option<&deform_learn::EquationErrorFit>,
+    stage2: Option<&deform_learn::OutputErrorFit>,
+) -> Vec<String> {
+    use deform_learn::output::Termination;
+    let mut warnings = Vec::new();
+    if let Some(why) = stage1.and_then(|s| s.unusable()) {
+        warnings.push(format!("stage 1 (equation error) is unusable: {why}"));
+    }
+    if let Some(f) = stage2
+        && matches!(
+            f.termination,
+            Termination::MaxIterations | Termination::Budget { .. }
+        )
+    {
+        warnings.push(format!(
+            "stage 2 (output error) stopped on its {} without converging: raise max_iterations or max_evaluations",
+            f.termination.describe()
+        ));
+    }
+    warnings
 }
 
 /// Model selection: a non-negative weighted ensemble of `models` (names as `Material`

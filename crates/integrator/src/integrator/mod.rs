@@ -83,7 +83,8 @@ pub struct NewtonOptions {
     pub abs: f64,
     /// ... or when `||r|| <= rel ||r_0||` (first iterate of the step).
     pub rel: f64,
-    /// ... or when the max-norm of a position update is below this (m); 0 disables.
+    /// ... or when the max-norm of a position update is below this (m) and the residual is
+    /// below the step's first; 0 disables.
     pub update: f64,
     /// Iteration cap.
     pub max_iterations: usize,

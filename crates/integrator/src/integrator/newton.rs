@@ -356,15 +356,19 @@ impl Integrator {
     }
 
     /// Stage 2: `||r|| <= max(abs, rel ||r_0||)` (at iteration 0 only `abs`), or the last
-    /// position update below `update`.
+    /// position update below `update` (when set) with the residual below its start. A
+    /// zero update with the default `update` of 0 once counted, and so did one that left the
+    /// residual where it was: a step that went nowhere (a NaN direction zeroed by the line
+    /// search) was accepted as converged.
     pub(super) fn converged(&self, iteration: usize, rn: f64, report: &StepReport) -> bool {
         let n = &self.options.newton;
         let last_update = report
             .iterations
             .last()
             .map_or(f64::INFINITY, |it| it.update);
+        let small_update = n.update > 0.0 && last_update <= n.update;
         rn <= n.abs.max(n.rel * report.initial_residual) && (iteration > 0 || rn <= n.abs)
-            || (iteration > 0 && last_update <= n.update)
+            || (iteration > 0 && small_update && rn < report.initial_residual)
     }
 
     /// Stage 2, when the tolerance is out of reach: well past the start (`rn <= 1e-8 r_0`),
@@ -514,4 +518,53 @@ pub(super) fn retryable(e: &StepError) -> bool {
             ..
         }
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An iteration of a step's report that moved `update` and left the residual at
+    /// `residual`.
+    fn iteration(residual: f64, update: f64) -> IterationReport {
+        IterationReport {
+            iteration: 0,
+            residual,
+            energy: 0.0,
+            solver: ron::from_str("Direct()").unwrap(),
+            setup: Default::default(),
+            solve: deform_solvers::SolveStats::new("direct".into(), residual),
+            fallback: false,
+            step_length: 0.0,
+            step_bound: 1.0,
+            update,
+            seconds: 0.0,
+            stages: Default::default(),
+            candidates: Vec::new(),
+            discarded: Vec::new(),
+        }
+    }
+
+    /// A step that went nowhere (update 0, residual 8.9 -> 8.9) is not converged: not with
+    /// the default `update` of 0 (it was: 0 <= 0), nor with an update tolerance set, since
+    /// its residual did not drop. A small update that did lower the residual still counts.
+    #[test]
+    fn a_step_that_went_nowhere_is_not_converged() {
+        let scene = crate::Scene::parse(
+            "Scene(name: \"t\", mesh: Beam(1), material: NeoHookean(Young(e: 1e5, nu: 0.4)), density: 1000.0, integrator: (dt: 0.01), steps: 1)",
+            std::path::Path::new("t.ron"),
+        )
+        .unwrap();
+        let mut sim = scene.build(std::path::Path::new(".")).unwrap().integrator;
+        let mut report = StepReport {
+            initial_residual: 8.9,
+            ..StepReport::default()
+        };
+        report.iterations.push(iteration(8.9, 0.0));
+        assert!(!sim.converged(1, 8.9, &report));
+        sim.options.newton.update = 1e-6;
+        assert!(!sim.converged(1, 8.9, &report));
+        report.iterations[0].update = 1e-7;
+        assert!(sim.converged(1, 1.0, &report));
+    }
 }

@@ -150,6 +150,8 @@ def fit_material(
     damping: bool = False,
     rollout: int = 10,
     max_iterations: int = 40,
+    max_evaluations: Optional[int] = None,
+    starts: Optional[bool] = None,
 ) -> dict[str, Any]: ...
 
 class Dataset:
