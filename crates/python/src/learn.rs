@@ -311,6 +311,36 @@ fn fit_material<'py>(
     Ok(out.into_any())
 }
 
+/// Warns of a coarse model whose fit stopped on its cap or budget, or failed a free rollout.
+fn coarse_fit_warnings(
+    py: Python<'_>,
+    m: &deform_studies::coarsen::CoarseModelFit,
+    unstable: Option<&str>,
+) -> PyResult<()> {
+    use deform_learn::output::Termination;
+    let name = m.model.name();
+    let mut warnings = Vec::new();
+    if let Some(why) = unstable {
+        warnings.push(format!(
+            "{name}: the fitted model failed a free rollout ({why}); its start stands"
+        ));
+    }
+    if let Some(t) = m.fit.as_ref().map(|f| &f.termination)
+        && matches!(t, Termination::MaxIterations | Termination::Budget { .. })
+    {
+        warnings.push(format!(
+            "{name}: the fit stopped on its {} without converging",
+            t.describe()
+        ));
+    }
+    for w in warnings {
+        let message = std::ffi::CString::new(w).unwrap_or_default();
+        let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+        PyErr::warn(py, &category, &message, 1)?;
+    }
+    Ok(())
+}
+
 /// What a user of a material fit must know: stage 1's estimate unusable, stage 2 stopped by
 /// its iteration cap or evaluation budget rather than converged.
 fn fit_warnings(
@@ -534,8 +564,11 @@ impl Dataset {
     /// fitted model must run freely over every training and validation trajectory, or it
     /// is replaced by the model its fit started from. With `save` (a folder), the
     /// per-element model is written there as the scene `name.ron` with its field. Returns
-    /// a dict: `models` (name, fit, alpha, gamma, unstable), `regularisation`, `chosen`,
-    /// `files`.
+    /// a dict: `models` (name, fit, alpha, gamma, unstable, and `validation_error` and
+    /// `test_error`: the mean free-rollout position error in m on the validation and the
+    /// held-out test trajectories, `None` for an empty split), `regularisation`, `chosen`,
+    /// `files`. A `UserWarning` is raised for each fit that stopped on its iteration cap or
+    /// evaluation budget, or whose model failed a free rollout.
     #[pyo3(signature = (*, regions = 8, tags = None, regularisation = vec![0.0, 1e-3, 1e-2], damping = true, rollout = 10, max_iterations = 50, save = None, name = "coarse".to_owned()))]
     #[allow(clippy::too_many_arguments)]
     fn fit_coarse<'py>(
@@ -565,19 +598,20 @@ impl Dataset {
             ..CoarseSettings::new(scene.integrator.newton.max_iterations, options)
         };
         let origin = save.clone().unwrap_or_default().join(format!("{name}.ron"));
-        let (fits, files) = py
+        let (fits, files, errors) = py
             .detach(|| {
                 let fits = fit_coarse_models(&self.dataset, &origin, &settings, &mut NoProgress)?;
                 let files = match &save {
                     Some(dir) => fits.save(scene, &name, dir)?,
                     None => Vec::new(),
                 };
-                Ok::<_, deform_learn::LearnError>((fits, files))
+                let errors = fits.split_errors(&self.dataset, &origin)?;
+                Ok::<_, deform_learn::LearnError>((fits, files, errors))
             })
             .map_err(errors::learn)?;
         let out = PyDict::new(py);
         let models = pyo3::types::PyList::empty(py);
-        for m in &fits.models {
+        for (m, e) in fits.models.iter().zip(errors) {
             let row = PyDict::new(py);
             row.set_item("name", m.model.name())?;
             match &m.fit {
@@ -587,8 +621,11 @@ impl Dataset {
             row.set_item("alpha", m.options.alpha)?;
             row.set_item("gamma", m.options.gamma)?;
             let unstable = m.fit.as_ref().and_then(|f| f.unstable.clone());
-            row.set_item("unstable", unstable)?;
+            row.set_item("unstable", unstable.clone())?;
+            row.set_item("validation_error", e.validation)?;
+            row.set_item("test_error", e.test)?;
             models.append(row)?;
+            coarse_fit_warnings(py, m, unstable.as_deref())?;
         }
         out.set_item("models", models)?;
         out.set_item("regularisation", fits.regularisation.clone())?;

@@ -793,7 +793,46 @@ fn save_case(
     fits.save(scene, &format!("coarse_{}x_dt", case.dt_factor), out)
 }
 
+/// A model's mean free-rollout position error (m) on the validation and the test
+/// (held-out) trajectories; `None` for an empty split, infinite where a rollout failed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
+pub struct SplitErrors {
+    /// On the validation trajectories (which chose among the models).
+    pub validation: Option<f64>,
+    /// On the test trajectories (seen by no fit and no choice).
+    pub test: Option<f64>,
+}
+
 impl CoarseFits {
+    /// Each model's [`SplitErrors`] on `data`, in `models`' order. `data` and `origin` are
+    /// those the models were fitted with: how a caller tells which model is good.
+    ///
+    /// # Errors
+    /// [`LearnError`] when a model does not fit the scene; a rollout that fails makes that
+    /// figure infinite rather than an error (the model is no good there).
+    pub fn split_errors(
+        &self,
+        data: &Dataset,
+        origin: &Path,
+    ) -> Result<Vec<SplitErrors>, LearnError> {
+        let mut sim = data.meta.scene.build(origin)?.integrator;
+        let (validation, test) = (data.split(Split::Validation), data.split(Split::Test));
+        let error = |sim: &mut Integrator, set: &[&Trajectory]| {
+            (!set.is_empty())
+                .then(|| mean_rollout_errors(sim, set).map_or(f64::INFINITY, |e| mean_error(&e)))
+        };
+        let mut out = Vec::with_capacity(self.models.len());
+        for m in &self.models {
+            m.apply(&mut sim)?;
+            out.push(SplitErrors {
+                validation: error(&mut sim, &validation),
+                test: error(&mut sim, &test),
+            });
+        }
+        Ok(out)
+    }
+
     /// Saves the per-element model as the scene `NAME.ron` over `scene` (the coarse model's
     /// mesh, material family and constraints), with its field beside it, and the field as
     /// cell data for ParaView (`NAME_field.vtu`); returns the files, relative to `out`.
