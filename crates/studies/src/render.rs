@@ -50,15 +50,25 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
             i.noise
         ),
     };
+    // Coarsening learns a model per coarse step, each in its own section.
+    let steps = match &report.task {
+        TaskReport::Coarsen(_) => {
+            "The coarse models step with the multiples of the data's dt their sections name."
+                .to_owned()
+        }
+        _ => format!(
+            "The learned model steps with dt = {} s ({}x the data's).",
+            report.learned_dt,
+            report.data.subsample()
+        ),
+    };
     let mut md = format!(
-        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\n{data} Saved in `dataset/` (RON + .npy, see docs/experiments.md). The learned model steps with dt = {} s ({}x the data's).\n\n",
+        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\n{data} Saved in `dataset/` (RON + .npy, see docs/experiments.md). {steps}\n\n",
         report.name,
         report.scene.display(),
         report.vertices,
         report.tets,
         report.material,
-        report.learned_dt,
-        report.data.subsample()
     );
     match &report.task {
         TaskReport::FitMaterial(r) => fit_material(r, &mut md)?,
