@@ -313,7 +313,7 @@ fn corpus() -> Vec<Case> {
                 experiment("split: (0.34, 0.33)", "split: (0.6, 0.2)")
                     .replace("SelectSolver(candidates: [Direct()])", "FitMaterial()"),
             ),
-            names: &["bad.ron", "dataset.split"],
+            names: &["bad.ron", "dataset.split", "use split: (0.667, 0.000)"],
         },
         Case {
             what: "experiment: negative noise",

@@ -781,17 +781,19 @@ impl Experiment {
             Task::TuneBackwardEuler { members, .. } => !members.is_empty(),
             _ => false,
         };
-        let (_, validation, _) = deform_learn::dataset::split_counts(count, (a, b));
-        if needs_validation && validation == 0 {
+        let (_, validation, test) = deform_learn::dataset::split_counts(count, (a, b));
+        let missing = match (needs_validation && validation == 0, needs_test && test == 0) {
+            (true, _) => Some("validation"),
+            (false, true) => Some("test"),
+            (false, false) => None,
+        };
+        if let Some(which) = missing {
+            let advice = split_advice(count, needs_validation, needs_test);
             return Err((
                 split,
-                format!("({a}, {b}) of {count} trajectories leaves no validation trajectory"),
-            ));
-        }
-        if needs_test && deform_learn::dataset::split_counts(count, (a, b)).2 == 0 {
-            return Err((
-                split,
-                format!("({a}, {b}) of {count} trajectories leaves no test trajectory"),
+                format!(
+                    "({a}, {b}) of {count} trajectories leaves no {which} trajectory: {advice}"
+                ),
             ));
         }
         if let Some(n) = self.data.noise()
@@ -803,5 +805,57 @@ impl Experiment {
             return Err((noise, format!("{n:?}: levels must be finite and >= 0")));
         }
         Ok(())
+    }
+}
+
+/// What to write instead of a split that leaves no validation or test trajectory: a split
+/// of `count` trajectories with one of each that the task needs and the rest for training,
+/// or how many trajectories it needs.
+fn split_advice(count: usize, validation: bool, test: bool) -> String {
+    let (v, t) = (usize::from(validation), usize::from(test));
+    let needed = 1 + v + t;
+    if count < needed {
+        return format!(
+            "this task needs at least {needed} trajectories (train, and one each for validation and test as it uses them)"
+        );
+    }
+    let fraction = |k: usize| k as f64 / count as f64;
+    format!(
+        "use split: ({:.3}, {:.3}) ({} train, {v} validation, {t} test)",
+        fraction(count - v - t),
+        fraction(v),
+        count - v - t
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The advised split, as printed, gives every count from 2 to 200 the trajectories the
+    /// task needs (at least one to train on).
+    #[test]
+    fn the_advised_split_leaves_what_the_task_needs() {
+        for count in 1..=200 {
+            for (validation, test) in [(false, true), (true, false), (true, true)] {
+                let advice = split_advice(count, validation, test);
+                let Some(rest) = advice.strip_prefix("use split: (") else {
+                    assert!(count < 1 + usize::from(validation) + usize::from(test), "{advice}");
+                    continue;
+                };
+                let numbers: Vec<f64> = rest
+                    .split(')')
+                    .next()
+                    .unwrap()
+                    .split(", ")
+                    .map(|x| x.parse().unwrap())
+                    .collect();
+                let (train, v, t) =
+                    deform_learn::dataset::split_counts(count, (numbers[0], numbers[1]));
+                assert!(train >= 1, "{count}: {advice}");
+                assert!(!validation || v >= 1, "{count}: {advice}");
+                assert!(!test || t >= 1, "{count}: {advice}");
+            }
+        }
     }
 }

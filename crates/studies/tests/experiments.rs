@@ -528,7 +528,10 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     // The report does not claim one learned step for models of several: each section names
     // its own, as the cases have them.
     let markdown = deform_studies::write_report(&report, dir.path()).unwrap();
-    assert!(!markdown.contains("The learned model steps with"), "{markdown}");
+    assert!(
+        !markdown.contains("The learned model steps with"),
+        "{markdown}"
+    );
     for c in &r.cases {
         let section = format!("## Coarse step {}x (dt = {} s)", c.dt_factor, c.dt);
         assert!(markdown.contains(&section), "{section}");
