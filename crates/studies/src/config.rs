@@ -840,7 +840,10 @@ mod tests {
             for (validation, test) in [(false, true), (true, false), (true, true)] {
                 let advice = split_advice(count, validation, test);
                 let Some(rest) = advice.strip_prefix("use split: (") else {
-                    assert!(count < 1 + usize::from(validation) + usize::from(test), "{advice}");
+                    assert!(
+                        count < 1 + usize::from(validation) + usize::from(test),
+                        "{advice}"
+                    );
                     continue;
                 };
                 let numbers: Vec<f64> = rest

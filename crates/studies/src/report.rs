@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::coarsen::{CoarseModel, CoarsenReport};
 use crate::fit_material::FitMaterialReport;
 use crate::select_model::SelectModelReport;
-use crate::select_solver::{CaseReport, Key, PolicyRow, SelectSolverReport};
+use crate::select_solver::{CaseReport, PolicyRow, SelectSolverReport};
 use crate::series::Series;
 use crate::story::StoryReport;
 use crate::tune_solver::TuneSolverReport;
@@ -192,16 +192,7 @@ impl ExperimentReport {
             TaskReport::SelectSolver(r) => r
                 .cases
                 .last()
-                .and_then(|c| {
-                    let l = c.learned()?;
-                    Some(format!(
-                        "{}: {} / best fixed without reuse {:.2}x work, {:.2}x solver time",
-                        c.label,
-                        l.contender.name(),
-                        c.ratio_to_best(l, true, Key::Work)?,
-                        c.ratio_to_best(l, true, Key::SolverSeconds)?
-                    ))
-                })
+                .and_then(CaseReport::headline)
                 .unwrap_or_default(),
             TaskReport::TuneBackwardEuler(r) => {
                 let (e, w, t) = r.ratios();

@@ -4,6 +4,7 @@
 //! Eisenstat-Walker rule and the hand schedule on the test trajectories and on held-out
 //! scenes ([`deform_learn::compare`]).
 
+use std::fmt::Write as _;
 use std::path::PathBuf;
 
 use deform_integrator::{
@@ -197,6 +198,30 @@ impl CaseReport {
     pub fn ratio_to_best(&self, row: &PolicyRow, without_reuse: bool, key: Key) -> Option<f64> {
         let best = self.best_fixed(without_reuse, key)?;
         Some(key.of(&row.measured) / key.of(&best.measured).max(f64::MIN_POSITIVE))
+    }
+
+    /// The case's summary, from its table: the learned policy's work and solver time over
+    /// the best fixed solver's (without factor reuse) and, when its Newton settings were
+    /// tuned, the work of its solver choice alone (over the direct solver with the same
+    /// settings), so that a gain is credited to the choice or to the tuning as the table
+    /// does.
+    pub fn headline(&self) -> Option<String> {
+        let l = self.learned()?;
+        let work = self.ratio_to_best(l, true, Key::Work)?;
+        let time = self.ratio_to_best(l, true, Key::SolverSeconds)?;
+        let mut line = format!(
+            "{}: {} / best fixed without reuse {work:.2}x work, {time:.2}x solver time",
+            self.label,
+            l.contender.name()
+        );
+        if let Some((_, d, [choice, ..])) = self.solver_choice_alone() {
+            let _ = write!(
+                line,
+                "; the solver choice alone {choice:.2}x the work of {} with the same Newton settings",
+                d.contender.name()
+            );
+        }
+        Some(line)
     }
 
     /// What the learned policy's solver choice adds on top of its tuned Newton settings:

@@ -197,9 +197,39 @@ fn select_model_reports_the_recorded_figures() {
 
 #[test]
 fn select_solver_reports_the_recorded_figures() {
-    let TaskReport::SelectSolver(r) = report("select_solver").task else {
+    let full = report("select_solver");
+    let headline = full.headline();
+    let TaskReport::SelectSolver(r) = full.task else {
         panic!("task")
     };
+    // The summary credits the gain as the last case's table does: the learned policy's
+    // work over the best fixed solver's, and its solver choice alone over the direct solver
+    // with the same tuned Newton settings.
+    let case = r.cases.last().unwrap();
+    let work = |pick: &dyn Fn(&deform_studies::select_solver::PolicyRow) -> bool| {
+        let rows = case.rows.iter().filter(|row| pick(row));
+        rows.map(|row| row.measured.work)
+            .fold(f64::INFINITY, f64::min)
+    };
+    let learned = case.learned().unwrap().measured.work;
+    let best_fixed = work(&|row| {
+        row.contender.is_fixed() && row.within_accuracy() && !row.contender.reuses_factor()
+    });
+    let same_settings = work(&|row| {
+        matches!(
+            row.contender,
+            deform_studies::select_solver::Contender::FixedTunedNewton(..)
+        )
+    });
+    for figure in [
+        format!("best fixed without reuse {:.2}x work", learned / best_fixed),
+        format!(
+            "the solver choice alone {:.2}x the work",
+            learned / same_settings
+        ),
+    ] {
+        assert!(headline.contains(&figure), "{headline:?} lacks {figure:?}");
+    }
     let want = expected("select_solver", "policies.csv");
     let rows: Vec<_> = r
         .cases
