@@ -80,6 +80,14 @@ def test_a_fit_stopped_on_its_cap_warns_and_starts_are_estimated_on_request():
     assert plain["stage2"]["start_correction"] is None
 
 
+def test_states_of_another_mesh_are_refused_saying_what_they_have():
+    scene = deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4))
+    x = np.zeros((3, 5, 3))
+    wrong = deform.Trajectory(x, 0.01, velocities=np.zeros_like(x))
+    with pytest.raises(deform.LearnError, match=r"position state 0 has 15 values, expected \d+"):
+        deform.fit_material(scene, [wrong], rollout=0)
+
+
 def test_a_capture_of_markers_gives_the_material():
     """Only markers seen (4 vertices, 2 points inside elements): the first state estimated,
     stage 1 skipped, stage 2 over whole trajectories refining their starts."""

@@ -154,7 +154,12 @@ fn outside_domains(
             if x.len() != 3 * mesh.num_vertices() {
                 return Err(FitError::Data {
                     index: trajectory,
-                    reason: format!("states must have {} values", 3 * mesh.num_vertices()),
+                    reason: format!(
+                        "position state {step} has {} values, expected {} (3 per vertex of the scene's {} vertices)",
+                        x.len(),
+                        3 * mesh.num_vertices(),
+                        mesh.num_vertices()
+                    ),
                 });
             }
             for element in 0..mesh.num_tets() {

@@ -247,10 +247,18 @@ fn equation_error(
                 reason: "observes only some vertices: the equation error needs whole states (use the output error)".into(),
             });
         }
-        if t.x.iter().chain(&t.v).any(|f| f.len() != n) {
+        let frames = t.x.iter().map(|f| ("position", f));
+        let frames = frames.chain(t.v.iter().map(|f| ("velocity", f)));
+        let wrong = (frames.enumerate()).find(|(_, (_, f))| f.len() != n);
+        if let Some((k, (what, f))) = wrong {
+            let state = if what == "position" { k } else { k - t.x.len() };
             return Err(FitError::Data {
                 index: ti,
-                reason: format!("states must have {n} values (3 per vertex)"),
+                reason: format!(
+                    "{what} state {state} has {} values, expected {n} (3 per vertex of the scene's {} vertices)",
+                    f.len(),
+                    n / 3
+                ),
             });
         }
         let mut external = external_at(sim, t, ti, t.start_time + dt)?;
