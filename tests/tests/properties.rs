@@ -106,13 +106,13 @@ proptest! {
         let data = generate(
             &s,
             Path::new("."),
-            &DatasetSpec { split: (0.34, 0.33), ..DatasetSpec::new(3, 4, seed) },
+            &DatasetSpec::new(3, 4, seed).split((0.34, 0.33)),
             |_, _| {},
         )
         .unwrap();
         let train = data.split(Split::Train);
         let mut sim = s.build(Path::new(".")).unwrap().integrator;
-        let options = OutputErrorOptions { rollout, velocity_weight, ..Default::default() };
+        let options = OutputErrorOptions::default().rollout(rollout).velocity_weight(velocity_weight);
         let objective = OutputError::new(&mut sim, &train, options, |_, _| {}).unwrap();
         let c = [mu, lambda];
         let (loss, grad) = objective.evaluate(&c).unwrap();

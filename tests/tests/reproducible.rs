@@ -18,16 +18,14 @@ fn pipeline() -> Vec<u64> {
     let data = generate(
         &scene,
         &path,
-        &DatasetSpec {
-            variations: Variations {
+        &DatasetSpec::new(3, 6, 11)
+            .variations(Variations {
                 speed: 1.0,
                 spin: 2.0,
                 stretch: 0.1,
                 rest: false,
-            },
-            split: (0.5, 0.2),
-            ..DatasetSpec::new(3, 6, 11)
-        },
+            })
+            .split((0.5, 0.2)),
         |_, _| {},
     )
     .unwrap();
@@ -41,11 +39,7 @@ fn pipeline() -> Vec<u64> {
     let stage1 = fit_equation_error(&sim, &train, Default::default()).unwrap();
     bits.extend(stage1.coefficients.iter().map(|c| c.to_bits()));
     let start: Vec<f64> = stage1.coefficients.iter().map(|c| 1.3 * c).collect();
-    let options = OutputErrorOptions {
-        rollout: 3,
-        max_evaluations: 6,
-        ..Default::default()
-    };
+    let options = OutputErrorOptions::default().rollout(3).max_evaluations(6);
     let stage2 = fit_output_error(&mut sim, &train, &start, options, |_, _| {}).unwrap();
     bits.extend(stage2.coefficients.iter().map(|c| c.to_bits()));
     let candidates: Vec<SolverSpec> = [

@@ -34,6 +34,7 @@ pub enum NpyError {
 
 /// An `f64` array with its shape.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Array {
     /// The shape (C order: the last index varies fastest).
     pub shape: Vec<usize>,
@@ -311,7 +312,21 @@ pub fn rounding_of(dtype: &str) -> f64 {
     }
 }
 
+/// An empty float64 array (shape `[0]`).
+impl Default for Array {
+    fn default() -> Self {
+        Self::new(vec![0], Vec::new())
+    }
+}
+
 impl Array {
+    /// The same values, stored before as numpy's `dtype` (`float32`, `int64`, ...).
+    #[must_use]
+    pub fn with_dtype(mut self, dtype: impl Into<String>) -> Self {
+        self.dtype = dtype.into();
+        self
+    }
+
     /// Float64 values of `shape`.
     ///
     /// # Panics

@@ -17,10 +17,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let tip = (0..mesh.num_vertices())
         .find(|&v| rest[v].x == 1.0)
         .expect("the beam has a tip");
-    let options = IntegratorOptions {
-        gamma: 0.01,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().gamma(0.01);
     let policy = ron::from_str::<PolicySpec>("Fixed(Direct())")?.build()?;
     let constraints = vec![Constraint {
         vertices: clamp,

@@ -46,6 +46,7 @@ mod report;
 mod run;
 pub mod scene;
 mod secant;
+mod setters;
 mod simulate;
 mod state;
 

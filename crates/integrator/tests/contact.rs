@@ -42,10 +42,7 @@ fn sim(mesh: &TetMesh, obstacles: Vec<Obstacle>, dt: f64, policy: &str) -> Integ
         .unwrap();
     Integrator::builder(mesh, MaterialField::Uniform(model))
         .density(1000.0)
-        .options(IntegratorOptions {
-            dt,
-            ..Default::default()
-        })
+        .options(IntegratorOptions::default().dt(dt))
         .policy(
             ron::from_str::<PolicySpec>(policy)
                 .unwrap()
@@ -264,11 +261,7 @@ fn sim_with_push(mesh: &TetMesh) -> Integrator {
                 until: None,
             },
         }])
-        .options(IntegratorOptions {
-            dt: 1e-3,
-            max_retries: 0,
-            ..Default::default()
-        })
+        .options(IntegratorOptions::default().dt(1e-3).max_retries(0))
         .contact(ContactSpec {
             obstacles: vec![GROUND],
             ..Default::default()
@@ -337,11 +330,9 @@ fn incline_travel_on(contact: ContactSpec, mu: f64, steps: usize, dt: f64) -> (f
         .unwrap()
         .build()
         .unwrap();
-    let options = IntegratorOptions {
-        dt,
-        gravity: [0.0, 0.0, -9.81 * theta.cos()],
-        ..Default::default()
-    };
+    let options = IntegratorOptions::default()
+        .dt(dt)
+        .gravity([0.0, 0.0, -9.81 * theta.cos()]);
     let mut sim = Integrator::builder(&mesh, MaterialField::Uniform(model))
         .density(1000.0)
         .options(options.clone())
@@ -354,11 +345,7 @@ fn incline_travel_on(contact: ContactSpec, mu: f64, steps: usize, dt: f64) -> (f
     // little; so the cube settles by 60 damped steps there.
     let mut s = sim.rest_state();
     if contact_on_mesh {
-        sim.set_options(IntegratorOptions {
-            gamma: 0.01,
-            ..options.clone()
-        })
-        .unwrap();
+        sim.set_options(options.clone().gamma(0.01)).unwrap();
         for _ in 0..60 {
             sim.step(&mut s).unwrap();
         }
@@ -366,11 +353,8 @@ fn incline_travel_on(contact: ContactSpec, mu: f64, steps: usize, dt: f64) -> (f
     } else {
         sim.solve_static(&mut s).unwrap();
     }
-    sim.set_options(IntegratorOptions {
-        gravity: [9.81 * theta.sin(), 0.0, -9.81 * theta.cos()],
-        ..options
-    })
-    .unwrap();
+    sim.set_options(options.gravity([9.81 * theta.sin(), 0.0, -9.81 * theta.cos()]))
+        .unwrap();
     let masses = sim.assembly().vertex_masses(sim.mass());
     let com = |s: &State| {
         masses

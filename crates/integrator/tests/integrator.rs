@@ -101,10 +101,7 @@ fn scaled_masses_carry_gravity_with_them_and_are_validated() {
 #[test]
 fn momentum_is_conserved_and_energy_is_dissipated_without_external_forces() {
     let mesh = beam();
-    let options = IntegratorOptions {
-        gravity: [0.0; 3],
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().gravity([0.0; 3]);
     let mut s = sim(&mesh, vec![], options, "Fixed(Direct())");
     let mut state = s.rest_state();
     // A stretched, spinning, drifting start.
@@ -146,11 +143,7 @@ fn momentum_is_conserved_and_energy_is_dissipated_without_external_forces() {
 fn static_equilibrium_balances_gravity_and_damped_dynamics_reach_it() {
     let mesh = beam();
     // E = 1e6: the tip sags a few centimetres; alpha = 16 is about critical for the first mode.
-    let options = IntegratorOptions {
-        alpha: 16.0,
-        dt: 0.02,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().alpha(16.0).dt(0.02);
     let mut s = Integrator::builder(&mesh, material("NeoHookean(Young(e: 1e6, nu: 0.4))"))
         .density(1000.0)
         .constraints(clamp(&mesh))
@@ -194,15 +187,9 @@ fn static_equilibrium_balances_gravity_and_damped_dynamics_reach_it() {
 fn every_policy_gives_the_same_trajectory() {
     let mesh = beam();
     let run = |p: &str| {
-        let options = IntegratorOptions {
-            newton: NewtonOptions {
-                rel: 1e-9,
-                abs: 1e-12,
-                ..NewtonOptions::default()
-            },
-            max_retries: 0,
-            ..IntegratorOptions::default()
-        };
+        let options = IntegratorOptions::default()
+            .newton(NewtonOptions::default().rel(1e-9).abs(1e-12))
+            .max_retries(0);
         let mut s = sim(&mesh, clamp(&mesh), options, p);
         let mut state = s.rest_state();
         let mut reports = Vec::new();
@@ -302,10 +289,7 @@ fn kinematic_vertices_follow_their_path() {
         vertices: end.clone(),
         motion: motion.clone(),
     });
-    let options = IntegratorOptions {
-        gravity: [0.0; 3],
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().gravity([0.0; 3]);
     let mut s = sim(&mesh, constraints, options, "Fixed(Direct())");
     let mut state = s.rest_state();
     for _ in 0..10 {
@@ -371,10 +355,7 @@ fn cantilever_tip_deflection_approaches_beam_theory_under_refinement() {
     let mut errors = Vec::new();
     for n in [1, 2, 4, 8] {
         let mesh = BoxGrid::beam(n).build().unwrap();
-        let options = IntegratorOptions {
-            gravity: [0.0, 0.0, -g],
-            ..IntegratorOptions::default()
-        };
+        let options = IntegratorOptions::default().gravity([0.0, 0.0, -g]);
         let mut s = Integrator::builder(
             &mesh,
             material(&format!("LinearElastic(Young(e: {e}, nu: 0.0))")),
@@ -471,10 +452,7 @@ fn loads_change_momentum_by_their_impulse_until_they_stop() {
     let end: Vec<usize> = (0..mesh.num_vertices())
         .filter(|&v| mesh.rest_positions()[v].x > 1.0 - 1e-9)
         .collect();
-    let options = IntegratorOptions {
-        gravity: [0.0; 3],
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().gravity([0.0; 3]);
     let dt = options.dt;
     let force = [3.0, -2.0, 5.0];
     let load = deform_integrator::Load {
@@ -535,10 +513,7 @@ fn conditions_step_like_a_model_built_with_them() {
         });
         c
     };
-    let other = IntegratorOptions {
-        gravity: [0.0, 4.0, 0.0],
-        ..IntegratorOptions::default()
-    };
+    let other = IntegratorOptions::default().gravity([0.0, 4.0, 0.0]);
     let run = |s: &mut Integrator| {
         let mut state = s.rest_state();
         for _ in 0..4 {

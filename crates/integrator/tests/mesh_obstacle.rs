@@ -51,10 +51,7 @@ fn sim_with_offset(
         .unwrap();
     Integrator::builder(mesh, MaterialField::Uniform(model))
         .density(1000.0)
-        .options(IntegratorOptions {
-            dt: 2e-3,
-            ..Default::default()
-        })
+        .options(IntegratorOptions::default().dt(2e-3))
         .policy(
             ron::from_str::<PolicySpec>(policy)
                 .unwrap()

@@ -35,11 +35,7 @@ fn sim(mesh: &TetMesh, contact: ContactSpec, gamma: f64) -> Integrator {
         .unwrap();
     Integrator::builder(mesh, MaterialField::Uniform(model))
         .density(1000.0)
-        .options(IntegratorOptions {
-            dt: 0.005,
-            gamma,
-            ..Default::default()
-        })
+        .options(IntegratorOptions::default().dt(0.005).gamma(gamma))
         .policy(
             ron::from_str::<PolicySpec>("Fixed(Direct())")
                 .unwrap()

@@ -19,16 +19,14 @@ use deform_mesh::generate::BoxGrid;
 fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
     let mesh = beam();
     // A one-iteration cap with tight tolerances cannot converge.
-    let options = IntegratorOptions {
-        newton: NewtonOptions {
-            max_iterations: 1,
-            rel: 1e-12,
-            abs: 0.0,
-            ..NewtonOptions::default()
-        },
-        max_retries: 0,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default()
+        .newton(
+            NewtonOptions::default()
+                .max_iterations(1)
+                .rel(1e-12)
+                .abs(0.0),
+        )
+        .max_retries(0);
     let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
     let mut state = s.rest_state();
     state.v.iter_mut().step_by(3).for_each(|v| *v = 5.0);
@@ -62,10 +60,7 @@ fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
     assert_eq!(state, before);
 
     // Options are validated with the field named.
-    let bad = IntegratorOptions {
-        dt: -1.0,
-        ..IntegratorOptions::default()
-    };
+    let bad = IntegratorOptions::default().dt(-1.0);
     match Integrator::builder(&mesh, material(NH))
         .density(1000.0)
         .constraints(vec![])
@@ -106,15 +101,10 @@ fn failures_are_typed_carry_reports_and_leave_the_state_alone() {
 #[test]
 fn halved_retries_recover_from_a_hard_step() {
     let mesh = beam();
-    let options = IntegratorOptions {
-        dt: 0.05,
-        newton: NewtonOptions {
-            max_iterations: 3,
-            ..NewtonOptions::default()
-        },
-        max_retries: 4,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default()
+        .dt(0.05)
+        .newton(NewtonOptions::default().max_iterations(3))
+        .max_retries(4);
     let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
     let mut state = s.rest_state();
     state
@@ -292,17 +282,15 @@ fn newton_with_the_direct_solver_converges_quadratically() {
     // keeps the positive definite matrix without it, see `Integrator::newton_matrix`).
     let mesh = beam();
     for gamma in [0.0, 0.02] {
-        let options = IntegratorOptions {
-            gamma,
-            newton: NewtonOptions {
-                rel: 1e-13,
-                abs: 1e-13,
-                line_search: false,
-                ..NewtonOptions::default()
-            },
-            max_retries: 0,
-            ..IntegratorOptions::default()
-        };
+        let options = IntegratorOptions::default()
+            .gamma(gamma)
+            .newton(
+                NewtonOptions::default()
+                    .rel(1e-13)
+                    .abs(1e-13)
+                    .line_search(false),
+            )
+            .max_retries(0);
         let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
         let mut state = s.rest_state();
         // A sharp kick: Newton starts far enough away to show its rate.
@@ -483,15 +471,10 @@ fn projection_when_needed_switches_once_the_exact_tangent_fails_and_charges_the_
     let mesh = beam();
     // A beam squashed along its axis, released with a small or a huge time step.
     let run = |project: Projection, dt: f64| {
-        let options = IntegratorOptions {
-            dt,
-            newton: NewtonOptions {
-                project,
-                ..NewtonOptions::default()
-            },
-            max_retries: 0,
-            ..IntegratorOptions::default()
-        };
+        let options = IntegratorOptions::default()
+            .dt(dt)
+            .newton(NewtonOptions::default().project(project))
+            .max_retries(0);
         let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
         let mut state = s.rest_state();
         state.x.iter_mut().step_by(3).for_each(|x| *x *= 0.9);
@@ -582,11 +565,9 @@ fn a_failed_choice_falls_back_to_the_direct_solver_and_is_charged() {
         .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
     assert!(diff < 1e-12, "{diff:e}");
     // Without the fallback the failure is the step's error.
-    let options = IntegratorOptions {
-        fallback_to_direct: false,
-        max_retries: 0,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default()
+        .fallback_to_direct(false)
+        .max_retries(0);
     let mut s = sim(&mesh, clamp(&mesh), options, capped);
     let mut state = s.rest_state();
     assert!(matches!(s.step(&mut state), Err(StepError::Solver { .. })));
@@ -654,11 +635,7 @@ fn the_reported_residual_is_that_of_the_end_state_with_and_without_stiffness_dam
     // reported must be the end state's.
     let mesh = beam();
     for gamma in [0.0, 0.01] {
-        let options = IntegratorOptions {
-            alpha: 0.5,
-            gamma,
-            ..IntegratorOptions::default()
-        };
+        let options = IntegratorOptions::default().alpha(0.5).gamma(gamma);
         let mut s = sim(&mesh, clamp(&mesh), options, "Fixed(Direct())");
         let mut state = s.rest_state();
         for (v, p) in mesh.rest_positions().iter().enumerate() {
@@ -686,10 +663,7 @@ fn the_reported_residual_is_that_of_the_end_state_with_and_without_stiffness_dam
 #[test]
 fn a_restarted_or_forked_integrator_runs_as_a_new_one() {
     let mesh = beam();
-    let options = IntegratorOptions {
-        max_retries: 0,
-        ..IntegratorOptions::default()
-    };
+    let options = IntegratorOptions::default().max_retries(0);
     let run = |s: &mut Integrator, from: &State| {
         let mut state = from.clone();
         let its: Vec<usize> = (0..3)

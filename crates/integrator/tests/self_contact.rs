@@ -45,10 +45,7 @@ fn sim(mesh: &TetMesh, policy: &str) -> Integrator {
         .unwrap();
     Integrator::builder(mesh, MaterialField::Uniform(model))
         .density(1000.0)
-        .options(IntegratorOptions {
-            dt: 2e-3,
-            ..Default::default()
-        })
+        .options(IntegratorOptions::default().dt(2e-3))
         .policy(
             ron::from_str::<PolicySpec>(policy)
                 .unwrap()
@@ -201,12 +198,10 @@ fn slab_incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
         .build()
         .unwrap();
     let theta = 30f64.to_radians();
-    let options = IntegratorOptions {
-        dt,
-        gravity: [0.0, 0.0, -9.81 * theta.cos()],
-        gamma: 0.01,
-        ..Default::default()
-    };
+    let options = IntegratorOptions::default()
+        .dt(dt)
+        .gravity([0.0, 0.0, -9.81 * theta.cos()])
+        .gamma(0.01);
     let mut sim = Integrator::builder(&mesh, MaterialField::Uniform(model))
         .density(1000.0)
         .options(options.clone())
@@ -232,11 +227,11 @@ fn slab_incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
         sim.step(&mut s).unwrap();
     }
     s.v.iter_mut().for_each(|v| *v = 0.0);
-    sim.set_options(IntegratorOptions {
-        gravity: [9.81 * theta.sin(), 0.0, -9.81 * theta.cos()],
-        gamma: 0.0,
-        ..options
-    })
+    sim.set_options(
+        options
+            .gravity([9.81 * theta.sin(), 0.0, -9.81 * theta.cos()])
+            .gamma(0.0),
+    )
     .unwrap();
     let masses = sim.assembly().vertex_masses(sim.mass());
     let com = |s: &State| {

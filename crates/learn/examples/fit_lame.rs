@@ -29,11 +29,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut data = dataset::generate(
         &scene,
         origin,
-        &DatasetSpec {
-            variations: Variations::default(),
-            split: (0.6, 0.2),
-            ..DatasetSpec::new(5, 20, 42)
-        },
+        &DatasetSpec::new(5, 20, 42)
+            .variations(Variations::default())
+            .split((0.6, 0.2)),
         |_, _| {},
     )?;
     let mut sim = scene.build(origin)?.integrator;
@@ -51,10 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (e1, nu1) = young(&stage1.coefficients)?;
     println!("truth:           E = 1.0000e5, nu = 0.4000");
     println!("equation error:  E = {e1:.4e}, nu = {nu1:.4}");
-    let options = OutputErrorOptions {
-        rollout: 10,
-        ..OutputErrorOptions::default()
-    };
+    let options = OutputErrorOptions::default().rollout(10);
     let fit = fit_output_error(
         &mut sim,
         &train,

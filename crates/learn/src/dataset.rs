@@ -39,8 +39,10 @@ pub enum Split {
     Test,
 }
 
-/// One trajectory: states at `start_time + n dt`, `n = 0..=steps`.
+/// One trajectory: states at `start_time + n dt`, `n = 0..=steps`. Outside this crate,
+/// build it from `Default` and its setters (`Trajectory::default().x(x).v(v)`).
 #[derive(Debug, Clone, PartialEq, Default)]
+#[non_exhaustive]
 pub struct Trajectory {
     /// The time of its first frame (s): 0, or `dt` for positions whose first frame was
     /// dropped for want of a velocity ([`crate::import::Velocities::Derived`]). Moving
@@ -62,6 +64,15 @@ pub struct Trajectory {
     /// frame holds the first state, known or estimated ([`crate::observe::estimate_start`]).
     pub observed: Option<Observed>,
 }
+
+deform_integrator::setters!(Trajectory {
+    start_time: f64,
+    x: Vec<Vec<f64>>,
+    v: Vec<Vec<f64>>,
+    exact_start: bool,
+    conditions: Conditions,
+    observed: Option<Observed>,
+});
 
 impl Trajectory {
     /// Number of steps (pairs).
@@ -246,9 +257,18 @@ pub fn split_counts(count: usize, fractions: (f64, f64)) -> (usize, usize, usize
     (train, val, count.saturating_sub(train + val))
 }
 
-/// How to make the dataset.
+/// How to make the dataset: [`DatasetSpec::new`] and setters for the rest, which keep
+/// working when a field is added.
+///
+/// ```
+/// use deform_learn::DatasetSpec;
+///
+/// let spec = DatasetSpec::new(6, 40, 1).split((0.5, 0.25));
+/// assert_eq!((spec.trajectories, spec.split), (6, (0.5, 0.25)));
+/// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct DatasetSpec {
     /// Number of trajectories.
     pub trajectories: usize,
@@ -275,6 +295,18 @@ pub struct DatasetSpec {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub conditions: Vec<Conditions>,
 }
+
+deform_integrator::setters!(DatasetSpec {
+    trajectories: usize,
+    steps: usize,
+    seed: u64,
+    variations: Variations,
+    split: (f64,
+    f64),
+    noise: Option<Noise>,
+    subsample: usize,
+    conditions: Vec<Conditions>,
+});
 
 pub(crate) fn one() -> usize {
     1

@@ -17,9 +17,11 @@ use crate::basis::Basis;
 use crate::dataset::Trajectory;
 pub use crate::error::FitError;
 
-/// Options of the equation-error fit.
+/// Options of the equation-error fit (`EquationErrorOptions::default().damping(true)`;
+/// setters keep working when a field is added).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct EquationErrorOptions {
     /// Also fit Rayleigh `alpha` and `gamma` (otherwise the integrator's values are used).
     pub damping: bool,
@@ -31,6 +33,13 @@ pub struct EquationErrorOptions {
     /// the scene's own coefficients are known forces, as the barrier's always are).
     pub friction: bool,
 }
+
+deform_integrator::setters!(EquationErrorOptions {
+    damping: bool,
+    by_region: bool,
+    nonnegative: bool,
+    friction: bool,
+});
 
 impl Default for EquationErrorOptions {
     fn default() -> Self {

@@ -471,10 +471,8 @@ fn read_trajectory(
         v.1.map(|p| p.display().to_string()),
     );
     let t = trajectory_from_arrays((&names.0, names.1.as_deref()), &a, v.0, dt)?;
-    let stored = Array {
-        data: Vec::new(),
-        ..a
-    };
+    let mut stored = a;
+    stored.data = Vec::new();
     Ok((t, stored))
 }
 

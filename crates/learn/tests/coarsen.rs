@@ -181,16 +181,14 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
         .collect();
     deform_learn::npy::write(&dir.path().join("truth.npy"), &[mesh.num_tets(), 2], &field).unwrap();
     fine.coefficients = Some(dir.path().join("truth.npy"));
-    let spec = DatasetSpec {
-        variations: Variations {
+    let spec = DatasetSpec::new(3, 20, 5)
+        .variations(Variations {
             speed: 0.3,
             spin: 1.0,
             stretch: 0.0,
             rest: false,
-        },
-        split: (0.67, 0.0),
-        ..DatasetSpec::new(3, 20, 5)
-    };
+        })
+        .split((0.67, 0.0));
     let data = generate(&fine, &origin, &spec, |_, _| ()).unwrap();
     let coarse = Scene {
         mesh: MeshSource::Beam(2),
@@ -201,11 +199,9 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
     let mut sim = data.meta.scene.build(&origin).unwrap();
     let tets = sim.mesh.num_tets();
     let labels: Vec<u32> = (0..tets as u32).collect();
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 5,
-        max_iterations: 40,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(5)
+        .max_iterations(40);
     let train = data.split(Split::Train);
     let field = deform_learn::Field {
         labels,

@@ -53,19 +53,13 @@ fn mixed() -> Vec<Conditions> {
 }
 
 fn dataset(count: usize, steps: usize) -> Dataset {
-    let spec = DatasetSpec {
-        conditions: mixed(),
-        ..DatasetSpec::new(count, steps, 5)
-    };
+    let spec = DatasetSpec::new(count, steps, 5).conditions(mixed());
     generate(&scene(), Path::new("mixed.ron"), &spec, |_, _| {}).unwrap()
 }
 
 /// The trajectories of `data` read as if made under the scene's own conditions.
 fn blind(data: &Dataset) -> Vec<deform_learn::Trajectory> {
-    let blind = |t: &deform_learn::Trajectory| deform_learn::Trajectory {
-        conditions: Conditions::default(),
-        ..t.clone()
-    };
+    let blind = |t: &deform_learn::Trajectory| t.clone().conditions(Conditions::default());
     data.trajectories.iter().map(blind).collect()
 }
 
@@ -92,13 +86,10 @@ fn generated_trajectories_carry_their_conditions_through_disk_and_scenes() {
             ..s
         },
         Path::new("again.ron"),
-        &DatasetSpec {
-            variations: deform_learn::Variations {
-                rest: true,
-                ..Default::default()
-            },
-            ..DatasetSpec::new(1, 3, 5)
-        },
+        &DatasetSpec::new(1, 3, 5).variations(deform_learn::Variations {
+            rest: true,
+            ..Default::default()
+        }),
         |_, _| {},
     )
     .unwrap();
@@ -213,10 +204,7 @@ fn the_output_error_recovers_the_moduli_from_mixed_conditions() {
 /// trajectory on the calling thread, and a failure names the first trajectory that fails.
 #[test]
 fn generated_data_are_the_same_bits_on_any_number_of_threads() {
-    let spec = DatasetSpec {
-        conditions: mixed(),
-        ..DatasetSpec::new(5, 4, 9)
-    };
+    let spec = DatasetSpec::new(5, 4, 9).conditions(mixed());
     let make = |threads: usize, spec: &DatasetSpec| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -246,10 +234,7 @@ fn generated_data_are_the_same_bits_on_any_number_of_threads() {
     for c in &mut hard[1..] {
         c.gravity = Some([0.0, 0.0, -1e9]);
     }
-    let spec = DatasetSpec {
-        conditions: hard,
-        ..DatasetSpec::new(5, 4, 9)
-    };
+    let spec = DatasetSpec::new(5, 4, 9).conditions(hard);
     for threads in [1, 2] {
         let error = make(threads, &spec).0.unwrap_err().to_string();
         assert!(error.starts_with("trajectory 1,"), "{threads}: {error}");

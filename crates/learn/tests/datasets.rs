@@ -37,11 +37,9 @@ fn datasets_round_trip_through_disk_and_split_by_trajectory() {
     let other = generate(
         &s,
         Path::new("t"),
-        &DatasetSpec {
-            variations: Variations::default(),
-            split: (0.6, 0.2),
-            ..DatasetSpec::new(5, 4, 43)
-        },
+        &DatasetSpec::new(5, 4, 43)
+            .variations(Variations::default())
+            .split((0.6, 0.2)),
         |_, _| {},
     )
     .unwrap();

@@ -30,10 +30,7 @@ fn an_ensemble_that_stage_1_emptied_is_refined_from_the_scene_guess() {
     assert!(empty.spec().is_none());
     let mut guess = s.clone();
     guess.material = ron::from_str("NeoHookean(Young(e: 1.3e5, nu: 0.35))").unwrap();
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 3,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default().rollout(3);
     let (refined, stage2) = deform_learn::refine_ensemble(
         &empty,
         &guess,
@@ -130,11 +127,9 @@ fn the_generating_model_carries_the_ensemble() {
         let data = generate(
             &s,
             Path::new("test"),
-            &DatasetSpec {
-                variations: variations.clone(),
-                split: (0.6, 0.2),
-                ..DatasetSpec::new(5, 12, 3)
-            },
+            &DatasetSpec::new(5, 12, 3)
+                .variations(variations.clone())
+                .split((0.6, 0.2)),
             |_, _| {},
         )
         .unwrap();
@@ -172,11 +167,9 @@ fn a_volume_only_member_is_kept_through_stage_two() {
         stretch: 0.3,
         rest: false,
     };
-    let spec = DatasetSpec {
-        variations,
-        split: (0.6, 0.2),
-        ..DatasetSpec::new(5, 8, 3)
-    };
+    let spec = DatasetSpec::new(5, 8, 3)
+        .variations(variations)
+        .split((0.6, 0.2));
     let data = generate(&s, Path::new("test"), &spec, |_, _| {}).unwrap();
     let (train, test) = (data.split(Split::Train), data.split(Split::Test));
     use deform_learn::Member;
@@ -195,11 +188,9 @@ fn a_volume_only_member_is_kept_through_stage_two() {
     };
     assert_eq!(kept.len(), 2);
     // Stage 2 from the exact stage 1 stays at (rounding-level) zero loss.
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 4,
-        max_iterations: 3,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(4)
+        .max_iterations(3);
     let (refined, stage2) = deform_learn::refine_ensemble(
         &fit,
         &s,

@@ -79,11 +79,9 @@ fn noise_free_data_give_every_element_its_pair_back() {
         let file = dir.path().join("truth.npy");
         npy::write(&file, &[tets, 2], &truth).unwrap();
         s.coefficients = Some(file);
-        let spec = DatasetSpec {
-            variations: variations.clone(),
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(4, 6, 9)
-        };
+        let spec = DatasetSpec::new(4, 6, 9)
+            .variations(variations.clone())
+            .split((1.0, 0.0));
         let data = generate(&s, Path::new("test"), &spec, |_, _| {}).unwrap();
         // The model to fit: uniform, undamped.
         let mut guess = s.clone();
@@ -93,10 +91,7 @@ fn noise_free_data_give_every_element_its_pair_back() {
             guess.integrator.gamma,
         ) = (None, 0.0, 0.0);
         let sim = guess.build(Path::new("test")).unwrap().integrator;
-        let options = EquationErrorOptions {
-            damping: true,
-            ..Default::default()
-        };
+        let options = EquationErrorOptions::default().damping(true);
         let fit =
             fit_equation_error_field(&sim, &data.split(Split::Train), &layout, options).unwrap();
         assert_eq!(fit.coefficients.len(), expected.len());
@@ -149,10 +144,7 @@ fn rayleigh_damping_is_recovered_with_the_moduli() {
     guess.integrator.alpha = 0.0;
     guess.integrator.gamma = 0.0;
     let built = guess.build(Path::new("test")).unwrap();
-    let options = EquationErrorOptions {
-        damping: true,
-        ..EquationErrorOptions::default()
-    };
+    let options = EquationErrorOptions::default().damping(true);
     let fit = fit_equation_error(&built.integrator, &data.split(Split::Train), options).unwrap();
     let (e, nu) = lame_of(&fit, 0).unwrap().to_young();
     eprintln!(
@@ -259,14 +251,11 @@ fn per_region_moduli_on_a_gmsh_mesh() {
     let clamp: Vec<usize> = (0..mesh.num_vertices())
         .filter(|&v| mesh.rest_positions()[v].x < 1e-6)
         .collect();
-    let options = deform_integrator::IntegratorOptions {
-        newton: deform_integrator::NewtonOptions {
-            rel: 1e-11,
-            abs: 1e-13,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
+    let options = deform_integrator::IntegratorOptions::default().newton(
+        deform_integrator::NewtonOptions::default()
+            .rel(1e-11)
+            .abs(1e-13),
+    );
     let mut sim = deform_integrator::Integrator::builder(&mesh, field)
         .density(1000.0)
         .constraints(vec![deform_integrator::Constraint {
@@ -284,20 +273,15 @@ fn per_region_moduli_on_a_gmsh_mesh() {
             state.v[3 * v + 1] = -2.0 * p.z;
         }
     }
-    let mut traj = deform_learn::Trajectory {
-        x: vec![state.x.clone()],
-        v: vec![state.v.clone()],
-        ..Default::default()
-    };
+    let mut traj = deform_learn::Trajectory::default()
+        .x(vec![state.x.clone()])
+        .v(vec![state.v.clone()]);
     for _ in 0..8 {
         sim.step(&mut state).unwrap();
         traj.x.push(state.x.clone());
         traj.v.push(state.v.clone());
     }
-    let options = EquationErrorOptions {
-        by_region: true,
-        ..EquationErrorOptions::default()
-    };
+    let options = EquationErrorOptions::default().by_region(true);
     let fit = fit_equation_error(&sim, &[&traj], options).unwrap();
     assert_eq!(fit.groups, vec![1, 2]);
     for (g, e_true) in [(0, 1e5), (1, 3e5)] {

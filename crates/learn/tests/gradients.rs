@@ -19,11 +19,9 @@ fn output_error_gradient_equals_finite_differences() {
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
     let trajectories = data.split(Split::Train);
     for rollout in [1, 4] {
-        let options = deform_learn::OutputErrorOptions {
-            rollout,
-            velocity_weight: 0.5,
-            ..Default::default()
-        };
+        let options = deform_learn::OutputErrorOptions::default()
+            .rollout(rollout)
+            .velocity_weight(0.5);
         let objective =
             deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
         // Away from the truth, so the gradient is not zero.
@@ -77,16 +75,14 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
     let data = generate(
         &truth,
         Path::new("test"),
-        &DatasetSpec {
-            variations: Variations {
+        &DatasetSpec::new(1, 12, 3)
+            .variations(Variations {
                 speed: 0.3,
                 spin: 0.0,
                 stretch: 0.0,
                 rest: false,
-            },
-            split: (1.0, 0.0),
-            ..DatasetSpec::new(1, 12, 3)
-        },
+            })
+            .split((1.0, 0.0)),
         |_, _| {},
     )
     .unwrap();
@@ -95,11 +91,9 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
     let touched = |x: &[f64]| x.chunks(3).any(|p| p[2] < dhat);
     assert!(data.trajectories[0].x.iter().any(|x| touched(x)));
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 12,
-        velocity_weight: 0.5,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(12)
+        .velocity_weight(0.5);
     // With friction, its coefficients are fitted with the moduli.
     let frictional = sim.contact().unwrap().friction().is_some();
     let objective =
@@ -225,11 +219,9 @@ fn output_error_gradient_of_an_ensemble_equals_finite_differences() {
     let c0 = deform_learn::term_coefficients(model);
     assert_eq!(c0, vec![1e4, -2e3, 2e4, 8e4]);
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 2,
-        velocity_weight: 0.5,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(2)
+        .velocity_weight(0.5);
     let objective =
         deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {}).unwrap();
     let (loss, grad) = objective.evaluate(&c0).unwrap();
@@ -261,11 +253,9 @@ fn output_error_gradient_of_coefficient_fields_equals_finite_differences() {
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
     let tets = sim.assembly().num_elements();
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 2,
-        velocity_weight: 0.5,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(2)
+        .velocity_weight(0.5);
     let per_element: Vec<u32> = (0..tets as u32).collect();
     let by_label: Vec<u32> = (0..tets as u32).map(|e| 10 + e % 3).collect();
     for labels in [per_element, by_label] {
@@ -333,11 +323,9 @@ fn the_smooth_field_gradient_equals_finite_differences() {
     let (mesh, mut sim) = (built.mesh, built.integrator);
     let basis = deform_learn::basis::Basis::hat(&mesh, [3, 2, 1]).unwrap();
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 2,
-        velocity_weight: 0.5,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(2)
+        .velocity_weight(0.5);
     let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
         .unwrap()
         .with_basis(basis.clone())
@@ -394,10 +382,7 @@ fn a_regularised_field_gradient_equals_finite_differences() {
         deform_mesh::topology::faces(&mesh).interior.len()
     );
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 3,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default().rollout(3);
     let regularisation = deform_learn::Regularisation {
         towards: 0.3,
         smooth: 0.2,
@@ -453,10 +438,7 @@ fn the_damping_gradient_equals_finite_differences() {
         .map(|e| e % 2)
         .collect();
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 4,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default().rollout(4);
     let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
         .unwrap()
         .with_field(&labels)
@@ -509,11 +491,9 @@ fn the_mass_scale_gradient_equals_finite_differences() {
     let (free, fixed): (Vec<usize>, Vec<usize>) =
         (0..vertices).partition(|&v| !sim.dofs().is_constrained(v));
     let trajectories = data.split(Split::Train);
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 4,
-        velocity_weight: 0.5,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default()
+        .rollout(4)
+        .velocity_weight(0.5);
     let regularisation = deform_learn::Regularisation {
         towards: 0.2,
         ..Default::default()

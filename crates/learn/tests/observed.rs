@@ -69,10 +69,7 @@ fn the_moduli_from_ten_percent_of_the_surface_vertices() {
     let train: Vec<_> = data.trajectories.iter().collect();
     let mut sim = built.integrator;
     let start = deform_materials::Lame::from_young(1.3e5, 0.35).unwrap();
-    let options = OutputErrorOptions {
-        rollout: 30,
-        ..Default::default()
-    };
+    let options = OutputErrorOptions::default().rollout(30);
     let fit = fit_output_error(
         &mut sim,
         &train,
@@ -97,10 +94,7 @@ fn the_moduli_from_ten_percent_of_the_surface_vertices() {
     let errors = deform_learn::rollout::rollout_error(&mut sim, train[0]).unwrap();
     assert!(errors.iter().all(|e| *e < 1e-3), "{errors:?}");
     // Rollouts that would start from unobserved states, and the equation error, refuse.
-    let short = OutputErrorOptions {
-        rollout: 5,
-        ..Default::default()
-    };
+    let short = OutputErrorOptions::default().rollout(5);
     let e = fit_output_error(
         &mut sim,
         &train,
@@ -169,13 +163,11 @@ fn the_moduli_and_the_first_state_from_markers_alone() {
     let loaded = deform_learn::Dataset::load(dir.path()).unwrap();
     assert_eq!(loaded.trajectories, captured);
     let train: Vec<_> = captured.iter().collect();
-    let options = OutputErrorOptions {
-        rollout: 20,
-        starts: Some(StartPrior::default()),
-        max_evaluations: 150,
-        max_iterations: 150,
-        ..Default::default()
-    };
+    let options = OutputErrorOptions::default()
+        .rollout(20)
+        .starts(Some(StartPrior::default()))
+        .max_evaluations(150)
+        .max_iterations(150);
     let fit = fit_output_error(
         &mut sim,
         &train,

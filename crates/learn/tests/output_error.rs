@@ -25,10 +25,7 @@ fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
     );
     let train = data.split(Split::Train);
     let stage1 = fit_equation_error(&sim, &train, EquationErrorOptions::default()).unwrap();
-    let options = deform_learn::OutputErrorOptions {
-        rollout: 10,
-        ..Default::default()
-    };
+    let options = deform_learn::OutputErrorOptions::default().rollout(10);
     let fit =
         deform_learn::fit_output_error(&mut sim, &train, &stage1.coefficients, options, |_, _| {})
             .unwrap();
@@ -84,13 +81,11 @@ fn estimated_rollout_starts_remove_the_bias_of_noisy_starts() {
         .to_lame()
         .unwrap();
     let mut fit_with = |starts| {
-        let options = deform_learn::OutputErrorOptions {
-            rollout: 10,
-            starts,
-            max_iterations: 150,
-            max_evaluations: 300,
-            ..Default::default()
-        };
+        let options = deform_learn::OutputErrorOptions::default()
+            .rollout(10)
+            .starts(starts)
+            .max_iterations(150)
+            .max_evaluations(300);
         let initial = [start.mu, start.lambda];
         let fit =
             deform_learn::fit_output_error(&mut sim, &train, &initial, options, |_, _| {}).unwrap();

@@ -39,7 +39,8 @@ fn as_array(name: &str, obj: &Bound<'_, PyAny>) -> PyResult<Array> {
         .getattr("dtype")
         .and_then(|d| d.str().map(|s| s.to_string()))
         .unwrap_or_else(|_| "float64".into());
-    Ok(Array { shape, data, dtype })
+    // `values` gives data of its shape.
+    Ok(Array::new(shape, data).with_dtype(dtype))
 }
 
 #[pymethods]
@@ -239,10 +240,7 @@ fn fit_material<'py>(
     let mut sim = built.integrator;
     let (stage1, stage2) = py
         .detach(|| {
-            let options = EquationErrorOptions {
-                damping,
-                ..Default::default()
-            };
+            let options = EquationErrorOptions::default().damping(damping);
             // Markers only: no stage 1 (it needs whole states); stage 2 over whole
             // trajectories, refining their estimated first states.
             let stage1 = match markers {
@@ -261,17 +259,15 @@ fn fit_material<'py>(
                 }
             };
             let whole = data.iter().map(|t| t.steps()).max().unwrap_or(0);
-            let options = OutputErrorOptions {
-                rollout: if markers { rollout.max(whole) } else { rollout },
-                max_iterations,
-                max_evaluations: max_evaluations.unwrap_or(if markers {
+            let options = OutputErrorOptions::default()
+                .rollout(if markers { rollout.max(whole) } else { rollout })
+                .max_iterations(max_iterations)
+                .max_evaluations(max_evaluations.unwrap_or(if markers {
                     200.max(max_iterations as usize)
                 } else {
                     200
-                }),
-                starts: starts.then(Default::default),
-                ..Default::default()
-            };
+                }))
+                .starts(starts.then(Default::default));
             let fit = fit_output_error(&mut sim, &data, &start, options, |_, _| {})?;
             Ok((stage1, Some(fit)))
         })
@@ -400,11 +396,9 @@ fn fit_ensemble<'py>(
             if rollout == 0 {
                 return Ok((fit, None));
             }
-            let options = OutputErrorOptions {
-                rollout,
-                max_iterations,
-                ..Default::default()
-            };
+            let options = OutputErrorOptions::default()
+                .rollout(rollout)
+                .max_iterations(max_iterations);
             let (refined, _) = deform_learn::refine_ensemble(
                 &fit,
                 &scene.scene,
@@ -456,16 +450,14 @@ impl Dataset {
         stretch: f64,
         split: (f64, f64),
     ) -> PyResult<Self> {
-        let spec = DatasetSpec {
-            variations: Variations {
+        let spec = DatasetSpec::new(trajectories, steps, seed)
+            .variations(Variations {
                 speed,
                 spin,
                 stretch,
                 rest: false,
-            },
-            split,
-            ..DatasetSpec::new(trajectories, steps, seed)
-        };
+            })
+            .split(split);
         let dataset = py
             .detach(|| generate(&scene.scene, &scene.origin, &spec, |_, _| {}))
             .map_err(errors::learn)?;
@@ -585,18 +577,14 @@ impl Dataset {
     ) -> PyResult<Bound<'py, PyAny>> {
         use deform_studies::coarsen::{CoarseSettings, fit_coarse_models};
         let scene = &self.dataset.meta.scene;
-        let options = OutputErrorOptions {
-            rollout,
-            max_iterations,
-            ..Default::default()
-        };
-        let settings = CoarseSettings {
-            regions,
-            tags,
-            regularisation,
-            damping,
-            ..CoarseSettings::new(scene.integrator.newton.max_iterations, options)
-        };
+        let options = OutputErrorOptions::default()
+            .rollout(rollout)
+            .max_iterations(max_iterations);
+        let settings = CoarseSettings::new(scene.integrator.newton.max_iterations, options)
+            .regions(regions)
+            .tags(tags)
+            .regularisation(regularisation)
+            .damping(damping);
         let origin = save.clone().unwrap_or_default().join(format!("{name}.ron"));
         let (fits, files, errors) = py
             .detach(|| {
@@ -744,14 +732,15 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
             }),
             None => None,
         };
-        trajectories.push(deform_learn::Trajectory {
-            x,
-            v,
-            start_time: m.start_time,
-            exact_start: m.exact_start,
-            conditions: m.conditions.clone(),
-            observed,
-        });
+        trajectories.push(
+            deform_learn::Trajectory::default()
+                .x(x)
+                .v(v)
+                .start_time(m.start_time)
+                .exact_start(m.exact_start)
+                .conditions(m.conditions.clone())
+                .observed(observed),
+        );
     }
     Ok(deform_learn::Dataset { meta, trajectories })
 }

@@ -38,13 +38,12 @@ fn coarsen_runs_on_imported_trajectories_of_mixed_conditions_with_a_given_embedd
         "(gravity: Some((0.0, 0.0, 0.0)), loads: Some([(force: (0.0, 30.0, 10.0), until: Some(0.03))]))",
         "(gravity: Some((0.0, 5.0, -5.0)))",
     ];
-    let spec = deform_learn::DatasetSpec {
-        conditions: conditions
+    let spec = deform_learn::DatasetSpec::new(6, 8, 3).conditions(
+        conditions
             .iter()
             .map(|c| ron::from_str(c).unwrap())
             .collect(),
-        ..deform_learn::DatasetSpec::new(6, 8, 3)
-    };
+    );
     let made = deform_learn::dataset::generate(&fine, &fine_path, &spec, |_, _| {}).unwrap();
     let mut list = Vec::new();
     for (k, t) in made.trajectories.iter().enumerate() {
@@ -160,14 +159,12 @@ fn the_coarse_fits_are_a_library_function_with_the_experiments_figures() {
         panic!("task")
     };
     *dt_factors = vec![1];
-    let settings = CoarseSettings {
-        regions: *regions,
-        smooth: *smooth,
-        regularisation: regularisation.clone(),
-        newton_rel: newton_rel.clone(),
-        fit_newton_iterations: *fit_newton_iterations,
-        ..CoarseSettings::new(30, *output_error)
-    };
+    let settings = CoarseSettings::new(30, *output_error)
+        .regions(*regions)
+        .smooth(*smooth)
+        .regularisation(regularisation.clone())
+        .newton_rel(newton_rel.clone())
+        .fit_newton_iterations(*fit_newton_iterations);
     let report = run(&experiment, None, &mut NoProgress).unwrap();
     let TaskReport::Coarsen(r) = &report.task else {
         panic!("task")

@@ -328,10 +328,7 @@ fn noisy_imported_positions_give_the_moduli_with_estimated_starts() {
     let dir = tempfile::tempdir().unwrap();
     let scene_path = data("tiny_beam.ron");
     let scene = Scene::load(&scene_path).unwrap();
-    let spec = deform_learn::DatasetSpec {
-        split: (0.6, 0.2),
-        ..deform_learn::DatasetSpec::new(5, 41, 42)
-    };
+    let spec = deform_learn::DatasetSpec::new(5, 41, 42).split((0.6, 0.2));
     let mut made = deform_learn::dataset::generate(&scene, &scene_path, &spec, |_, _| {}).unwrap();
     let clamped = scene
         .build(&scene_path)

@@ -74,9 +74,20 @@ impl Projection {
     }
 }
 
-/// Newton's stopping rules and globalisation.
+/// Newton's stopping rules and globalisation. Build it from `Default` and its setters: it
+/// may gain fields, which breaks no code built this way (a struct literal cannot be
+/// written outside this crate).
+///
+/// ```
+/// use deform_integrator::{IntegratorOptions, NewtonOptions, Projection};
+///
+/// let newton = NewtonOptions::default().rel(1e-8).max_iterations(50).project(Projection::Always);
+/// let options = IntegratorOptions::default().dt(1e-3).alpha(0.1).newton(newton);
+/// assert_eq!((options.dt, options.newton.rel), (1e-3, 1e-8));
+/// ```
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct NewtonOptions {
     /// Converged when `||r|| <= abs`: the residual's 2-norm over the free DOFs, in N for
     /// the static solve and N s (momentum, `M (v - v^n) - dt f`) for a dynamic step.
@@ -110,6 +121,17 @@ pub struct NewtonOptions {
     pub project: Projection,
 }
 
+crate::setters!(NewtonOptions {
+    abs: f64,
+    rel: f64,
+    update: f64,
+    max_iterations: usize,
+    barrier_secant: usize,
+    linear_floor: f64,
+    line_search: bool,
+    project: Projection,
+});
+
 impl Default for NewtonOptions {
     fn default() -> Self {
         Self {
@@ -125,9 +147,12 @@ impl Default for NewtonOptions {
     }
 }
 
-/// Time-stepping options. Unknown fields are rejected in RON.
+/// Time-stepping options. Unknown fields are rejected in RON. Build it from `Default` and
+/// its setters (`IntegratorOptions::default().dt(1e-3).alpha(0.1)`; see [`NewtonOptions`]):
+/// it may gain fields.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct IntegratorOptions {
     /// Time step (s).
     pub dt: f64,
@@ -152,6 +177,17 @@ pub struct IntegratorOptions {
     /// When the chosen linear solver fails, solve with the direct solver instead of failing.
     pub fallback_to_direct: bool,
 }
+
+crate::setters!(IntegratorOptions {
+    dt: f64,
+    alpha: f64,
+    gamma: f64,
+    gravity: [f64; 3],
+    mass: MassKind,
+    newton: NewtonOptions,
+    max_retries: usize,
+    fallback_to_direct: bool,
+});
 
 impl Default for IntegratorOptions {
     fn default() -> Self {
@@ -327,7 +363,7 @@ impl std::fmt::Debug for Integrator {
 /// let sim = Integrator::builder(&mesh, MaterialField::Uniform(model.build().unwrap()))
 ///     .density(1200.0)
 ///     .constraints(vec![Constraint { vertices: clamp, motion: Motion::Fixed }])
-///     .options(IntegratorOptions { dt: 0.005, ..Default::default() })
+///     .options(IntegratorOptions::default().dt(0.005))
 ///     .build()
 ///     .unwrap();
 /// assert_eq!(sim.options().dt, 0.005);

@@ -55,9 +55,18 @@ use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
 use std::sync::{Arc, Mutex};
 
-/// Options of the output-error fit.
+/// Options of the output-error fit. Build them from `Default` and their setters, which
+/// keeps working when a field is added:
+///
+/// ```
+/// use deform_learn::OutputErrorOptions;
+///
+/// let options = OutputErrorOptions::default().rollout(20).max_iterations(100).starts(Some(Default::default()));
+/// assert_eq!(options.rollout, 20);
+/// ```
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct OutputErrorOptions {
     /// Weight of the velocity error (times `dt^2`, so it is measured like positions).
     pub velocity_weight: f64,
@@ -95,6 +104,17 @@ pub struct OutputErrorOptions {
     /// wrong material than at the truth); estimating the start removes the bias.
     pub starts: Option<StartPrior>,
 }
+
+deform_integrator::setters!(OutputErrorOptions {
+    velocity_weight: f64,
+    rollout: usize,
+    max_iterations: u64,
+    tolerance: f64,
+    max_evaluations: usize,
+    patience: usize,
+    allow_retries: bool,
+    starts: Option<StartPrior>,
+});
 
 /// The prior of estimated rollout starts: a start `(x, v)` costs
 /// `position |x - x_data|^2 + velocity dt^2 |v - v_data|^2` in the loss's units (a predicted

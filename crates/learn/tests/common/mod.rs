@@ -38,11 +38,9 @@ pub fn make(scene: &Scene, count: usize, steps: usize) -> Dataset {
     generate(
         scene,
         Path::new("test"),
-        &DatasetSpec {
-            variations: Variations::default(),
-            split: (0.6, 0.2),
-            ..DatasetSpec::new(count, steps, 42)
-        },
+        &DatasetSpec::new(count, steps, 42)
+            .variations(Variations::default())
+            .split((0.6, 0.2)),
         |_, _| {},
     )
     .unwrap()
@@ -84,16 +82,14 @@ pub fn slab_and_cube(
 /// `trajectories` x `steps` of the contact scene `truth`, thrown at random velocities of
 /// `speed` (all for training).
 pub fn contact_data(truth: &Scene, speed: f64, steps: usize) -> Dataset {
-    let spec = DatasetSpec {
-        variations: Variations {
+    let spec = DatasetSpec::new(2, steps, 7)
+        .variations(Variations {
             speed,
             spin: 0.0,
             stretch: 0.0,
             rest: false,
-        },
-        split: (1.0, 0.0),
-        ..DatasetSpec::new(2, steps, 7)
-    };
+        })
+        .split((1.0, 0.0));
     generate(truth, Path::new("test"), &spec, |_, _| {}).unwrap()
 }
 
@@ -114,10 +110,7 @@ pub fn fit_contact_moduli(
         guess.contact.as_mut().unwrap().friction = None;
     }
     let sim = guess.build(Path::new("test")).unwrap().integrator;
-    let options = EquationErrorOptions {
-        friction,
-        ..Default::default()
-    };
+    let options = EquationErrorOptions::default().friction(friction);
     let fit = fit_equation_error(&sim, &data.split(Split::Train), options).unwrap();
     let lame = lame_of(&fit, 0).unwrap();
     let (mu, lambda) = (1e5 / (2.0 * 1.4), 1e5 * 0.4 / (1.4 * 0.2));

@@ -73,16 +73,14 @@ pub fn bench_coarse_fits(b: &CoarsenBench) -> Result<CoarsenTimings, LearnError>
     let origin = Path::new("bench_coarsen.ron");
     let fine = Scene::parse(&text, origin)?;
     let count = b.trajectories + 1;
-    let spec = DatasetSpec {
-        split: (b.trajectories as f64 / count as f64, 1.0 / count as f64),
-        variations: Variations {
+    let spec = DatasetSpec::new(count, b.steps, 3)
+        .split((b.trajectories as f64 / count as f64, 1.0 / count as f64))
+        .variations(Variations {
             speed: 0.5,
             spin: 1.0,
             stretch: 0.05,
             rest: false,
-        },
-        ..DatasetSpec::new(count, b.steps, 3)
-    };
+        });
     let started = Instant::now();
     let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
     let generate_seconds = started.elapsed().as_secs_f64();
@@ -91,10 +89,7 @@ pub fn bench_coarse_fits(b: &CoarsenBench) -> Result<CoarsenTimings, LearnError>
         ..fine.clone()
     };
     let (data, mapping) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
-    let options = OutputErrorOptions {
-        rollout: b.rollout,
-        ..Default::default()
-    };
+    let options = OutputErrorOptions::default().rollout(b.rollout);
     let settings = CoarseSettings {
         regularisation: b.weights.clone(),
         ..CoarseSettings::new(fine.integrator.newton.max_iterations, options)

@@ -231,6 +231,7 @@ impl CoarsenReport {
 
 /// How coarse models are fitted ([`fit_coarse_models`]; the fields of [`Task::Coarsen`]).
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct CoarseSettings {
     /// Slabs of the per-region fit along the rest shape's longest axis (without `tags`).
     pub regions: u32,
@@ -257,6 +258,20 @@ pub struct CoarseSettings {
     /// Options of every output-error fit.
     pub options: OutputErrorOptions,
 }
+
+deform_integrator::setters!(CoarseSettings {
+    regions: u32,
+    tags: Option<Vec<u32>>,
+    regularisation: Vec<f64>,
+    damping: bool,
+    mass_scale: bool,
+    smooth: Option<[usize; 3]>,
+    material: Option<MaterialSpec>,
+    newton_rel: Vec<f64>,
+    fit_newton_iterations: Option<usize>,
+    scene_newton_iterations: usize,
+    options: OutputErrorOptions,
+});
 
 impl CoarseSettings {
     /// The settings of a coarse model whose scene has Newton cap `newton_iterations`:
