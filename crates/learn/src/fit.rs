@@ -17,6 +17,24 @@ use crate::basis::Basis;
 use crate::dataset::Trajectory;
 pub use crate::error::FitError;
 
+/// Every state of trajectory `index` holds `n` values; else which does not and what it has.
+fn check_state_sizes(t: &Trajectory, index: usize, n: usize) -> Result<(), FitError> {
+    let frames = t.x.iter().map(|f| ("position", f));
+    let frames = frames.chain(t.v.iter().map(|f| ("velocity", f)));
+    let Some((k, (what, f))) = (frames.enumerate()).find(|(_, (_, f))| f.len() != n) else {
+        return Ok(());
+    };
+    let state = if what == "position" { k } else { k - t.x.len() };
+    Err(FitError::Data {
+        index,
+        reason: format!(
+            "{what} state {state} has {} values, expected {n} (3 per vertex of the scene's {} vertices)",
+            f.len(),
+            n / 3
+        ),
+    })
+}
+
 /// Options of the equation-error fit (`EquationErrorOptions::default().damping(true)`;
 /// setters keep working when a field is added).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -256,20 +274,7 @@ fn equation_error(
                 reason: "observes only some vertices: the equation error needs whole states (use the output error)".into(),
             });
         }
-        let frames = t.x.iter().map(|f| ("position", f));
-        let frames = frames.chain(t.v.iter().map(|f| ("velocity", f)));
-        let wrong = (frames.enumerate()).find(|(_, (_, f))| f.len() != n);
-        if let Some((k, (what, f))) = wrong {
-            let state = if what == "position" { k } else { k - t.x.len() };
-            return Err(FitError::Data {
-                index: ti,
-                reason: format!(
-                    "{what} state {state} has {} values, expected {n} (3 per vertex of the scene's {} vertices)",
-                    f.len(),
-                    n / 3
-                ),
-            });
-        }
+        check_state_sizes(t, ti, n)?;
         let mut external = external_at(sim, t, ti, t.start_time + dt)?;
         for step in 0..t.steps() {
             let (x0, x1, v0, v1) = (&t.x[step], &t.x[step + 1], &t.v[step], &t.v[step + 1]);
