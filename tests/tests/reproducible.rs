@@ -19,12 +19,13 @@ fn pipeline() -> Vec<u64> {
         &scene,
         &path,
         &DatasetSpec::new(3, 6, 11)
-            .variations(Variations {
-                speed: 1.0,
-                spin: 2.0,
-                stretch: 0.1,
-                rest: false,
-            })
+            .variations(
+                Variations::default()
+                    .speed(1.0)
+                    .spin(2.0)
+                    .stretch(0.1)
+                    .rest(false),
+            )
             .split((0.5, 0.2)),
         |_, _| {},
     )
@@ -54,13 +55,11 @@ fn pipeline() -> Vec<u64> {
     bits.extend(logged.outcomes.iter().flatten().map(|o| o.flops.to_bits()));
     let policy = LearnedPolicy::train(
         &logged,
-        PolicyOptions {
-            neighbours: 3,
-            min_success: 0.9,
-            weights: WorkWeights::factor(0.1),
-            young: 1e5,
-            forcing: Some((0.1, 0.9)),
-        },
+        PolicyOptions::new(1e5)
+            .neighbours(3)
+            .min_success(0.9)
+            .weights(WorkWeights::factor(0.1))
+            .forcing(Some((0.1, 0.9))),
     );
     let mut built = scene.build(&path).unwrap();
     built.integrator.set_policy(Box::new(policy));

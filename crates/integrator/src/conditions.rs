@@ -88,6 +88,7 @@ pub struct Load {
 /// ```
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct Conditions {
     /// Gravity (m/s^2).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -99,6 +100,12 @@ pub struct Conditions {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub loads: Option<Vec<LoadForce>>,
 }
+
+crate::setters!(Conditions {
+    gravity: Option<[f64; 3]>,
+    motions: Option<Vec<Motion>>,
+    loads: Option<Vec<LoadForce>>,
+});
 
 impl Conditions {
     /// Whether it overrides nothing.

@@ -27,6 +27,7 @@ pub enum Until {
 
 /// How to run.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct RunOptions {
     /// When to stop.
     pub until: Until,
@@ -36,6 +37,12 @@ pub struct RunOptions {
     pub keep_reports: bool,
 }
 
+crate::setters!(RunOptions {
+    until: Until,
+    weights: WorkWeights,
+    keep_reports: bool,
+});
+
 impl RunOptions {
     /// `steps` steps, plain flops as work, no reports kept.
     pub fn steps(steps: usize) -> Self {
@@ -43,6 +50,14 @@ impl RunOptions {
             until: Until::Steps(steps),
             weights: WorkWeights::default(),
             keep_reports: false,
+        }
+    }
+
+    /// Until simulated time `t` (s), plain flops as work, no reports kept.
+    pub fn time(t: f64) -> Self {
+        Self {
+            until: Until::Time(t),
+            ..Self::steps(0)
         }
     }
 

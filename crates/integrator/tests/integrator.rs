@@ -526,11 +526,10 @@ fn conditions_step_like_a_model_built_with_them() {
     let own = IntegratorOptions::default();
     let mut s = sim(&mesh, constraints(Motion::Fixed), own, "Fixed(Direct())");
     let alone = run(&mut s);
-    let conditions = deform_integrator::Conditions {
-        gravity: Some([0.0, 4.0, 0.0]),
-        motions: Some(vec![Motion::Fixed, pull]),
-        loads: None,
-    };
+    let conditions = deform_integrator::Conditions::default()
+        .gravity(Some([0.0, 4.0, 0.0]))
+        .motions(Some(vec![Motion::Fixed, pull]))
+        .loads(None);
     s.set_conditions(&conditions).unwrap();
     assert_eq!(s.gravity(), [0.0, 4.0, 0.0]);
     assert_eq!(run(&mut s), expected);
@@ -538,19 +537,13 @@ fn conditions_step_like_a_model_built_with_them() {
         .unwrap();
     assert_eq!(run(&mut s), alone);
     // Conditions that do not fit the model are refused, naming the field.
-    let wrong = deform_integrator::Conditions {
-        motions: Some(vec![Motion::Fixed]),
-        ..Default::default()
-    };
+    let wrong = deform_integrator::Conditions::default().motions(Some(vec![Motion::Fixed]));
     let err = s.set_conditions(&wrong).unwrap_err().to_string();
     assert!(
         err.contains("motions") && err.contains("2 constraints"),
         "{err}"
     );
-    let nan = deform_integrator::Conditions {
-        gravity: Some([f64::NAN, 0.0, 0.0]),
-        ..Default::default()
-    };
+    let nan = deform_integrator::Conditions::default().gravity(Some([f64::NAN, 0.0, 0.0]));
     assert!(
         s.set_conditions(&nan)
             .unwrap_err()

@@ -11,7 +11,7 @@ use std::ops::ControlFlow;
 
 use deform_integrator::{
     Integrator, IntegratorError, IntegratorOptions, IterationReport, NewtonOptions, NoObserver,
-    Observer, PolicySpec, RunOptions, State, StepError, StepReport, Termination, Until,
+    Observer, PolicySpec, RunOptions, State, StepError, StepReport, Termination,
 };
 use deform_mesh::generate::BoxGrid;
 
@@ -212,26 +212,10 @@ fn runs_end_at_a_time_when_the_observer_stops_or_when_a_step_fails() {
     );
     // Until a time: 0.025 s at dt 0.01 is three whole steps, 0.03 is three too (rounding).
     let mut state = s.rest_state();
-    let summary = s.run(
-        &mut state,
-        &RunOptions {
-            until: Until::Time(0.025),
-            weights: WorkWeights::default(),
-            keep_reports: false,
-        },
-        &mut NoObserver,
-    );
+    let summary = s.run(&mut state, &RunOptions::time(0.025), &mut NoObserver);
     assert_eq!(summary.steps, 3);
     let mut state = s.rest_state();
-    let summary = s.run(
-        &mut state,
-        &RunOptions {
-            until: Until::Time(0.03),
-            weights: WorkWeights::default(),
-            keep_reports: false,
-        },
-        &mut NoObserver,
-    );
+    let summary = s.run(&mut state, &RunOptions::time(0.03), &mut NoObserver);
     assert_eq!(summary.steps, 3);
     // The observer stops after the second step.
     struct StopAt(usize);

@@ -36,11 +36,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     )?;
     let mut sim = scene.build(origin)?.integrator;
     data.add_noise(
-        Noise {
-            position: 0.01,
-            velocity: 0.0,
-            seed: 7,
-        },
+        Noise::default().position(0.01).velocity(0.0).seed(7),
         &sim.dofs().constrained_vertices(),
     );
     let train = data.split(Split::Train);

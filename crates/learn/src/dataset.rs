@@ -134,8 +134,9 @@ pub struct TrajectoryMeta {
 }
 
 /// Gaussian noise added after generation.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct Noise {
     /// Standard deviation of position noise, relative to the RMS displacement from rest
     /// over the trajectory (0.01 = "1 % position noise").
@@ -145,6 +146,12 @@ pub struct Noise {
     /// Seed of the noise.
     pub seed: u64,
 }
+
+deform_integrator::setters!(Noise {
+    position: f64,
+    velocity: f64,
+    seed: u64,
+});
 
 /// Everything needed to reproduce or reinterpret a dataset.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -179,6 +186,7 @@ pub struct Dataset {
 /// How to vary the initial conditions between trajectories.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct Variations {
     /// Largest uniform initial speed (m/s), random direction.
     pub speed: f64,
@@ -189,6 +197,13 @@ pub struct Variations {
     /// Start every trajectory from rest (no variation); overrides the above.
     pub rest: bool,
 }
+
+deform_integrator::setters!(Variations {
+    speed: f64,
+    spin: f64,
+    stretch: f64,
+    rest: bool,
+});
 
 impl Default for Variations {
     fn default() -> Self {

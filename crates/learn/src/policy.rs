@@ -49,6 +49,7 @@ pub const DEFAULT_FORCING: (f64, f64) = (0.1, 0.9);
 
 /// Options of the learned policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct PolicyOptions {
     /// Neighbours of the iteration model.
     pub neighbours: usize,
@@ -63,6 +64,29 @@ pub struct PolicyOptions {
     /// Iteration predictions scale by `ln eta / ln rel` (CG's linear convergence).
     pub forcing: Option<(f64, f64)>,
 }
+
+impl PolicyOptions {
+    /// For a material of Young's modulus `young`: [`DEFAULT_NEIGHBOURS`],
+    /// [`DEFAULT_MIN_SUCCESS`], plain flops as work, and the solvers' own tolerances (no
+    /// forcing term); the setters change the rest.
+    pub fn new(young: f64) -> Self {
+        Self {
+            neighbours: DEFAULT_NEIGHBOURS,
+            min_success: DEFAULT_MIN_SUCCESS,
+            weights: WorkWeights::default(),
+            young,
+            forcing: None,
+        }
+    }
+}
+
+deform_integrator::setters!(PolicyOptions {
+    neighbours: usize,
+    min_success: f64,
+    weights: WorkWeights,
+    young: f64,
+    forcing: Option<(f64, f64)>,
+});
 
 /// Work per iteration and per set-up of a candidate, as `log10 w = a + b log10 n`.
 #[derive(Debug, Clone, Copy, PartialEq)]

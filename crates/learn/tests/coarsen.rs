@@ -182,12 +182,13 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
     deform_learn::npy::write(&dir.path().join("truth.npy"), &[mesh.num_tets(), 2], &field).unwrap();
     fine.coefficients = Some(dir.path().join("truth.npy"));
     let spec = DatasetSpec::new(3, 20, 5)
-        .variations(Variations {
-            speed: 0.3,
-            spin: 1.0,
-            stretch: 0.0,
-            rest: false,
-        })
+        .variations(
+            Variations::default()
+                .speed(0.3)
+                .spin(1.0)
+                .stretch(0.0)
+                .rest(false),
+        )
         .split((0.67, 0.0));
     let data = generate(&fine, &origin, &spec, |_, _| ()).unwrap();
     let coarse = Scene {
@@ -203,10 +204,7 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
         .rollout(5)
         .max_iterations(40);
     let train = data.split(Split::Train);
-    let field = deform_learn::Field {
-        labels,
-        ..Default::default()
-    };
+    let field = deform_learn::Field::default().labels(labels);
     let fit = deform_learn::fit_output_error_field(
         &mut sim.integrator,
         &train,

@@ -33,22 +33,18 @@ fn scene() -> Scene {
 fn mixed() -> Vec<Conditions> {
     vec![
         Conditions::default(),
-        Conditions {
-            gravity: Some([0.0; 3]),
-            loads: Some(vec![LoadForce {
+        Conditions::default()
+            .gravity(Some([0.0; 3]))
+            .loads(Some(vec![LoadForce {
                 force: [0.0, 40.0, 20.0],
                 until: Some(0.03),
-            }]),
-            ..Default::default()
-        },
-        Conditions {
-            gravity: Some([0.0, 6.0, 0.0]),
-            motions: Some(vec![Motion::Translate {
+            }])),
+        Conditions::default()
+            .gravity(Some([0.0, 6.0, 0.0]))
+            .motions(Some(vec![Motion::Translate {
                 velocity: [0.0, 0.0, 0.3],
                 until: None,
-            }]),
-            ..Default::default()
-        },
+            }])),
     ]
 }
 
@@ -86,10 +82,7 @@ fn generated_trajectories_carry_their_conditions_through_disk_and_scenes() {
             ..s
         },
         Path::new("again.ron"),
-        &DatasetSpec::new(1, 3, 5).variations(deform_learn::Variations {
-            rest: true,
-            ..Default::default()
-        }),
+        &DatasetSpec::new(1, 3, 5).variations(deform_learn::Variations::default().rest(true)),
         |_, _| {},
     )
     .unwrap();

@@ -110,12 +110,11 @@ fn the_generating_model_carries_the_ensemble() {
         Member::StVenantKirchhoff,
         Member::NeoHookean,
     ];
-    let variations = Variations {
-        speed: 2.0,
-        spin: 4.0,
-        stretch: 0.3,
-        rest: false,
-    };
+    let variations = Variations::default()
+        .speed(2.0)
+        .spin(4.0)
+        .stretch(0.3)
+        .rest(false);
     for base in members {
         let spec = if base == Member::CorotatedLinear {
             "CorotatedLinear(moduli: Young(e: 1e5, nu: 0.3))".to_owned()
@@ -161,12 +160,11 @@ fn a_volume_only_member_is_kept_through_stage_two() {
     // ensemble stage 2 simulates (it was dropped for its mu = 0).
     let mut s = scene("", "Beam(1)");
     s.material = ron::from_str("FixedCorotated(Young(e: 1e5, nu: 0.3))").unwrap();
-    let variations = Variations {
-        speed: 2.0,
-        spin: 4.0,
-        stretch: 0.3,
-        rest: false,
-    };
+    let variations = Variations::default()
+        .speed(2.0)
+        .spin(4.0)
+        .stretch(0.3)
+        .rest(false);
     let spec = DatasetSpec::new(5, 8, 3)
         .variations(variations)
         .split((0.6, 0.2));

@@ -57,12 +57,11 @@ fn noise_free_data_give_every_element_its_pair_back() {
     let weights: Vec<f64> = (0..2 * basis.num_functions())
         .map(|i| base[i % 2] * rng.range(0.5, 2.0))
         .collect();
-    let variations = Variations {
-        speed: 1.0,
-        spin: 2.0,
-        stretch: 0.2,
-        rest: false,
-    };
+    let variations = Variations::default()
+        .speed(1.0)
+        .spin(2.0)
+        .stretch(0.2)
+        .rest(false);
     let cases = [
         (
             FieldLayout::Labels((0..tets as u32).collect()),
@@ -162,11 +161,7 @@ fn one_percent_position_noise() {
     let built = s.build(Path::new("test")).unwrap();
     let constrained = built.integrator.dofs().constrained_vertices();
     data.add_noise(
-        Noise {
-            position: 0.01,
-            velocity: 0.0,
-            seed: 7,
-        },
+        Noise::default().position(0.01).velocity(0.0).seed(7),
         &constrained,
     );
     let fit = fit_equation_error(

@@ -76,12 +76,13 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
         &truth,
         Path::new("test"),
         &DatasetSpec::new(1, 12, 3)
-            .variations(Variations {
-                speed: 0.3,
-                spin: 0.0,
-                stretch: 0.0,
-                rest: false,
-            })
+            .variations(
+                Variations::default()
+                    .speed(0.3)
+                    .spin(0.0)
+                    .stretch(0.0)
+                    .rest(false),
+            )
             .split((1.0, 0.0)),
         |_, _| {},
     )
@@ -121,11 +122,9 @@ fn output_error_through_contact_of(mesh: &str, constraints: &str, contact: &str,
     }
     let truth_c = objective.uniform_start();
     drop(objective);
-    let field = deform_learn::output::Field {
-        initial: Some(c),
-        friction: frictional,
-        ..Default::default()
-    };
+    let field = deform_learn::output::Field::default()
+        .initial(Some(c))
+        .friction(frictional);
     let fit = deform_learn::output::fit_output_error_field(
         &mut sim,
         &trajectories,

@@ -16,11 +16,7 @@ fn output_error_fit_recovers_the_moduli_under_one_percent_noise() {
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
     let constrained = sim.dofs().constrained_vertices();
     data.add_noise(
-        Noise {
-            position: 0.01,
-            velocity: 0.0,
-            seed: 7,
-        },
+        Noise::default().position(0.01).velocity(0.0).seed(7),
         &constrained,
     );
     let train = data.split(Split::Train);
@@ -60,11 +56,7 @@ fn estimated_rollout_starts_remove_the_bias_of_noisy_starts() {
     let mut sim = s.build(Path::new("test")).unwrap().integrator;
     let constrained = sim.dofs().constrained_vertices();
     data.add_noise(
-        Noise {
-            position: 0.01,
-            velocity: 0.0,
-            seed: 7,
-        },
+        Noise::default().position(0.01).velocity(0.0).seed(7),
         &constrained,
     );
     let dt = 0.01;

@@ -133,13 +133,11 @@ fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> Iteration
 fn the_policy_keeps_a_factor_exactly_while_the_next_stale_solve_is_below_the_cycle_average() {
     let mut policy = LearnedPolicy::train(
         &dataset(),
-        PolicyOptions {
-            neighbours: 1,
-            min_success: 0.5,
-            weights: WorkWeights::default(),
-            young: 1e5,
-            forcing: None,
-        },
+        PolicyOptions::new(1e5)
+            .neighbours(1)
+            .min_success(0.5)
+            .weights(WorkWeights::default())
+            .forcing(None),
     );
     let mut age = 0;
     let mut refreshes = Vec::new();
@@ -177,13 +175,11 @@ fn first_choice(sweep: f64) -> SolverSpec {
                 outcome(900.0, 600.0, 0.0, 5.0, 0),
             ]],
         ),
-        PolicyOptions {
-            neighbours: 1,
-            min_success: 0.5,
-            weights: WorkWeights { factor: 1.0, sweep },
-            young: 1e5,
-            forcing: None,
-        },
+        PolicyOptions::new(1e5)
+            .neighbours(1)
+            .min_success(0.5)
+            .weights(WorkWeights { factor: 1.0, sweep })
+            .forcing(None),
     );
     policy.choose(&context(0)).solver
 }

@@ -71,13 +71,11 @@ fn a_learned_policy_is_as_cheap_as_the_best_fixed_solver_and_as_accurate() {
         .collect();
     let learned = deform_learn::policy::LearnedPolicy::train(
         &data,
-        deform_learn::policy::PolicyOptions {
-            neighbours: 5,
-            min_success: 0.9,
-            weights: WorkWeights::default(),
-            young,
-            forcing: None,
-        },
+        deform_learn::policy::PolicyOptions::new(young)
+            .neighbours(5)
+            .min_success(0.9)
+            .weights(WorkWeights::default())
+            .forcing(None),
     );
     let (flops, x) = run(Box::new(learned));
     let best = *fixed.iter().min().unwrap();
@@ -356,13 +354,11 @@ fn the_learned_policy_holds_a_factor_while_it_pays_on_a_larger_held_out_mesh() {
         .collect();
     let learned = deform_learn::policy::LearnedPolicy::train(
         &data,
-        deform_learn::policy::PolicyOptions {
-            neighbours: 5,
-            min_success: 0.9,
-            weights: WorkWeights::factor(weight),
-            young: 3e5,
-            forcing: None,
-        },
+        deform_learn::policy::PolicyOptions::new(3e5)
+            .neighbours(5)
+            .min_success(0.9)
+            .weights(WorkWeights::factor(weight))
+            .forcing(None),
     );
     let (work, reused, solves) = run(Box::new(learned));
     let best = fixed.iter().copied().fold(f64::INFINITY, f64::min);

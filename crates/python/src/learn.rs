@@ -451,12 +451,13 @@ impl Dataset {
         split: (f64, f64),
     ) -> PyResult<Self> {
         let spec = DatasetSpec::new(trajectories, steps, seed)
-            .variations(Variations {
-                speed,
-                spin,
-                stretch,
-                rest: false,
-            })
+            .variations(
+                Variations::default()
+                    .speed(speed)
+                    .spin(spin)
+                    .stretch(stretch)
+                    .rest(false),
+            )
             .split(split);
         let dataset = py
             .detach(|| generate(&scene.scene, &scene.origin, &spec, |_, _| {}))

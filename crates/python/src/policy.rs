@@ -91,16 +91,14 @@ impl LearnedPolicy {
                 "young = {young} must be finite and > 0"
             )));
         }
-        let options = PolicyOptions {
-            neighbours,
-            min_success,
-            weights: deform_solvers::WorkWeights {
+        let options = PolicyOptions::new(young)
+            .neighbours(neighbours)
+            .min_success(min_success)
+            .weights(deform_solvers::WorkWeights {
                 factor: factor_weight,
                 sweep: sweep_weight,
-            },
-            young,
-            forcing,
-        };
+            })
+            .forcing(forcing);
         let policy = deform_learn::policy::LearnedPolicy::train(&data.data, options);
         Ok(Self { policy })
     }

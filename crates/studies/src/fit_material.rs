@@ -307,11 +307,9 @@ fn stage2(
             }
         }
     }
-    let field = Field {
-        initial: Some(initial.clone()),
-        friction: from.friction.is_some(),
-        ..Field::default()
-    };
+    let field = Field::default()
+        .initial(Some(initial.clone()))
+        .friction(from.friction.is_some());
     let fit = fit_output_error_field(sim, &train, &field, options, |k, loss| {
         observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
     })?;

@@ -353,13 +353,11 @@ pub fn run(
         .map_or(1.0, |l| l.to_young().0);
     let learned = LearnedPolicy::train(
         &logged,
-        PolicyOptions {
-            neighbours: *neighbours,
-            min_success: *min_success,
-            weights: *weights,
-            young,
-            forcing: *forcing,
-        },
+        PolicyOptions::new(young)
+            .neighbours(*neighbours)
+            .min_success(*min_success)
+            .weights(*weights)
+            .forcing(*forcing),
     );
     let mut contenders = baselines(candidates, *refactor_above);
     contenders.push(Contender::Learned);

@@ -398,13 +398,11 @@ fn learn_policy(
     observer.finish();
     let policy = LearnedPolicy::train(
         &logged,
-        PolicyOptions {
-            neighbours: DEFAULT_NEIGHBOURS,
-            min_success: DEFAULT_MIN_SUCCESS,
-            weights,
-            young: fitted.to_young().0,
-            forcing: Some(DEFAULT_FORCING),
-        },
+        PolicyOptions::new(fitted.to_young().0)
+            .neighbours(DEFAULT_NEIGHBOURS)
+            .min_success(DEFAULT_MIN_SUCCESS)
+            .weights(weights)
+            .forcing(Some(DEFAULT_FORCING)),
     );
     Ok((policy, logged))
 }

@@ -336,11 +336,10 @@ fn noisy_imported_positions_give_the_moduli_with_estimated_starts() {
         .integrator
         .dofs()
         .constrained_vertices();
-    let noise = deform_learn::Noise {
-        position: 0.01,
-        velocity: 0.0,
-        seed: 7,
-    };
+    let noise = deform_learn::Noise::default()
+        .position(0.01)
+        .velocity(0.0)
+        .seed(7);
     made.add_noise(noise, &clamped);
     let mut list = Vec::new();
     for (k, t) in made.trajectories.iter().enumerate() {

@@ -346,6 +346,7 @@ pub fn field_of(
 /// A coefficient field to fit: one set of term coefficients per label (one label per
 /// element: the element index for a per-element field, a region tag, a cluster).
 #[derive(Debug, Clone, PartialEq, Default)]
+#[non_exhaustive]
 pub struct Field {
     /// The label of each element; empty: one set for the whole mesh (the material stays
     /// uniform).
@@ -366,6 +367,16 @@ pub struct Field {
     /// Also fit the coefficients of friction (last; see [`OutputError::with_friction`]).
     pub friction: bool,
 }
+
+deform_integrator::setters!(Field {
+    labels: Vec<u32>,
+    basis: Option<Basis>,
+    initial: Option<Vec<f64>>,
+    regularisation: Regularisation,
+    mass: bool,
+    damping: bool,
+    friction: bool,
+});
 
 /// [`fit_output_error`] of a coefficient field (see [`OutputError::with_field`]). The fitted
 /// field is left in `sim`.

@@ -83,12 +83,13 @@ pub fn slab_and_cube(
 /// `speed` (all for training).
 pub fn contact_data(truth: &Scene, speed: f64, steps: usize) -> Dataset {
     let spec = DatasetSpec::new(2, steps, 7)
-        .variations(Variations {
-            speed,
-            spin: 0.0,
-            stretch: 0.0,
-            rest: false,
-        })
+        .variations(
+            Variations::default()
+                .speed(speed)
+                .spin(0.0)
+                .stretch(0.0)
+                .rest(false),
+        )
         .split((1.0, 0.0));
     generate(truth, Path::new("test"), &spec, |_, _| {}).unwrap()
 }

@@ -75,12 +75,13 @@ pub fn bench_coarse_fits(b: &CoarsenBench) -> Result<CoarsenTimings, LearnError>
     let count = b.trajectories + 1;
     let spec = DatasetSpec::new(count, b.steps, 3)
         .split((b.trajectories as f64 / count as f64, 1.0 / count as f64))
-        .variations(Variations {
-            speed: 0.5,
-            spin: 1.0,
-            stretch: 0.05,
-            rest: false,
-        });
+        .variations(
+            Variations::default()
+                .speed(0.5)
+                .spin(1.0)
+                .stretch(0.05)
+                .rest(false),
+        );
     let started = Instant::now();
     let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
     let generate_seconds = started.elapsed().as_secs_f64();

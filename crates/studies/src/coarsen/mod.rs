@@ -295,15 +295,10 @@ impl CoarseSettings {
     /// A field over `labels` (none: one set for the whole mesh), with damping as asked and
     /// without mass scales.
     fn field(&self, labels: Vec<u32>, regularisation: Regularisation) -> Field {
-        Field {
-            labels,
-            basis: None,
-            initial: None,
-            regularisation,
-            mass: false,
-            damping: self.damping,
-            friction: false,
-        }
+        Field::default()
+            .labels(labels)
+            .regularisation(regularisation)
+            .damping(self.damping)
     }
 }
 
@@ -562,10 +557,8 @@ pub fn fit_coarse_models(
     models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
-        let smooth = Field {
-            basis: Some(Basis::hat(&mesh, nodes)?),
-            ..field(Vec::new(), Regularisation::default())
-        };
+        let smooth =
+            field(Vec::new(), Regularisation::default()).basis(Some(Basis::hat(&mesh, nodes)?));
         let (summary, _, tuned) =
             fit_row(&mut sim, sets, &smooth, &homogeneous, settings, observer)?;
         models.push((CoarseModel::Smooth, Some(summary), tuned));

@@ -37,10 +37,10 @@ impl PerElement<'_> {
             smooth: w,
             neighbours: self.neighbours.clone(),
         };
-        let field = Field {
-            mass: self.settings.mass_scale,
-            ..self.settings.field(self.labels.to_vec(), regularisation)
-        };
+        let field = self
+            .settings
+            .field(self.labels.to_vec(), regularisation)
+            .mass(self.settings.mass_scale);
         let (coefficients, mut summary) = fit(sim, self.train, &field, self.settings, observer)?;
         let model = fitted_model(sim);
         restore(sim, &self.settings.running(&model))?;
