@@ -316,6 +316,14 @@ fn corpus() -> Vec<Case> {
             names: &["bad.ron", "dataset.split", "use split: (0.667, 0.000)"],
         },
         Case {
+            what: "experiment: dataset conditions that do not fit the scene",
+            input: Experiment(experiment(
+                "split: (0.34, 0.33)",
+                "split: (0.34, 0.33), conditions: [(motions: Some([]))]",
+            )),
+            names: &["bad.ron", "dataset.conditions[0]", "motions"],
+        },
+        Case {
             what: "experiment: negative noise",
             input: Experiment(experiment(
                 "split: (0.34, 0.33)",

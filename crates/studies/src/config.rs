@@ -453,6 +453,28 @@ impl Experiment {
         Ok(e)
     }
 
+    /// The generated dataset's conditions against the scene's constraints and loads, named
+    /// in the experiment file `path` (they were reported against the scene when the data were
+    /// made).
+    fn check_conditions(&self, path: &Path) -> Result<(), LearnError> {
+        let Data::Generate(d) = &self.data else {
+            return Ok(());
+        };
+        if d.conditions.is_empty() {
+            return Ok(());
+        }
+        let scene = deform_integrator::Scene::load(&self.scene)?;
+        for (k, c) in d.conditions.iter().enumerate() {
+            c.validate(scene.constraints.len(), scene.loads.len())
+                .map_err(|(field, reason)| LearnError::Config {
+                    path: path.to_path_buf(),
+                    field: format!("dataset.conditions[{k}].{field}"),
+                    reason,
+                })?;
+        }
+        Ok(())
+    }
+
     /// Reads an experiment file; scene paths are made relative to its directory.
     ///
     /// # Errors
@@ -468,6 +490,7 @@ impl Experiment {
         if e.scene.is_relative() {
             e.scene = deform_fs::join_clean(dir, &e.scene);
         }
+        e.check_conditions(path)?;
         if let Task::SelectSolver {
             held_out,
             also_train,
