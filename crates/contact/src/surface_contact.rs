@@ -338,22 +338,36 @@ impl SelfContact {
     /// Refuses positions where two primitives that share no vertex are closer than `dhat`
     /// (at rest they would push apart: the barrier must be zero there).
     pub(crate) fn check_separated(&self, x: &[f64], dhat: f64) -> Result<(), ContactError> {
+        // The closest pair is the one to name: one that touches is no matter of dhat.
+        let mut closest: Option<(f64, Candidate)> = None;
         for c in self.candidates(x, None, dhat, Place::End) {
             if !self.on_body(c) {
                 continue;
             }
             let d = self.distance(c, &self.points(c, x, Place::End)).0;
-            if d < dhat {
-                return Err(ContactError::Invalid {
-                    field: "dhat".into(),
-                    reason: format!(
-                        "{} are {d:e} m apart at rest, closer than dhat = {dhat:e} m; give a smaller dhat",
-                        self.pair(c)
-                    ),
-                });
+            if d < dhat && closest.is_none_or(|(least, _)| d < least) {
+                closest = Some((d, c));
             }
         }
-        Ok(())
+        let Some((d, c)) = closest else {
+            return Ok(());
+        };
+        let pair = self.pair(c);
+        Err(if d <= 0.0 {
+            ContactError::Invalid {
+                field: "self_contact".into(),
+                reason: format!(
+                    "{pair} touch at rest (distance {d:e} m): no dhat separates them; self-contact needs the body's surface apart at rest"
+                ),
+            }
+        } else {
+            ContactError::Invalid {
+                field: "dhat".into(),
+                reason: format!(
+                    "{pair} are {d:e} m apart at rest, closer than dhat = {dhat:e} m; give a smaller dhat"
+                ),
+            }
+        })
     }
 
     fn indices(&self, c: Candidate) -> [usize; 4] {

@@ -21,6 +21,25 @@ fn pair(gap: f64, jitter: [f64; 24]) -> (SelfContact, Vec<f64>) {
     (SelfContact::new(triangles, &x).unwrap(), x)
 }
 
+/// Faces that touch at rest (the second tetrahedron's base edge lying across the first's
+/// top face) are refused as touching, naming the pair, not blamed on `dhat`; a pair apart
+/// but within `dhat` still is.
+#[test]
+fn faces_touching_at_rest_are_named_not_blamed_on_dhat() {
+    let (touching, x) = pair(0.0, [0.0; 24]);
+    let message = touching.check_separated(&x, 0.1).unwrap_err().to_string();
+    assert!(
+        message.contains("self_contact") && message.contains("touch at rest"),
+        "{message}"
+    );
+    let (close, x) = pair(0.05, [0.0; 24]);
+    let message = close.check_separated(&x, 0.1).unwrap_err().to_string();
+    assert!(
+        message.contains("dhat") && message.contains("apart at rest"),
+        "{message}"
+    );
+}
+
 /// The second tetrahedron as a fixed mesh obstacle gives the first the same energy,
 /// forces and Hessian blocks as the two in self-contact (no pair within one tetrahedron
 /// is within `dhat`), and the obstacle no force or block.
