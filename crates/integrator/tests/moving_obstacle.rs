@@ -466,3 +466,29 @@ fn a_lid_too_fast_for_the_step_is_refused_not_passed_through() {
     let mut s = sim.rest_state();
     assert!(sim.step(&mut s).is_err());
 }
+
+/// A ground rising at 1e3 to 1e6 m/s (metres to kilometres a step, against a 10 cm cube)
+/// is refused as an obstacle too fast for the step, not reported as an element inverted by
+/// the carried surface.
+#[test]
+fn an_obstacle_too_fast_for_the_step_is_refused_as_such() {
+    for speed in [1e3, 1e6] {
+        let contact = ContactSpec {
+            obstacles: vec![plane(0.0, true)],
+            motions: vec![ObstacleMotion {
+                obstacle: 0,
+                velocity: [0.0, 0.0, speed],
+                ..Default::default()
+            }],
+            ..Default::default()
+        };
+        let mesh = cube(0.001);
+        let mut sim = sim(&mesh, contact, 0.0);
+        let mut s = sim.rest_state();
+        let message = sim.step(&mut s).unwrap_err().to_string();
+        assert!(
+            message.contains("moving obstacles would pass through the body"),
+            "{speed} m/s: {message}"
+        );
+    }
+}
