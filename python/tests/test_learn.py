@@ -29,16 +29,21 @@ def record(sim, steps, kick):
     return np.stack(xs), np.stack(vs)
 
 
+def kicked_motion(truth, rng, steps):
+    """From rest, a random velocity kick on the free vertices, then `steps` steps."""
+    free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
+    kick = np.zeros_like(truth.v)
+    kick[free] = rng.normal(0, 0.5, (len(free), 3))
+    truth.x = truth.mesh.vertices
+    return record(truth, steps, kick)
+
+
 def test_a_material_fit_on_data_made_in_python():
     truth = deform.Simulation(deform.Scene.from_ron(SCENE.format(e=1e5, nu=0.4)))
     rng = np.random.default_rng(3)
-    free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
     trajectories = []
     for _ in range(3):
-        kick = np.zeros_like(truth.v)
-        kick[free] = rng.normal(0, 0.5, (len(free), 3))
-        truth.x = truth.mesh.vertices
-        x, v = record(truth, 8, kick)
+        x, v = kicked_motion(truth, rng, 8)
         trajectories.append(deform.Trajectory(x, 0.01, velocities=v))
     assert trajectories[0].steps == 8 and np.array_equal(trajectories[0].x[0], truth.mesh.vertices)
     guess = deform.Scene.from_ron(SCENE.format(e=3e5, nu=0.3))
@@ -62,10 +67,7 @@ def test_a_fit_stopped_on_its_cap_warns_and_starts_are_estimated_on_request():
     free = np.setdiff1d(np.arange(truth.x.shape[0]), truth.constrained)
     noisy = []
     for _ in range(2):
-        kick = np.zeros_like(truth.v)
-        kick[free] = rng.normal(0, 0.5, (len(free), 3))
-        truth.x = truth.mesh.vertices
-        x, _ = record(truth, 6, kick)
+        x, _ = kicked_motion(truth, rng, 6)
         x[:, free] += rng.normal(0, 1e-4, x[:, free].shape)
         noisy.append(deform.Trajectory(x, 0.01))
     guess = deform.Scene.from_ron(SCENE.format(e=2e5, nu=0.3))

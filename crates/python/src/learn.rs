@@ -298,11 +298,7 @@ fn fit_material<'py>(
     let termination = stage2.as_ref().map(|f| f.termination.describe());
     out.set_item("termination", termination)?;
     let warnings = fit_warnings(stage1.as_ref(), stage2.as_ref());
-    for w in &warnings {
-        let message = std::ffi::CString::new(w.as_str()).unwrap_or_default();
-        let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
-        PyErr::warn(py, &category, &message, 1)?;
-    }
+    warn_all(py, &warnings)?;
     out.set_item("warnings", warnings)?;
     Ok(out.into_any())
 }
@@ -313,7 +309,6 @@ fn coarse_fit_warnings(
     m: &deform_studies::coarsen::CoarseModelFit,
     unstable: Option<&str>,
 ) -> PyResult<()> {
-    use deform_learn::output::Termination;
     let name = m.model.name();
     let mut warnings = Vec::new();
     if let Some(why) = unstable {
@@ -322,16 +317,21 @@ fn coarse_fit_warnings(
         ));
     }
     if let Some(t) = m.fit.as_ref().map(|f| &f.termination)
-        && matches!(t, Termination::MaxIterations | Termination::Budget { .. })
+        && t.on_limit()
     {
         warnings.push(format!(
             "{name}: the fit stopped on its {} without converging",
             t.describe()
         ));
     }
+    warn_all(py, &warnings)
+}
+
+/// Each of `warnings` as a Python `UserWarning`.
+fn warn_all(py: Python<'_>, warnings: &[String]) -> PyResult<()> {
+    let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
     for w in warnings {
-        let message = std::ffi::CString::new(w).unwrap_or_default();
-        let category = py.get_type::<pyo3::exceptions::PyUserWarning>();
+        let message = std::ffi::CString::new(w.as_str()).unwrap_or_default();
         PyErr::warn(py, &category, &message, 1)?;
     }
     Ok(())
@@ -343,16 +343,12 @@ fn fit_warnings(
     stage1: Option<&deform_learn::EquationErrorFit>,
     stage2: Option<&deform_learn::OutputErrorFit>,
 ) -> Vec<String> {
-    use deform_learn::output::Termination;
     let mut warnings = Vec::new();
     if let Some(why) = stage1.and_then(|s| s.unusable()) {
         warnings.push(format!("stage 1 (equation error) is unusable: {why}"));
     }
     if let Some(f) = stage2
-        && matches!(
-            f.termination,
-            Termination::MaxIterations | Termination::Budget { .. }
-        )
+        && f.termination.on_limit()
     {
         warnings.push(format!(
             "stage 2 (output error) stopped on its {} without converging: raise max_iterations or max_evaluations",

@@ -167,9 +167,7 @@ impl FitMaterialReport {
         let fitted = self.rollouts.iter().find(|s| s.name == FITTED)?;
         (truth > 0.0).then(|| mean_error(&fitted.values) / truth)
     }
-}
 
-impl FitMaterialReport {
     /// The fitted over the true (or the scene's) rollout error as a phrase; where there is
     /// no ratio, why.
     pub fn rollout_phrase(&self) -> String {

@@ -23,9 +23,7 @@ use deform_learn::dataset::{Split, Trajectory};
 use deform_learn::ensemble::{FittedMember, Member, fit_ensemble, refine_ensemble};
 use deform_learn::fit::fit_equation_error;
 use deform_learn::output::{OutputErrorFit, fit_output_error};
-use deform_learn::policy::{
-    DEFAULT_FORCING, DEFAULT_MIN_SUCCESS, DEFAULT_NEIGHBOURS, LearnedPolicy, PolicyOptions,
-};
+use deform_learn::policy::{DEFAULT_FORCING, LearnedPolicy, PolicyOptions};
 use deform_learn::rollout::{
     free_rollout_failure, mean_error, mean_rollout_errors, rollout, stable_or,
 };
@@ -399,8 +397,6 @@ fn learn_policy(
     let policy = LearnedPolicy::train(
         &logged,
         PolicyOptions::new(fitted.to_young().0)
-            .neighbours(DEFAULT_NEIGHBOURS)
-            .min_success(DEFAULT_MIN_SUCCESS)
             .weights(weights)
             .forcing(Some(DEFAULT_FORCING)),
     );

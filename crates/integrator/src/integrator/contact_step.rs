@@ -71,7 +71,7 @@ impl Integrator {
             // and the step would fail in the assembly, naming an element, not the motion.
             let carried = (dx.chunks(3).zip(before.chunks(3)))
                 .map(|(a, b)| {
-                    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+                    (Vector3::from_column_slice(a) - Vector3::from_column_slice(b)).norm()
                 })
                 .fold(0.0, f64::max);
             if !(carried <= reach) {

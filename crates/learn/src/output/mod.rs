@@ -183,6 +183,15 @@ pub enum Termination {
 }
 
 impl Termination {
+    /// Whether the fit stopped on its iteration cap or evaluation budget, not converged:
+    /// more of either might have lowered the loss further.
+    pub fn on_limit(&self) -> bool {
+        matches!(
+            self,
+            Termination::MaxIterations | Termination::Budget { .. }
+        )
+    }
+
     /// A short phrase for reports: `converged`, `iteration cap`, `evaluation budget (200)`,
     /// `stalled (no progress in 40 evaluations)` or `stopped: why`.
     pub fn describe(&self) -> String {

@@ -179,6 +179,8 @@ fn a_fit_stopped_by_its_budget_or_patience_reports_which() {
             Termination::Stalled { patience: 1 }
         };
         assert_eq!(fit.termination, expected, "{}", fit.termination.describe());
+        // The budget is a limit (more might help); a stall is not.
+        assert_eq!(fit.termination.on_limit(), patience == 0);
         // The record starts at the start and holds no iterate without coefficients (the
         // stopped line search's last iteration moved nowhere).
         let first = &fit.iterations[0];

@@ -91,10 +91,8 @@ pub fn bench_coarse_fits(b: &CoarsenBench) -> Result<CoarsenTimings, LearnError>
     };
     let (data, mapping) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
     let options = OutputErrorOptions::default().rollout(b.rollout);
-    let settings = CoarseSettings {
-        regularisation: b.weights.clone(),
-        ..CoarseSettings::new(fine.integrator.newton.max_iterations, options)
-    };
+    let settings = CoarseSettings::new(fine.integrator.newton.max_iterations, options)
+        .regularisation(b.weights.clone());
     let started = Instant::now();
     let fits = fit_coarse_models(&data, origin, &settings, &mut NoProgress)?;
     Ok(CoarsenTimings {
