@@ -515,6 +515,39 @@ impl Dataset {
             .collect()
     }
 
+    /// Names a failure on the trajectories of `splits` (as a fit was given them: split after
+    /// split, each in dataset order) by the dataset's numbering, the trajectory's name and the
+    /// file it was read from; failures about no trajectory pass unchanged. A fit numbers
+    /// trajectories within what it was given, which is not what a user reads in the dataset.
+    pub fn blame<E: Into<crate::LearnError>>(
+        &self,
+        splits: &[Split],
+    ) -> impl Fn(E) -> crate::LearnError + '_ {
+        let order: Vec<usize> = splits.iter().flat_map(|&s| self.indices(s)).collect();
+        move |e| {
+            let fit = match e.into() {
+                crate::LearnError::Fit(fit) => fit,
+                other => return other,
+            };
+            match fit.trajectory().and_then(|k| order.get(k)) {
+                Some(&k) => crate::LearnError::InTrajectory {
+                    name: self.describe(k),
+                    source: Box::new(fit.renumbered(k).into()),
+                },
+                None => fit.into(),
+            }
+        }
+    }
+
+    /// Trajectory `k`'s name, and the file it was read from when it was imported.
+    pub fn describe(&self, k: usize) -> String {
+        let meta = &self.meta.trajectories[k];
+        match &meta.source {
+            Some(path) => format!("{}, read from {}", meta.name, path.display()),
+            None => meta.name.clone(),
+        }
+    }
+
     /// The dataset of one split's trajectories only (e.g. the held-out ones).
     pub fn only(&self, split: Split) -> Dataset {
         let keep: Vec<usize> = self.indices(split).collect();

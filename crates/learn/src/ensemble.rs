@@ -189,7 +189,8 @@ fn outside_domains(
 /// out and listed in [`EnsembleFit::excluded`].
 ///
 /// # Errors
-/// [`FitError`]; [`FitError::Invalid`] when every candidate is excluded.
+/// [`FitError`], numbering the trajectories of `train` then those of `evaluate`;
+/// [`FitError::Invalid`] when every candidate is excluded.
 pub fn fit_ensemble(
     scene: &Scene,
     origin: &Path,
@@ -239,7 +240,8 @@ pub fn fit_ensemble(
             energy_share: 0.0,
         })
         .collect();
-    energy_shares(&built.mesh, &mut members, evaluate)?;
+    energy_shares(&built.mesh, &mut members, evaluate)
+        .map_err(|e| after_training(e, train.len()))?;
     Ok(EnsembleFit {
         members,
         relative_residual: fit.relative_residual,
@@ -255,8 +257,9 @@ pub fn fit_ensemble(
 /// `progress(evaluation, loss)` sees every loss evaluation.
 ///
 /// # Errors
-/// [`FitError`]; [`FitError::Invalid`] when `fit` kept no member and the scene's material
-/// has no single Lame pair to start from.
+/// [`FitError`], numbering the trajectories of `train` then those of `evaluate`;
+/// [`FitError::Invalid`] when `fit` kept no member and the scene's material has no single
+/// Lame pair to start from.
 pub fn refine_ensemble(
     fit: &EnsembleFit,
     scene: &Scene,
@@ -290,8 +293,18 @@ pub fn refine_ensemble(
         refined.members[m].mu = stage2.coefficients[2 * k];
         refined.members[m].lambda = stage2.coefficients[2 * k + 1];
     }
-    energy_shares(&built.mesh, &mut refined.members, evaluate)?;
+    energy_shares(&built.mesh, &mut refined.members, evaluate)
+        .map_err(|e| after_training(e, train.len()))?;
     Ok((refined, stage2))
+}
+
+/// An error about trajectory `k` of `evaluate` as one about trajectory `train + k`: the
+/// ensemble fits number the trajectories of `train` then those of `evaluate`.
+fn after_training(e: FitError, train: usize) -> FitError {
+    match e.trajectory() {
+        Some(k) => e.renumbered(train + k),
+        None => e,
+    }
 }
 
 /// `fit` with every member at an equal share of `scene`'s Lame pair (see

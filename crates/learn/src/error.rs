@@ -76,6 +76,16 @@ pub enum LearnError {
     /// The task cannot run on this input (e.g. fitting a Lame pair to an ensemble).
     #[error("{0}")]
     Unsupported(String),
+    /// A fit or rollout failed on one trajectory of a dataset: the error, its trajectory
+    /// numbered as in the dataset, and that trajectory's name and source
+    /// ([`crate::Dataset::blame`]).
+    #[error("{source} ({name})")]
+    InTrajectory {
+        /// The trajectory's folder name, and the file it was read from when imported.
+        name: String,
+        /// The error.
+        source: Box<LearnError>,
+    },
 }
 
 impl LearnError {
@@ -90,6 +100,33 @@ impl LearnError {
 }
 
 impl FitError {
+    /// The trajectory a failure is about: its index among the trajectories the fit was
+    /// given.
+    pub fn trajectory(&self) -> Option<usize> {
+        match self {
+            FitError::Data { index: k, .. }
+            | FitError::Assembly { trajectory: k, .. }
+            | FitError::Step { trajectory: k, .. }
+            | FitError::Retried { trajectory: k, .. }
+            | FitError::Solve { trajectory: k, .. } => Some(*k),
+            _ => None,
+        }
+    }
+
+    /// The same failure about trajectory `index` (e.g. its index in the whole dataset
+    /// rather than in the split the fit was given).
+    pub fn renumbered(mut self, index: usize) -> Self {
+        match &mut self {
+            FitError::Data { index: k, .. }
+            | FitError::Assembly { trajectory: k, .. }
+            | FitError::Step { trajectory: k, .. }
+            | FitError::Retried { trajectory: k, .. }
+            | FitError::Solve { trajectory: k, .. } => *k = index,
+            _ => {}
+        }
+        self
+    }
+
     /// Whether simulating the model failed (a step, a retried step, an adjoint solve):
     /// what a trial point of an optimiser may do, and be backed off from.
     pub fn is_failed_simulation(&self) -> bool {

@@ -6,7 +6,7 @@
 use deform_integrator::{Integrator, OnStep, RunOptions, RunSummary, State, StepReport};
 use deform_solvers::WorkWeights;
 
-use crate::dataset::{Trajectory, state_at};
+use crate::dataset::{Dataset, Split, Trajectory, state_at};
 use crate::error::LearnError;
 
 /// Root-mean-square distance between the vertices of two flat `3N` position vectors.
@@ -104,23 +104,47 @@ pub fn rollout_error(sim: &mut Integrator, t: &Trajectory) -> Result<Vec<f64>, L
 /// The mean over trajectories of [`rollout_error`] at each recorded state.
 ///
 /// # Errors
-/// As [`rollout`], naming the trajectory.
+/// As [`rollout`], naming the trajectory by its index in `trajectories`.
 pub fn mean_rollout_errors(
     sim: &mut Integrator,
     trajectories: &[&Trajectory],
 ) -> Result<Vec<f64>, LearnError> {
-    let mut mean = vec![0.0; trajectories.first().map_or(0, |t| t.x.len())];
-    for (k, t) in trajectories.iter().enumerate() {
-        let r = rollout(
-            sim,
-            t,
-            1,
-            WorkWeights::default(),
-            &format!("trajectory {k}"),
-            &mut |_, _| {},
-        )?;
+    let named = trajectories.iter().enumerate();
+    mean_of(
+        sim,
+        named
+            .map(|(k, t)| (format!("trajectory {k}"), *t))
+            .collect(),
+    )
+}
+
+/// [`mean_rollout_errors`] over the trajectories of one split of `data`, each named in a
+/// failure as in the dataset ([`Dataset::describe`]).
+///
+/// # Errors
+/// As [`rollout`].
+pub fn split_rollout_errors(
+    sim: &mut Integrator,
+    data: &Dataset,
+    split: Split,
+) -> Result<Vec<f64>, LearnError> {
+    let named = data.indices(split).map(|k| {
+        let what = format!("trajectory {k} ({})", data.describe(k));
+        (what, &data.trajectories[k])
+    });
+    mean_of(sim, named.collect())
+}
+
+fn mean_of(
+    sim: &mut Integrator,
+    named: Vec<(String, &Trajectory)>,
+) -> Result<Vec<f64>, LearnError> {
+    let count = named.len() as f64;
+    let mut mean = vec![0.0; named.first().map_or(0, |(_, t)| t.x.len())];
+    for (what, t) in named {
+        let r = rollout(sim, t, 1, WorkWeights::default(), &what, &mut |_, _| {})?;
         for (m, v) in mean.iter_mut().zip(r.errors) {
-            *m += v / trajectories.len() as f64;
+            *m += v / count;
         }
     }
     Ok(mean)

@@ -268,6 +268,7 @@ fn stage2(
     observer: &mut dyn ExperimentObserver,
 ) -> Result<Stage2, LearnError> {
     let train = data.split(Split::Train);
+    let blame = data.blame(&[Split::Train]);
     observer.start(Stage::Fit, options.max_iterations);
     let started = Instant::now();
     let with_friction = |c: &[f64]| [c, from.friction.unwrap_or(&[])].concat();
@@ -288,6 +289,7 @@ fn stage2(
         if let Some(why) = &report.stage1_unusable {
             // Stage 2 can only start from the prior: say why it cannot, if it cannot.
             let l0 = l0.map_err(|e| {
+                let e = blame(e);
                 let (e0, nu0) = lame.to_young();
                 LearnError::Unsupported(format!(
                     "stage 1 is unusable ({why}) and stage 2 cannot start from the prior (E = {e0:.4e} Pa, nu = {nu0:.4}): {e}",
@@ -310,7 +312,8 @@ fn stage2(
         .friction(from.friction.is_some());
     let fit = fit_output_error_field(sim, &train, &field, options, |k, loss| {
         observer.message(&format!("evaluation {k}, loss {loss:.3e}"));
-    })?;
+    })
+    .map_err(&blame)?;
     observer.finish();
     let validation = data.split(Split::Validation);
     let sets = [train.as_slice(), validation.as_slice()];
@@ -354,16 +357,19 @@ pub fn run(
     };
     let origin = cx.experiment.scene.as_path();
     let train = cx.data.split(Split::Train);
-    if let (None, Some(t)) = (
+    let mut markers_only = cx.data.indices(Split::Train);
+    if let (None, Some(k)) = (
         output_error,
-        train.iter().position(|t| t.observed.is_some()),
+        markers_only.find(|&k| cx.data.trajectories[k].observed.is_some()),
     ) {
         return Err(LearnError::Unsupported(format!(
-            "FitMaterial on marker data needs `output_error`: training trajectory {t} observes markers only, and equation error (stage 1) needs whole states"
+            "FitMaterial on marker data needs `output_error`: training trajectory {k} ({}) observes markers only, and equation error (stage 1) needs whole states",
+            cx.data.describe(k)
         )));
     }
     let (stage1, stage1_unusable, stage1_seconds) =
-        stage1(&cx.built.integrator, &train, *equation_error)?;
+        stage1(&cx.built.integrator, &train, *equation_error)
+            .map_err(cx.data.blame(&[Split::Train]))?;
     let stage1_coefficients = stage1
         .as_ref()
         .map_or(vec![f64::NAN; 2], |s| s.coefficients.clone());
@@ -431,7 +437,6 @@ pub fn run(
     }
     // Rollouts on the test trajectories with each parameter set.
     observer.start(Stage::Rollouts, 3);
-    let tests = cx.data.split(Split::Test);
     let first = if known {
         "true parameters"
     } else {
@@ -453,7 +458,7 @@ pub fn run(
             if let Some(m) = &mu_friction {
                 scene = with_friction(&scene, m)?;
             }
-            let errors = mean_rollout(&scene, origin, &tests)?;
+            let errors = mean_rollout(&scene, origin, &cx.data, Split::Test)?;
             report.rollouts.push(Series::new(name, errors));
         }
         observer.advance(1);

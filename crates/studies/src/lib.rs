@@ -353,15 +353,17 @@ pub(crate) fn with_friction(scene: &Scene, mu: &[f64]) -> Result<Scene, LearnErr
     Ok(s)
 }
 
-/// The mean over `trajectories` of the rollout error of `scene` at each recorded state.
+/// The mean over the trajectories of `split` of the rollout error of `scene` at each
+/// recorded state.
 ///
 /// # Errors
-/// The scene's or the rollout's.
+/// The scene's, or the rollout's naming the trajectory as in the dataset.
 pub(crate) fn mean_rollout(
     scene: &Scene,
     origin: &Path,
-    trajectories: &[&deform_learn::dataset::Trajectory],
+    data: &deform_learn::Dataset,
+    split: deform_learn::Split,
 ) -> Result<Vec<f64>, LearnError> {
     let mut sim = scene.build(origin)?.integrator;
-    deform_learn::rollout::mean_rollout_errors(&mut sim, trajectories)
+    deform_learn::rollout::split_rollout_errors(&mut sim, data, split)
 }

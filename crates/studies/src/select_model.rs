@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{Context, ExperimentObserver, Series, Stage, Task, mean_rollout};
 use deform_learn::LearnError;
-use deform_learn::dataset::{Split, Trajectory};
+use deform_learn::dataset::Split;
 use deform_learn::ensemble::{EnsembleFit, Member, fit_ensemble, refine_ensemble};
 use deform_learn::output::OutputErrorFit;
 use deform_learn::rollout::{mean_error, stable_or};
@@ -90,8 +90,10 @@ pub fn run(
     let origin = cx.experiment.scene.as_path();
     let train = cx.data.split(Split::Train);
     // Stage 1, then (optionally) stage 2 on the kept members.
-    let mut fit_models = |names: &[Member], evaluate: &[&Trajectory]| {
-        let fit = fit_ensemble(&cx.scene, origin, names, &train, evaluate)?;
+    let mut fit_models = |names: &[Member], on: Split| {
+        let (evaluate, blame) = (cx.data.split(on), cx.data.blame(&[Split::Train, on]));
+        let evaluate = evaluate.as_slice();
+        let fit = fit_ensemble(&cx.scene, origin, names, &train, evaluate).map_err(&blame)?;
         let Some(options) = output_error else {
             return Ok::<_, LearnError>((fit, None, None));
         };
@@ -107,7 +109,8 @@ pub fn run(
                 observer.advance(1);
                 observer.message(&format!("loss {loss:.3e}"));
             },
-        )?;
+        )
+        .map_err(&blame)?;
         observer.finish();
         // The refined model must run freely on the data it was fitted and chosen on, or
         // stage 1's stands.
@@ -124,7 +127,7 @@ pub fn run(
         let (kept, unstable) = stable_or(&mut sim, &sets, refined, fit);
         Ok((kept, Some(stage2), unstable))
     };
-    let (ensemble, stage2, unstable) = fit_models(members, &cx.data.split(Split::Test))?;
+    let (ensemble, stage2, unstable) = fit_models(members, Split::Test)?;
     // Each model alone against the ensemble, by rollout error on validation (to select)
     // and test (to report), averaged over the rollouts.
     let evaluate = |spec: Option<MaterialSpec>| -> (f64, f64) {
@@ -134,8 +137,7 @@ pub fn run(
         let mut s = cx.scene.clone();
         s.material = spec;
         let run = |split| {
-            mean_rollout(&s, origin, &cx.data.split(split))
-                .map_or(f64::INFINITY, |e| mean_error(&e))
+            mean_rollout(&s, origin, &cx.data, split).map_or(f64::INFINITY, |e| mean_error(&e))
         };
         (run(Split::Validation), run(Split::Test))
     };
@@ -146,7 +148,7 @@ pub fn run(
         let (validation, test, why) = if outside {
             (f64::INFINITY, f64::INFINITY, None)
         } else {
-            let (single, _, why) = fit_models(&[member], &cx.data.split(Split::Validation))?;
+            let (single, _, why) = fit_models(&[member], Split::Validation)?;
             let (validation, test) = evaluate(single.spec());
             (validation, test, why)
         };
@@ -165,10 +167,9 @@ pub fn run(
         unstable,
     });
     // Test rollouts of the base scene and of the ensemble.
-    let tests = cx.data.split(Split::Test);
     let mut rollouts = vec![Series::new(
         "base model",
-        mean_rollout(&cx.scene, origin, &tests)?,
+        mean_rollout(&cx.scene, origin, &cx.data, Split::Test)?,
     )];
     if let Some(spec) = ensemble.spec() {
         let s = Scene {
@@ -177,7 +178,7 @@ pub fn run(
         };
         rollouts.push(Series::new(
             "fitted ensemble",
-            mean_rollout(&s, origin, &tests)?,
+            mean_rollout(&s, origin, &cx.data, Split::Test)?,
         ));
     }
     Ok(SelectModelReport {

@@ -201,7 +201,9 @@ pub fn run(
     // 1. Force-model optimisation through the coarse steps; stage 2 refines the Lame pair
     // with stage 1's damping.
     observer.start(Stage::Fit, output_error.max_evaluations as u64);
-    let stage1 = fit_equation_error(&cx.built.integrator, &train, *equation_error)?;
+    let blame = cx.data.blame(&[Split::Train]);
+    let stage1 =
+        fit_equation_error(&cx.built.integrator, &train, *equation_error).map_err(&blame)?;
     let sim = &mut cx.built.integrator;
     let mut options = sim.options().clone();
     (options.alpha, options.gamma) = (stage1.alpha, stage1.gamma);
@@ -215,7 +217,8 @@ pub fn run(
             observer.advance(1);
             observer.message(&format!("loss {loss:.3e}"));
         },
-    )?;
+    )
+    .map_err(&blame)?;
     observer.finish();
     // The fitted pair must run freely over the data it was fitted and validated on, or stage
     // 1's stands.
@@ -239,7 +242,8 @@ pub fn run(
             &validation,
             *output_error,
             observer,
-        )?;
+        )
+        .map_err(cx.data.blame(&[Split::Train, Split::Validation]))?;
         tuned_scene = scene;
         Some(selection)
     };

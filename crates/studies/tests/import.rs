@@ -802,3 +802,29 @@ fn transposed_positions_are_blamed_on_the_positions_file() {
         "{message}"
     );
 }
+
+/// A trajectory whose conditions make its steps blow up (gravity of 1e300, finite but no
+/// body survives it) is named by its place in the dataset and its file, not by its place in
+/// its split (issue 58: "trajectory 0, step 0" for imported trajectory 4).
+#[test]
+fn a_failing_trajectory_is_named_by_its_dataset_index_and_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let generated = Experiment::load(&data("fit_material.ron")).unwrap();
+    let out = dir.path().join("generated");
+    run(&generated, Some(&out), &mut NoProgress).unwrap();
+    let saved = out.join("dataset");
+    let task = "FitMaterial(output_error: Some((rollout: 3, max_iterations: 5)))";
+    // Trajectory 2 is the test split's only one, trajectory 0 the training split's.
+    for k in [2, 0] {
+        let text = import_text(&saved, 3, "File", task);
+        let name = format!("traj_{k:03}");
+        let this = format!("{:?}, velocities: File", saved.join(&name).join("x.npy"));
+        assert!(text.contains(&this));
+        let blown = ", conditions: (gravity: Some((0, 0, 1e300))), velocities:";
+        let text = text.replace(&this, &this.replace(", velocities:", blown));
+        let e = load(dir.path(), &text).unwrap();
+        let err = run(&e, None, &mut NoProgress).unwrap_err().to_string();
+        let named = format!("trajectory {k}");
+        assert!(err.contains(&named) && err.contains(&name), "{err}");
+    }
+}

@@ -544,23 +544,26 @@ pub fn fit_coarse_models(
     let field = |labels, regularisation| settings.field(labels, regularisation);
     let whole = field(Vec::new(), Regularisation::default());
     let sets = (train.as_slice(), validation.as_slice());
+    // Of the row fits only the fit itself fails on a trajectory, one of the training set.
+    let blame = data.blame(&[Split::Train]);
     let start = fitted_model(&sim);
     let (summary, homogeneous, tuned) =
-        fit_row(&mut sim, sets, &whole, &start, settings, observer)?;
+        fit_row(&mut sim, sets, &whole, &start, settings, observer).map_err(&blame)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
     let labels = match &settings.tags {
         Some(tags) => tags.clone(),
         None => slabs(&mesh, settings.regions),
     };
     let regions = field(labels, Regularisation::default());
-    let (summary, _, tuned) = fit_row(&mut sim, sets, &regions, &homogeneous, settings, observer)?;
+    let (summary, _, tuned) =
+        fit_row(&mut sim, sets, &regions, &homogeneous, settings, observer).map_err(&blame)?;
     models.push((CoarseModel::PerRegion, Some(summary), tuned));
     if let Some(nodes) = settings.smooth {
         restore(&mut sim, &homogeneous)?;
         let smooth =
             field(Vec::new(), Regularisation::default()).basis(Some(Basis::hat(&mesh, nodes)?));
         let (summary, _, tuned) =
-            fit_row(&mut sim, sets, &smooth, &homogeneous, settings, observer)?;
+            fit_row(&mut sim, sets, &smooth, &homogeneous, settings, observer).map_err(&blame)?;
         models.push((CoarseModel::Smooth, Some(summary), tuned));
     }
     // Per element: each weight from the homogeneous fit; the best on validation is kept.
