@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Reads what deform writes with meshio, an independent reader, and compares.
 
-    pip install meshio numpy
+    pip install "./crates/python[meshio]"
     python3 scripts/check_with_meshio.py
 
 For every bundled mesh: `cargo xtask mesh convert` to .vtu, .msh (2.2/4.1, ASCII/binary),

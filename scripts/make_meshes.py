@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Regenerates the bundled meshes with real meshers (gmsh, TetGen).
 
-    pip install gmsh meshio numpy && apt-get install tetgen
+    pip install "./crates/python[mesh]" && apt-get install tetgen
     python3 scripts/make_meshes.py
 
 Writes:

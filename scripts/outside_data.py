@@ -3,6 +3,7 @@ numpy/scipy (its own element math, its own Newton, nothing shared with deform), 
 mesh, with 1 % Gaussian position noise, written as the `.npy` arrays a user brings, plus the
 scene and experiment files that import them (docs/experiments.md, "Your own data").
 
+    pip install "./crates/python[meshio]"   # deform and meshio
     python scripts/outside_data.py OUT [--mesh assets/meshes/torus.msh] [--model stvk]
     cargo xtask experiment OUT/fit.ron --out OUT/fit       # E, nu from the noisy positions
     cargo xtask experiment OUT/select.ron --out OUT/select # which model made the clean ones

@@ -4,6 +4,7 @@ Every (scene, seed) part is one task (deform generates it with the GIL released)
 client merges each scene's parts in seed order, so the result does not depend on which
 worker ran what. Datasets pickle, so parts travel between processes and machines.
 
+    pip install "./crates/python[dask]"                              # deform with Dask
     python python/examples/sweep.py                                  # a LocalCluster here
     python python/examples/sweep.py --scheduler tcp://10.0.0.5:8786   # a running cluster
 

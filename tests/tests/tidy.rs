@@ -122,6 +122,7 @@ fn crate_dependencies_match_the_architecture_doc() {
         "crates/learn",
         "crates/studies",
         "crates/python",
+        "crates/hack",
         "xtask",
         "tests",
     ]) {
@@ -463,4 +464,74 @@ fn the_circle_check_finds_a_circle() {
         .map(|(r, s)| format!("{r}:{}", s.join("/")))
         .collect();
     assert_eq!(names, ["crate:a/B", "crate:c", "super:d/e"]);
+}
+
+/// The features `cargo tree` resolves for each package of a build (`args` select it): package
+/// name and version to the feature lists of its instances (proc-macro and build-script
+/// instances resolve apart).
+fn resolved_features(args: &[&str]) -> std::collections::BTreeMap<String, BTreeSet<String>> {
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let out = std::process::Command::new(cargo)
+        .current_dir(root())
+        .args(["tree", "--offline", "--prefix", "none", "-f", "{p}|{f}"])
+        .args(args)
+        .output()
+        .expect("cargo tree runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut found = std::collections::BTreeMap::<String, BTreeSet<String>>::new();
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let Some((package, features)) = line.split_once('|') else {
+            continue;
+        };
+        let name: Vec<&str> = package.split_whitespace().take(2).collect();
+        let features = features.split_whitespace().next().unwrap_or("");
+        found
+            .entry(name.join(" "))
+            .or_default()
+            .insert(features.to_owned());
+    }
+    found
+}
+
+/// The runner, the Python module and the test build resolve every dependency they share with
+/// the same features (`crates/hack` pins them), so each is built once for all three: when
+/// the sets differed, `pip install` after the demo rebuilt every crate (issue 57). PyO3's
+/// crates belong to the module alone; the extension-module feature is maturin's.
+#[test]
+fn the_runner_the_module_and_the_tests_share_one_build_of_each_dependency() {
+    let module = resolved_features(&[
+        "-p",
+        "deform-python",
+        "--features",
+        "pyo3/extension-module",
+        "-e",
+        "normal,build",
+    ]);
+    let runner = resolved_features(&["-p", "xtask", "-e", "normal,build"]);
+    let tests = resolved_features(&["--workspace", "-e", "normal,build,dev"]);
+    let mut differ = Vec::new();
+    for (other, what) in [(&runner, "the runner"), (&tests, "the test build")] {
+        for (package, features) in &module {
+            let ours = package.starts_with("pyo3") || package.starts_with("deform-python");
+            // An instance only one side builds (a proc-macro's copy without features) is no
+            // rebuild; a feature list both have but with other members is.
+            if let Some(theirs) = other.get(package)
+                && !ours
+                && !features.iter().all(|f| f.is_empty() || theirs.contains(f))
+            {
+                differ.push(format!(
+                    "{package}: the module {features:?}, {what} {theirs:?}"
+                ));
+            }
+        }
+    }
+    assert!(
+        differ.is_empty(),
+        "add the missing features to crates/hack/Cargo.toml:\n{}",
+        differ.join("\n")
+    );
 }

@@ -8,6 +8,7 @@ mod experiment;
 mod mesh;
 mod simulate;
 mod test;
+mod wheel;
 
 use clap::{Parser, Subcommand};
 
@@ -36,6 +37,8 @@ enum Task {
     /// Every test: `cargo test --workspace`, then the Python module built into a virtual
     /// environment (target/pyvenv) and pytest.
     Test(test::TestArgs),
+    /// One abi3 wheel of the Python module (CPython >= 3.9) in target/wheels/.
+    Wheel(wheel::WheelArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -50,6 +53,7 @@ fn main() -> std::process::ExitCode {
         Task::Demo(args) => demo::run(args),
         Task::Experiment(args) => experiment::run(args).map(|_| ()),
         Task::Test(args) => test::run(args),
+        Task::Wheel(args) => wheel::run(args),
     });
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -27,7 +27,7 @@ pub struct TestArgs {
 }
 
 /// The workspace root.
-fn root() -> PathBuf {
+pub(crate) fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .parent()
         .expect("xtask sits in the workspace")
@@ -35,7 +35,7 @@ fn root() -> PathBuf {
 }
 
 /// Runs `cmd`, failing with what it was when it fails.
-fn run_command(mut cmd: Command, what: &str) -> Result<()> {
+pub(crate) fn run_command(mut cmd: Command, what: &str) -> Result<()> {
     eprintln!("==> {what}");
     let status = cmd
         .status()
@@ -44,6 +44,31 @@ fn run_command(mut cmd: Command, what: &str) -> Result<()> {
         bail!("{what} failed ({status})");
     }
     Ok(())
+}
+
+/// The virtual environment `target/pyvenv` (made with `python` the first time) with
+/// `requirements` installed by pip (as its command line: `["-r", file]` or package names);
+/// its `bin` folder.
+pub(crate) fn python_env(root: &Path, python: &str, requirements: &[&str]) -> Result<PathBuf> {
+    let venv = root.join("target").join("pyvenv");
+    let bin = venv.join("bin");
+    if !bin.join("python").exists() {
+        let mut cmd = Command::new(python);
+        cmd.args(["-m", "venv"]).arg(&venv);
+        run_command(cmd, "making the virtual environment target/pyvenv")?;
+    }
+    let mut cmd = Command::new(bin.join("python"));
+    cmd.current_dir(root)
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+        ])
+        .args(requirements);
+    run_command(cmd, &format!("installing {} (pip)", requirements.join(" ")))?;
+    Ok(bin)
 }
 
 /// Runs the suites.
@@ -58,25 +83,8 @@ pub fn run(args: TestArgs) -> Result<()> {
     if args.rust_only {
         return Ok(());
     }
-    let venv = root.join("target").join("pyvenv");
-    let bin = venv.join("bin");
-    if !bin.join("python").exists() {
-        let mut cmd = Command::new(&args.python);
-        cmd.args(["-m", "venv"]).arg(&venv);
-        run_command(cmd, "making the virtual environment target/pyvenv")?;
-    }
-    let python = bin.join("python");
-    let mut cmd = Command::new(&python);
-    cmd.args([
-        "-m",
-        "pip",
-        "install",
-        "--quiet",
-        "--disable-pip-version-check",
-        "-r",
-    ])
-    .arg(root.join("python").join("requirements-test.txt"));
-    run_command(cmd, "installing the Python test requirements (pip)")?;
+    let bin = python_env(&root, &args.python, &["-r", "python/requirements-test.txt"])?;
+    let (venv, python) = (root.join("target").join("pyvenv"), bin.join("python"));
     // maturin builds the module with cargo (dev profile: shares the Rust tests' build) and
     // installs it into the environment.
     let mut cmd = Command::new(bin.join("maturin"));
