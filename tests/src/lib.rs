@@ -15,3 +15,15 @@ pub fn mesh_fixture(name: &str) -> PathBuf {
         .join("../crates/mesh/tests/data")
         .join(name)
 }
+
+/// The README's Rust blocks, run as doc tests (`xtask/tests/guide.rs` runs its other blocks).
+#[doc = include_str!("../../README.md")]
+pub mod readme {}
+
+/// The guide's pages: their Rust blocks run as doc tests.
+pub mod guide {
+    #[doc = include_str!("../../docs/guide/01-simulate.md")]
+    pub mod simulate {}
+    #[doc = include_str!("../../docs/guide/03-fit-material.md")]
+    pub mod fit_material {}
+}

@@ -104,12 +104,9 @@ pub fn run(args: DemoArgs) -> Result<()> {
             quiet: args.quiet,
         })?;
         let summary = result.headline();
-        // Demote the experiment's title under the demo's.
-        writeln!(
-            report,
-            "## {what}\n\nFolder `{name}/`.\n\n{}",
-            text.replacen("# ", "### ", 1)
-        )?;
+        // Demote the title; the plots lie in the experiment's folder.
+        let text = rebase_images(&text.replacen("# ", "### ", 1), &name);
+        writeln!(report, "## {what}\n\nFolder `{name}/`.\n\n{text}")?;
         rows.push((
             name.clone(),
             t.elapsed().as_secs_f64(),
@@ -131,6 +128,42 @@ pub fn run(args: DemoArgs) -> Result<()> {
     let path = args.out.join("report.md");
     write_atomic(&path, |w| w.write_all(text.as_bytes()))
         .with_context(|| format!("writing {}", path.display()))?;
-    println!("\n{table}\nreport: {}", path.display());
+    let page = deform_studies::html::page("deform demo", &text, &args.out)?;
+    let html = args.out.join("report.html");
+    write_atomic(&html, |w| w.write_all(page.as_bytes()))
+        .with_context(|| format!("writing {}", html.display()))?;
+    println!(
+        "\n{table}\nreport: {} (one page, plots inline: {})",
+        path.display(),
+        html.display()
+    );
     Ok(())
+}
+
+/// `markdown` with each image link made relative to the folder above `folder`.
+fn rebase_images(markdown: &str, folder: &str) -> String {
+    let mut out = String::with_capacity(markdown.len());
+    let mut rest = markdown;
+    while let Some(start) = rest.find("![") {
+        let Some(open) = rest[start..].find("](") else {
+            break;
+        };
+        let cut = start + open + 2;
+        out.push_str(&rest[..cut]);
+        out.push_str(folder);
+        out.push('/');
+        rest = &rest[cut..];
+    }
+    out.push_str(rest);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn image_links_point_into_the_experiment_folder() {
+        let md = "a ![loss](loss.svg) b [c](d) ![e](f.svg)";
+        let got = super::rebase_images(md, "fit");
+        assert_eq!(got, "a ![loss](fit/loss.svg) b [c](d) ![e](fit/f.svg)");
+    }
 }

@@ -432,16 +432,16 @@ fn friction_on_a_mesh_incline_slides_or_sticks_as_coulomb_says() {
 }
 
 #[test]
-fn the_readme_contact_field_and_the_bundled_scene_parse() {
+fn the_guide_contact_scene_and_the_bundled_scenes_parse() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
-    let block = readme
-        .split("```ron\ncontact: ")
+    let guide = std::fs::read_to_string(root.join("docs/guide/02-contact.md")).unwrap();
+    let block = guide
+        .split("```ron\n// file: everything.ron\n")
         .nth(1)
         .and_then(|rest| rest.split("\n```").next())
-        .expect("the README shows a contact field");
-    let spec: Option<ContactSpec> = ron::from_str(block.trim_end().trim_end_matches(',')).unwrap();
-    let spec = spec.unwrap();
+        .expect("the guide shows a scene with every contact field");
+    let scene: deform_integrator::Scene = ron::from_str(block).unwrap();
+    let spec: ContactSpec = scene.contact.unwrap();
     assert_eq!((spec.obstacles.len(), spec.meshes.len()), (2, 1));
     assert_eq!(spec.motions.len(), 1);
     let friction = spec.friction.unwrap();

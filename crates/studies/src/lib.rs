@@ -27,6 +27,7 @@ pub mod coarsen;
 mod config;
 mod error;
 pub mod fit_material;
+pub mod html;
 pub mod plot;
 pub mod render;
 mod report;
@@ -46,7 +47,7 @@ use deform_integrator::scene::Built;
 pub use config::{Data, Experiment, PolicyTune, SceneRun, Task};
 pub use error::RenderError;
 pub use render::{render, write_report};
-pub use report::{ExperimentReport, Plot, TaskReport};
+pub use report::{ExperimentReport, Marks, Plot, TaskReport};
 pub use series::Series;
 
 pub use deform_learn::dataset::DatasetSpec;

@@ -17,8 +17,9 @@ use deform_learn::rollout::mean_error;
 use crate::error::Result;
 use crate::plot::plot;
 
-/// Renders `report` into `out` (its plots as SVG and PNG, its markdown as `report.md`,
-/// written atomically); returns the markdown. The runner and the Python module both write
+/// Renders `report` into `out` (its plots as SVG and PNG, its markdown as `report.md` and
+/// the same as a self-contained `report.html` with the plots inline, each written
+/// atomically); returns the markdown. The runner and the Python module both write
 /// reports through it, so they write the same files.
 ///
 /// # Errors
@@ -26,6 +27,9 @@ use crate::plot::plot;
 pub fn write_report(report: &ExperimentReport, out: &Path) -> Result<String> {
     let markdown = render(report, out)?;
     deform_fs::write_text(&out.join("report.md"), &markdown)?;
+    let title = format!("Experiment {}", report.name);
+    let page = crate::html::page(&title, &markdown, out)?;
+    deform_fs::write_text(&out.join("report.html"), &page)?;
     Ok(markdown)
 }
 
@@ -36,18 +40,22 @@ pub fn write_report(report: &ExperimentReport, out: &Path) -> Result<String> {
 pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     let data = match &report.data {
         Data::Generate(d) => format!(
-            "Dataset: {} trajectories x {} steps (seed {}), split {:?} train/validation (rest test), noise {:?}.",
-            d.trajectories, d.steps, d.seed, d.split, d.noise
+            "Dataset: {} trajectories x {} steps (seed {}), split {:?} train/validation (rest test), {}.",
+            d.trajectories,
+            d.steps,
+            d.seed,
+            d.split,
+            noise(d.noise)
         ),
         Data::Import(i) => format!(
-            "Dataset: {} trajectories imported (dt {} s, gravity {:?}, {:?} mass; first `{}`), split {:?} train/validation (rest test), noise added {:?}. The scene is the model to learn: its own parameters (rows named truth or true) are the truth only if the data were made with them.",
+            "Dataset: {} trajectories imported (dt {} s, gravity {:?}, {:?} mass; first `{}`), split {:?} train/validation (rest test), {}. The scene is the model to learn: its own parameters (rows named truth or true) are the truth only if the data were made with them.",
             i.trajectories.len(),
             i.dt,
             i.gravity,
             i.mass,
             i.trajectories[0].positions.display(),
             i.split,
-            i.noise
+            noise(i.noise)
         ),
     };
     // Coarsening learns a model per coarse step, each in its own section.
@@ -63,12 +71,12 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
         ),
     };
     let mut md = format!(
-        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{:?}`.\n\n{data} Saved in `dataset/` (RON + .npy, see docs/experiments.md). {steps}\n\n",
+        "# Experiment `{}`\n\nBase scene: `{}` ({} vertices, {} tets), material `{}`.\n\n{data} Saved in `dataset/` (RON + .npy, see docs/experiments.md). {steps}\n\n",
         report.name,
         report.scene.display(),
         report.vertices,
         report.tets,
-        report.material,
+        ron::to_string(&report.material).unwrap_or_else(|_| format!("{:?}", report.material)),
     );
     match &report.task {
         TaskReport::FitMaterial(r) => fit_material(r, &mut md)?,
@@ -81,6 +89,17 @@ pub fn render(report: &ExperimentReport, out: &Path) -> Result<String> {
     files(report, out, &mut md)?;
     writeln!(md, "\nTotal time {:.1} s.", report.seconds)?;
     Ok(md)
+}
+
+/// The noise a dataset was given, in words.
+fn noise(noise: Option<deform_learn::Noise>) -> String {
+    match noise {
+        None => "no noise added".into(),
+        Some(n) => format!(
+            "Gaussian noise added (positions {} x their RMS displacement, velocities {} x their RMS, seed {})",
+            n.position, n.velocity, n.seed
+        ),
+    }
 }
 
 /// Draws the report's plots, embeds each one drawn (a plot without a point is not drawn)

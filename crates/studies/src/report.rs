@@ -16,6 +16,7 @@ use deform_learn::compare::Choice;
 
 /// A line plot of a report: what to draw (values against their index), not how.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Plot {
     /// File stem in the results folder (`rollout_error`: `rollout_error.svg` and `.png`).
     pub stem: String,
@@ -29,13 +30,36 @@ pub struct Plot {
     pub log: bool,
     /// The lines.
     pub series: Vec<Series>,
+    /// A categorical y axis: the name of each whole value `0, 1, ...` (drawn as points,
+    /// not lines).
+    pub categories: Option<Vec<String>>,
+    /// Dashed vertical lines at these x (region boundaries).
+    pub x_marks: Vec<f64>,
+    /// How the values are drawn.
+    pub marks: Marks,
+}
+
+/// How a plot draws its values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[non_exhaustive]
+pub enum Marks {
+    /// Lines through consecutive values (a quantity along steps or iterations).
+    #[default]
+    Lines,
+    /// A dot per value (a category per iteration, a value per element).
+    Points,
 }
 
 impl Plot {
-    fn new(stem: impl Into<String>, title: impl Into<String>, axes: [&'static str; 2]) -> Self {
+    pub(crate) fn new(
+        stem: impl Into<String>,
+        title: impl Into<String>,
+        axes: [&'static str; 2],
+    ) -> Self {
         let [x_label, y_label] = axes;
         let (stem, title) = (stem.into(), title.into());
         let (log, series) = (false, Vec::new());
+        let (categories, x_marks, marks) = (None, Vec::new(), Marks::Lines);
         Self {
             stem,
             title,
@@ -43,6 +67,9 @@ impl Plot {
             y_label,
             log,
             series,
+            categories,
+            x_marks,
+            marks,
         }
     }
 
@@ -51,7 +78,23 @@ impl Plot {
         self
     }
 
-    fn with(mut self, series: Vec<Series>) -> Self {
+    fn categories(mut self, names: Vec<String>) -> Self {
+        self.categories = Some(names);
+        self.marks = Marks::Points;
+        self
+    }
+
+    fn points(mut self) -> Self {
+        self.marks = Marks::Points;
+        self
+    }
+
+    fn x_marks(mut self, at: Vec<f64>) -> Self {
+        self.x_marks = at;
+        self
+    }
+
+    pub(crate) fn with(mut self, series: Vec<Series>) -> Self {
         self.series = series;
         self
     }
@@ -159,9 +202,11 @@ impl ExperimentReport {
                     let field = Plot::new(
                         format!("field_{k}x_dt"),
                         format!("per-element field, coarse step {k}x (ParaView: coarse_{k}x_dt_field.vtu)"),
-                        ["element, by position along the body", "Pa"],
+                        ["element centroid along the body's longest axis (fraction of its length)", "Pa"],
                     )
                     .log()
+                    .x_marks(c.region_bounds.clone())
+                    .points()
                     .with(c.field.clone());
                     [errors, field]
                 })
@@ -240,23 +285,25 @@ impl SelectSolverReport {
             .with(per_step(|p| p.1 as f64)),
         ];
         if let Some(learned) = case.learned() {
+            // A categorical axis of the candidates' names, the fallback after them.
+            let mut names: Vec<String> = self.candidates.iter().map(|s| s.to_string()).collect();
+            names.push("fallback".into());
+            let fallback = self.candidates.len() as f64;
             let index = |c: &Choice| {
                 let found = self
                     .candidates
                     .iter()
                     .position(|s| !c.fallback && *s == c.solver);
-                found.map_or(-1.0, |i| i as f64)
+                found.map_or(fallback, |i| i as f64)
             };
             let choices = Series::new(
                 "learned",
                 learned.measured.choices.iter().map(index).collect(),
             );
             let title = format!("learned policy's solver per Newton iteration: {label}");
-            let axes = [
-                "Newton iteration (all steps)",
-                "candidate index (-1: fallback)",
-            ];
-            plots.push(Plot::new(stem("choices"), title, axes).with(vec![choices]));
+            let axes = ["Newton iteration (all steps)", "solver"];
+            let plot = Plot::new(stem("choices"), title, axes).categories(names);
+            plots.push(plot.with(vec![choices]));
         }
         plots
     }

@@ -6,20 +6,30 @@ use serde::{Deserialize, Serialize};
 /// A named sequence of values, one per step (or iteration): a line of a plot, a column of a
 /// CSV file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Series {
     /// Its name in legends and headers.
     pub name: String,
     /// The values.
     pub values: Vec<f64>,
+    /// Where each value lies on the x axis (a position along the body); `None`: at its
+    /// index.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x: Option<Vec<f64>>,
 }
 
 impl Series {
-    /// A series.
+    /// A series against its index.
     pub fn new(name: impl Into<String>, values: Vec<f64>) -> Self {
-        Self {
-            name: name.into(),
-            values,
-        }
+        let (name, x) = (name.into(), None);
+        Self { name, values, x }
+    }
+
+    /// A series of `values` at `x` (of the same length).
+    pub fn at(name: impl Into<String>, x: Vec<f64>, values: Vec<f64>) -> Self {
+        debug_assert_eq!(x.len(), values.len());
+        let (name, x) = (name.into(), Some(x));
+        Self { name, values, x }
     }
 }
 

@@ -565,7 +565,19 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     for c in &r.cases {
         let section = format!("## Coarse step {}x (dt = {} s)", c.dt_factor, c.dt);
         assert!(markdown.contains(&section), "{section}");
+        // The field is drawn at the elements' positions with the slabs' boundaries marked.
+        assert!(c.field.iter().all(|s| s.x.is_some()));
+        assert_eq!(c.region_bounds.len(), 1, "2 slabs meet once");
     }
+    // report.md embeds every plot, and report.html holds each one inline: one page that
+    // needs no file beside it.
+    let html = std::fs::read_to_string(dir.path().join("report.html")).unwrap();
+    for p in report.plots() {
+        assert!(markdown.contains(&format!("]({}.svg)", p.stem)), "{}", p.stem);
+    }
+    let figures = html.matches("<figure><svg").count();
+    assert_eq!(figures, report.plots().len(), "one inline SVG per plot");
+    assert!(!html.contains(".svg\""), "no SVG left as a link");
     for c in &r.cases {
         let models: Vec<CoarseModel> = c.rows.iter().map(|row| row.model).collect();
         use CoarseModel::*;

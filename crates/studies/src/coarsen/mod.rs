@@ -130,9 +130,13 @@ pub struct CoarsenCase {
     /// The per-element model's scene and its field for ParaView (relative to the results
     /// folder), when files are written.
     pub files: Vec<PathBuf>,
-    /// The per-element field, one series per term (`mu`, `lambda`), the elements ordered by
-    /// position along the rest shape's longest axis.
+    /// The per-element field, one series per term (`mu`, `lambda`), at each element's
+    /// position along the rest shape's longest axis (0 to 1).
     pub field: Vec<Series>,
+    /// Where the per-region model's regions meet along that axis (0 to 1): none when they
+    /// are not slabs along it.
+    #[serde(default)]
+    pub region_bounds: Vec<f64>,
 }
 
 impl CoarsenCase {
@@ -550,10 +554,7 @@ pub fn fit_coarse_models(
     let (summary, homogeneous, tuned) =
         fit_row(&mut sim, sets, &whole, &start, settings, observer).map_err(&blame)?;
     models.push((CoarseModel::Homogeneous, Some(summary), tuned));
-    let labels = match &settings.tags {
-        Some(tags) => tags.clone(),
-        None => slabs(&mesh, settings.regions),
-    };
+    let labels = settings.labels(&mesh);
     let regions = field(labels, Regularisation::default());
     let (summary, _, tuned) =
         fit_row(&mut sim, sets, &regions, &homogeneous, settings, observer).map_err(&blame)?;
@@ -651,6 +652,7 @@ fn run_case(
         chosen: fits.chosen,
         files: Vec::new(),
         field: field_series(&fits.mesh, &fits.coefficients),
+        region_bounds: region_bounds(&fits.mesh, &settings.labels(&fits.mesh)),
     };
     Ok((case, fits, fine_cost))
 }
@@ -676,6 +678,14 @@ fn fit_row(
 }
 
 impl CoarseSettings {
+    /// The per-region model's region of each element of `mesh`: the given tags, or slabs.
+    fn labels(&self, mesh: &TetMesh) -> Vec<u32> {
+        match &self.tags {
+            Some(tags) => tags.clone(),
+            None => slabs(mesh, self.regions),
+        }
+    }
+
     /// `fitted` when it runs freely (as it runs: [`CoarseSettings::running`]) over every
     /// trajectory of `sets`, else `fallback` with the failure in `summary.unstable`; the
     /// model kept is left in `sim`.

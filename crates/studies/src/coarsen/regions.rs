@@ -46,16 +46,46 @@ pub(super) fn slabs(mesh: &TetMesh, regions: u32) -> Vec<u32> {
     along_axis(mesh).iter().map(slab).collect()
 }
 
-/// The per-element field as series, one per term, with the elements ordered by their
-/// position along the rest shape's longest axis.
+/// The per-element field as series, one per term, each element at its position along the
+/// rest shape's longest axis (0 to 1), in that order.
 pub(super) fn field_series(mesh: &TetMesh, coefficients: &[f64]) -> Vec<Series> {
     let along = along_axis(mesh);
-    let mut order: Vec<usize> = (0..along.len()).collect();
-    order.sort_by(|&a, &b| along[a].total_cmp(&along[b]).then(a.cmp(&b)));
+    let order = by_position(&along);
     let terms = coefficients.len() / along.len().max(1);
     let values = |j: usize| order.iter().map(|&e| coefficients[e * terms + j]).collect();
+    let x: Vec<f64> = order.iter().map(|&e| along[e]).collect();
     let names = term_names(terms).into_iter().enumerate();
-    names.map(|(j, n)| Series::new(n, values(j))).collect()
+    names
+        .map(|(j, n)| Series::at(n, x.clone(), values(j)))
+        .collect()
+}
+
+/// The elements in order of their position `along` an axis (ties by index).
+fn by_position(along: &[f64]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..along.len()).collect();
+    order.sort_by(|&a, &b| along[a].total_cmp(&along[b]).then(a.cmp(&b)));
+    order
+}
+
+/// Where regions (`labels`, one per element) meet along the longest axis: the midpoint
+/// between consecutive elements of different regions, when each region is one run along it
+/// (slabs); none otherwise (tags that interleave along the axis mark no line).
+pub(super) fn region_bounds(mesh: &TetMesh, labels: &[u32]) -> Vec<f64> {
+    let along = along_axis(mesh);
+    let order = by_position(&along);
+    let mut bounds = Vec::new();
+    let mut seen = std::collections::BTreeSet::new();
+    for pair in order.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        seen.insert(labels[a]);
+        if labels[a] != labels[b] {
+            if seen.contains(&labels[b]) {
+                return Vec::new();
+            }
+            bounds.push(0.5 * (along[a] + along[b]));
+        }
+    }
+    bounds
 }
 
 /// Names of the term coefficients of a model with `terms` of them: Lame pairs (`mu`,
