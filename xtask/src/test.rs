@@ -1,8 +1,9 @@
 //! `cargo xtask test`: the whole test suite, Rust and Python, on a fresh machine with only
 //! Rust and Python 3 installed. Runs `cargo test --workspace`, then makes a virtual
-//! environment (`target/pyvenv`, once), installs the Python test requirements from the
-//! package index (`python/requirements-test.txt`), builds the `deform` module into it with
-//! maturin and runs pytest on `python/tests`.
+//! environment (`target/pyvenv`, once), installs maturin into it, builds the `deform` module
+//! into it with maturin together with its declared `test` extra (pytest, meshio, Dask: the
+//! same list a user installs with `pip install "./crates/python[test]"`) and runs pytest on
+//! `python/tests`.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -83,14 +84,14 @@ pub fn run(args: TestArgs) -> Result<()> {
     if args.rust_only {
         return Ok(());
     }
-    let bin = python_env(&root, &args.python, &["-r", "python/requirements-test.txt"])?;
+    let bin = python_env(&root, &args.python, &["maturin>=1.7,<2"])?;
     let (venv, python) = (root.join("target").join("pyvenv"), bin.join("python"));
     // maturin builds the module with cargo (dev profile: shares the Rust tests' build) and
-    // installs it into the environment.
+    // installs it into the environment with the extra the tests need.
     let mut cmd = Command::new(bin.join("maturin"));
     cmd.current_dir(&root)
         .env("VIRTUAL_ENV", &venv)
-        .args(["develop", "--quiet", "--manifest-path"])
+        .args(["develop", "--quiet", "--extras", "test", "--manifest-path"])
         .arg(root.join("crates").join("python").join("Cargo.toml"));
     run_command(cmd, "building the deform module (maturin develop)")?;
     let mut cmd = Command::new(&python);

@@ -573,7 +573,11 @@ fn coarsening_fits_every_field_from_the_homogeneous_one_and_saves_the_model() {
     // needs no file beside it.
     let html = std::fs::read_to_string(dir.path().join("report.html")).unwrap();
     for p in report.plots() {
-        assert!(markdown.contains(&format!("]({}.svg)", p.stem)), "{}", p.stem);
+        assert!(
+            markdown.contains(&format!("]({}.svg)", p.stem)),
+            "{}",
+            p.stem
+        );
     }
     let figures = html.matches("<figure><svg").count();
     assert_eq!(figures, report.plots().len(), "one inline SVG per plot");
