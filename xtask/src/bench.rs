@@ -336,13 +336,12 @@ fn step(args: StepArgs) -> Result<()> {
             }
             continue;
         };
-        let ground = deform_integrator::ContactSpec {
-            obstacles: vec![deform_integrator::Obstacle::Plane {
+        let ground = deform_integrator::ContactSpec::default().obstacles(vec![
+            deform_integrator::Obstacle::Plane {
                 point: [0.0, 0.0, -gap],
                 normal: [0.0, 0.0, 1.0],
-            }],
-            ..Default::default()
-        };
+            },
+        ]);
         let (sim, state) = beam_integrator_with(args.n, policy, Some(ground))?;
         let surface = sim.contact().map_or(0, |c| c.vertices().len());
         let mut touching = Timed::new(sim, state, name);

@@ -33,12 +33,7 @@ fn model(spec: &str) -> Model {
 }
 
 fn small_mesh() -> TetMesh {
-    BoxGrid {
-        cells: [2, 1, 1],
-        ..BoxGrid::beam(1)
-    }
-    .build()
-    .unwrap()
+    BoxGrid::beam(1).cells([2, 1, 1]).build().unwrap()
 }
 
 /// A smooth, moderately large deformation plus a deterministic per-DOF wiggle.

@@ -4,6 +4,7 @@
 /// potential that is `C^2` at `dhat`, grows without bound as `d -> 0`, and is convex on
 /// `(0, dhat)`. `kappa` (N/m) sets its stiffness, `dhat` (m) the distance where it starts.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct Barrier {
     /// Activation distance (m).
     pub dhat: f64,
@@ -12,6 +13,11 @@ pub struct Barrier {
 }
 
 impl Barrier {
+    /// The barrier of activation distance `dhat` (m) and stiffness `kappa` (N/m).
+    pub fn new(dhat: f64, kappa: f64) -> Self {
+        Self { dhat, kappa }
+    }
+
     /// `b(d)`; infinite at and below 0.
     pub fn value(&self, d: f64) -> f64 {
         if d <= 0.0 {

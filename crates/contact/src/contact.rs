@@ -13,6 +13,7 @@ use crate::{Barrier, FrictionSpec, Obstacle, ObstacleMotion, Surface, SurfacePai
 /// Contact as a scene gives it: the obstacles and, optionally, the barrier's parameters.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct ContactSpec {
     /// The obstacles.
     pub obstacles: Vec<Obstacle>,
@@ -47,10 +48,13 @@ pub struct ContactSpec {
     pub motions: Vec<ObstacleMotion>,
 }
 
+deform_setters::setters!(ContactSpec { obstacles: Vec<Obstacle>, dhat: Option<f64>, kappa: Option<f64>, adaptive_kappa: Option<bool>, friction: Option<FrictionSpec>, self_contact: bool, meshes: Vec<MeshObstacle>, motions: Vec<ObstacleMotion> });
+
 /// A triangle-mesh obstacle as a scene names it (fixed, or moved by a motion); the
 /// integrator reads the file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct MeshObstacle {
     /// The surface: an `.obj` file, or a tet mesh (`.msh`, `.node`, `.ele`) whose boundary
     /// is the obstacle. A scene's relative path is relative to the scene file.
@@ -58,6 +62,19 @@ pub struct MeshObstacle {
     /// Moved by this much from where the file puts it (m).
     #[serde(default)]
     pub offset: [f64; 3],
+}
+
+deform_setters::setters!(MeshObstacle {
+    file: PathBuf,
+    offset: [f64; 3]
+});
+
+impl MeshObstacle {
+    /// The obstacle of the surface in `file`, where the file puts it.
+    pub fn new(file: impl Into<PathBuf>) -> Self {
+        let (file, offset) = (file.into(), [0.0; 3]);
+        Self { file, offset }
+    }
 }
 
 /// Why contact cannot be set up or evaluated.
@@ -114,6 +131,7 @@ pub enum ContactError {
 
 /// What the potential found at a configuration.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct ContactSummary {
     /// The barrier energy (J).
     pub energy: f64,
@@ -135,6 +153,7 @@ pub type CouplingBlock = (usize, usize, Matrix3<f64>);
 /// (the blocks add up). Each pair's Hessian is projected to positive semidefinite, so their
 /// sum is too.
 #[derive(Debug, Clone, Default, PartialEq)]
+#[non_exhaustive]
 pub struct ContactHessian {
     /// Blocks on vertices' diagonals (obstacles, friction, self-contact).
     pub vertex: Vec<VertexBlock>,

@@ -16,6 +16,7 @@ use crate::{ContactError, ContactHessian, ContactModel};
 /// Friction as a scene gives it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct FrictionSpec {
     /// The coefficient of friction of each obstacle, in the obstacles' order, or a single
     /// one for all of them.
@@ -30,6 +31,8 @@ pub struct FrictionSpec {
     pub self_mu: Option<f64>,
 }
 
+deform_setters::setters!(FrictionSpec { mu: Vec<f64>, velocity_threshold: f64, self_mu: Option<f64> });
+
 fn default_threshold() -> f64 {
     1e-3
 }
@@ -37,6 +40,7 @@ fn default_threshold() -> f64 {
 /// One contact pair's lagged friction: a vertex against an analytic obstacle, or a
 /// primitive of the body's surface against one of a mesh obstacle's.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct FrictionPair {
     /// The body's vertices of the pair with their weights in its contact point: one vertex
     /// of weight 1 against an analytic obstacle; the closest points' barycentric weights
@@ -69,6 +73,7 @@ impl FrictionPair {
 
 /// The friction of a step, lagged at its start.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[non_exhaustive]
 pub struct FrictionLag {
     /// The pairs in contact at the start, with a non-zero coefficient.
     pub pairs: Vec<FrictionPair>,
@@ -77,7 +82,20 @@ pub struct FrictionLag {
     pub threshold: f64,
 }
 
+deform_setters::setters!(FrictionLag { pairs: Vec<FrictionPair>, threshold: f64 });
+
 impl FrictionSpec {
+    /// Coefficients `mu` (one per obstacle, meshes last, or one for all), the default
+    /// velocity threshold and no friction between parts of the body.
+    pub fn new(mu: Vec<f64>) -> Self {
+        let (velocity_threshold, self_mu) = (default_threshold(), None);
+        Self {
+            mu,
+            velocity_threshold,
+            self_mu,
+        }
+    }
+
     /// The coefficient of each of `obstacles` obstacles.
     ///
     /// # Errors

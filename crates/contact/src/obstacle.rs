@@ -50,6 +50,7 @@ pub enum Obstacle {
 
 /// Signed distance, its gradient and its Hessian at a point.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
 pub struct DistanceJet {
     /// `phi(p)`.
     pub distance: f64,
@@ -273,6 +274,7 @@ impl Obstacle {
 /// swept by it; friction against it acts on the velocity relative to it.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct ObstacleMotion {
     /// The obstacle's index: among `obstacles`, then among `meshes` (a mesh obstacle `m`
     /// is `obstacles.len() + m`), as friction's coefficients count them.
@@ -294,6 +296,8 @@ pub struct ObstacleMotion {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stop: Option<f64>,
 }
+
+deform_setters::setters!(ObstacleMotion { obstacle: usize, velocity: [f64; 3], angular_velocity: [f64; 3], pivot: Option<[f64; 3]>, start: f64, stop: Option<f64> });
 
 fn is_zero(v: &[f64; 3]) -> bool {
     *v == [0.0; 3]

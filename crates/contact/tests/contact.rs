@@ -26,10 +26,7 @@ fn model() -> ContactModel {
             rotation: [0.3, 0.2, 0.5],
         },
     ];
-    let barrier = Barrier {
-        dhat: 0.05,
-        kappa: 1e3,
-    };
+    let barrier = Barrier::new(0.05, 1e3);
     // Vertex 1 is not a surface vertex: it never feels contact.
     ContactModel::new(obstacles, barrier, vec![0, 2, 3]).unwrap()
 }
@@ -42,11 +39,10 @@ fn frictional_model(spec: &deform_contact::FrictionSpec, turning: bool) -> Conta
     if !turning {
         return m;
     }
-    let turn = |obstacle| deform_contact::ObstacleMotion {
-        obstacle,
-        velocity: [0.5, -0.2, 0.0],
-        angular_velocity: [10.0, -20.0, 20.0],
-        ..Default::default()
+    let turn = |obstacle| {
+        let m = deform_contact::ObstacleMotion::default().obstacle(obstacle);
+        m.velocity([0.5, -0.2, 0.0])
+            .angular_velocity([10.0, -20.0, 20.0])
     };
     let mut m = m.with_motions((0..4).map(turn).collect()).unwrap();
     m.set_step(0.0, 0.01);
@@ -161,14 +157,7 @@ fn a_vertex_inside_is_named_and_bad_parameters_are_refused() {
         })
     );
     assert_eq!(m.step_bound(&x, &[0.0; 12]), 1.0);
-    let bad = ContactModel::new(
-        vec![],
-        Barrier {
-            dhat: 0.0,
-            kappa: 1.0,
-        },
-        vec![],
-    );
+    let bad = ContactModel::new(vec![], Barrier::new(0.0, 1.0), vec![]);
     assert!(matches!(bad, Err(ContactError::Invalid { field, .. }) if field == "dhat"));
     let spec: deform_contact::ContactSpec = ron::from_str(
         "(obstacles: [Plane(point: (0, 0, 0), normal: (0, 0, 1))], dhat: Some(1e-3))",
@@ -190,7 +179,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
         let m = frictional_model(&spec, turning);
         let start = positions(t);
         let dt = 0.01;
@@ -232,7 +221,7 @@ proptest! {
         // Each pair's force opposes its slip: the vertex's displacement from where it would
         // be had it stuck to the obstacle (which turns, when turning).
         for pair in &lag.pairs {
-            let one = deform_contact::FrictionLag { pairs: vec![pair.clone()], threshold: lag.threshold };
+            let one = deform_contact::FrictionLag::default().pairs(vec![pair.clone()]).threshold(lag.threshold);
             let mut f = vec![0.0; n];
             m.add_friction(&one, &x, Some(&mut f), None);
             let v = pair.vertices[0].0;
@@ -255,7 +244,7 @@ proptest! {
         step in proptest::collection::vec(-1.0f64..1.0, 12),
         back in 0.0f64..3.0,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
         let m = frictional_model(&spec, false);
         let start = positions(t);
         let lag = m.lag_friction(&start, 0.01);
@@ -336,12 +325,12 @@ proptest! {
         for (x, j) in start.iter_mut().zip(jitter) {
             *x += j;
         }
-        let barrier = Barrier { dhat: 0.1, kappa: 10.0 };
+        let barrier = Barrier::new(0.1, 10.0);
         let m = ContactModel::new(vec![], barrier, vec![0, 1, 2, 3])
             .unwrap()
             .with_mesh_obstacles(faces.clone(), &start, vec![(fixed, faces)])
             .unwrap()
-            .with_friction(&deform_contact::FrictionSpec { mu: vec![0.4], velocity_threshold: 1e-3, self_mu: None })
+            .with_friction(&deform_contact::FrictionSpec::new(vec![0.4]).velocity_threshold(1e-3).self_mu(None))
             .unwrap();
         let dt = 0.01;
         let lag = m.lag_friction(&start, dt);
@@ -422,8 +411,8 @@ proptest! {
         // At rest the upper tetrahedron is far above: self-contact refuses primitives
         // closer than dhat at rest.
         let rest: Vec<f64> = start.iter().enumerate().map(|(i, x)| x + if i < 12 && i % 3 == 2 { 10.0 } else { 0.0 }).collect();
-        let barrier = Barrier { dhat: 0.1, kappa: 10.0 };
-        let spec = deform_contact::FrictionSpec { mu: vec![], velocity_threshold: 1e-3, self_mu: Some(0.4) };
+        let barrier = Barrier::new(0.1, 10.0);
+        let spec = deform_contact::FrictionSpec::new(vec![]).velocity_threshold(1e-3).self_mu(Some(0.4));
         let m = ContactModel::new(vec![], barrier, (0..8).collect())
             .unwrap()
             .with_self_contact(faces, &rest)
@@ -451,10 +440,9 @@ proptest! {
 /// refused, each naming its field.
 #[test]
 fn bad_self_contact_friction_is_refused_by_field() {
-    let spec = |self_mu| deform_contact::FrictionSpec {
-        mu: vec![0.3],
-        velocity_threshold: 1e-3,
-        self_mu,
+    let spec = |self_mu| {
+        let f = deform_contact::FrictionSpec::new(vec![0.3]);
+        f.velocity_threshold(1e-3).self_mu(self_mu)
     };
     let field = |e: ContactError| match e {
         ContactError::Invalid { field, .. } => field,
@@ -491,7 +479,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec { mu: vec![0.5, 0.3, 0.8, 0.6], velocity_threshold: 1e-3, self_mu: None };
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
         let m = frictional_model(&spec, turning);
         let x0 = positions(t);
         let scale = if far { 1e-3 } else { 1e-5 };
@@ -517,25 +505,20 @@ proptest! {
         for (x, j) in x0.iter_mut().zip(jitter) {
             *x += j;
         }
-        let barrier = Barrier { dhat: 0.1, kappa: 10.0 };
-        let spec = deform_contact::FrictionSpec { mu: vec![0.4], velocity_threshold: 1e-3, self_mu: Some(0.3) };
+        let barrier = Barrier::new(0.1, 10.0);
+        let spec = deform_contact::FrictionSpec::new(vec![0.4]).velocity_threshold(1e-3).self_mu(Some(0.3));
         let m = if kind < 2 {
             let m = ContactModel::new(vec![], barrier, (0..4).collect())
                 .unwrap()
                 .with_mesh_obstacles(tet.to_vec(), &x0, vec![(lower, tet.to_vec())])
                 .unwrap();
-            let motion = deform_contact::ObstacleMotion {
-                obstacle: 0,
-                velocity: [0.02, -0.01, 0.0],
-                angular_velocity: [0.0, 0.0, 0.3],
-                ..Default::default()
-            };
+            let motion = deform_contact::ObstacleMotion::default().obstacle(0).velocity([0.02, -0.01, 0.0]).angular_velocity([0.0, 0.0, 0.3]);
             let mut m = match kind {
                 1 => m.with_motions(vec![motion]).unwrap(),
                 _ => m,
             };
             m.set_step(0.0, 0.01);
-            m.with_friction(&deform_contact::FrictionSpec { self_mu: None, ..spec }).unwrap()
+            m.with_friction(&spec.self_mu(None)).unwrap()
         } else {
             let faces: Vec<[usize; 3]> = tet.iter().chain(&tet.map(|t| t.map(|v| v + 4))).copied().collect();
             x0.extend(lower);

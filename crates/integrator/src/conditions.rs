@@ -14,12 +14,23 @@ use deform_mesh::select::Selector;
 /// a coarse one of the same body.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct LoadForce {
     /// The total force (N).
     pub force: [f64; 3],
     /// End of the load (s); `None` acts for ever.
     #[serde(default)]
     pub until: Option<f64>,
+}
+
+crate::setters!(LoadForce { force: [f64; 3], until: Option<f64> });
+
+impl LoadForce {
+    /// The total `force` (N), acting for ever ([`LoadForce::until`] ends it).
+    pub fn new(force: [f64; 3]) -> Self {
+        let until = None;
+        Self { force, until }
+    }
 }
 
 impl LoadForce {
@@ -45,6 +56,7 @@ impl LoadForce {
 /// An external load in a scene: a total force on the selected vertices ([`LoadForce`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct LoadSpec {
     /// Which vertices.
     pub select: Selector,
@@ -53,6 +65,20 @@ pub struct LoadSpec {
     /// End of the load (s); `None` acts for ever.
     #[serde(default)]
     pub until: Option<f64>,
+}
+
+crate::setters!(LoadSpec { select: Selector, force: [f64; 3], until: Option<f64> });
+
+impl LoadSpec {
+    /// The total `force` (N) on the vertices `select`, acting for ever.
+    pub fn new(select: Selector, force: [f64; 3]) -> Self {
+        let until = None;
+        Self {
+            select,
+            force,
+            until,
+        }
+    }
 }
 
 impl LoadSpec {

@@ -55,7 +55,7 @@ impl Contact {
         let kappa = match spec.kappa {
             Some(kappa) => kappa,
             None => {
-                let unit = Barrier { dhat, kappa: 1.0 };
+                let unit = Barrier::new(dhat, 1.0);
                 let kappa = rest_stiffness(mesh, asm, &vertices)? / unit.second(0.5 * dhat);
                 // A dhat far from the mesh's scale over- or underflows the barrier's
                 // curvature: say so of dhat, which the user set, not of the kappa derived.
@@ -72,7 +72,7 @@ impl Contact {
             }
         };
         let mut model =
-            ContactModel::new(spec.obstacles.clone(), Barrier { dhat, kappa }, vertices)
+            ContactModel::new(spec.obstacles.clone(), Barrier::new(dhat, kappa), vertices)
                 .map_err(invalid)?;
         let rest = mesh.rest_positions_flat();
         if spec.self_contact {

@@ -46,7 +46,8 @@ mod report;
 mod run;
 pub mod scene;
 mod secant;
-mod setters;
+// `crate::setters!` and `deform_integrator::setters!` name the one macro of deform-setters.
+pub use deform_setters::setters;
 mod simulate;
 mod state;
 

@@ -118,10 +118,7 @@ impl Default for BySize {
                     smoother: Default::default(),
                     max_age: 20,
                 },
-                tolerance: Tolerance {
-                    rel: 1e-8,
-                    ..Default::default()
-                },
+                tolerance: Tolerance::default().rel(1e-8),
             },
             large_from: default_large_from(),
         }

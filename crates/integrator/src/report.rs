@@ -8,6 +8,7 @@ use thiserror::Error;
 
 /// One Newton iteration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct IterationReport {
     /// Newton iteration index within the step.
     pub iteration: usize,
@@ -46,6 +47,31 @@ pub struct IterationReport {
     /// [`StepReport::work`] and [`StepReport::solver_seconds`].
     #[serde(default)]
     pub discarded: Vec<CandidateOutcome>,
+}
+
+crate::setters!(IterationReport { iteration: usize, residual: f64, energy: f64, solver: SolverSpec, setup: SetupStats, solve: SolveStats, fallback: bool, step_length: f64, step_bound: f64, update: f64, seconds: f64, stages: StageSeconds, candidates: Vec<CandidateOutcome>, discarded: Vec<CandidateOutcome> });
+
+impl IterationReport {
+    /// Iteration `iteration` solved by `solver` with `solve`, everything else zero or empty
+    /// (a record to build on with the setters, e.g. in a test of a policy).
+    pub fn new(iteration: usize, solver: SolverSpec, solve: SolveStats) -> Self {
+        Self {
+            iteration,
+            residual: 0.0,
+            energy: 0.0,
+            solver,
+            setup: SetupStats::default(),
+            solve,
+            fallback: false,
+            step_length: 1.0,
+            step_bound: 1.0,
+            update: 0.0,
+            seconds: 0.0,
+            stages: StageSeconds::default(),
+            candidates: Vec::new(),
+            discarded: Vec::new(),
+        }
+    }
 }
 
 fn one() -> f64 {
@@ -120,6 +146,7 @@ pub struct CandidateOutcome {
 
 /// One time step (or quasi-static solve).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct StepReport {
     /// Step index.
     pub step: usize,

@@ -97,6 +97,7 @@ pub enum Termination {
 /// What a run did: totals over its completed steps (a failed step is not counted), and why
 /// it ended.
 #[derive(Debug, Clone, Default)]
+#[non_exhaustive]
 pub struct RunSummary {
     /// Steps completed.
     pub steps: usize,

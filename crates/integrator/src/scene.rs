@@ -64,12 +64,26 @@ impl MeshSource {
 /// A set of vertices with a prescribed motion.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct ConstraintSpec {
     /// Which vertices.
     pub select: Selector,
     /// How they move.
     #[serde(default = "fixed")]
     pub motion: Motion,
+}
+
+crate::setters!(ConstraintSpec {
+    select: Selector,
+    motion: Motion
+});
+
+impl ConstraintSpec {
+    /// The vertices `select` held fixed ([`ConstraintSpec::motion`] moves them).
+    pub fn new(select: Selector) -> Self {
+        let motion = Motion::Fixed;
+        Self { select, motion }
+    }
 }
 
 fn fixed() -> Motion {
@@ -79,6 +93,7 @@ fn fixed() -> Motion {
 /// Initial conditions beyond rest.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct Initial {
     /// Uniform initial velocity (m/s).
     pub velocity: [f64; 3],
@@ -95,9 +110,12 @@ pub struct Initial {
     pub state: Option<State>,
 }
 
+crate::setters!(Initial { velocity: [f64; 3], angular_velocity: [f64; 3], equilibrium: bool, scale: Option<[f64; 3]>, state: Option<State> });
+
 /// What the runner writes.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct Output {
     /// Write a `.vtu` frame every this many steps (0: none).
     pub every: usize,
@@ -105,6 +123,8 @@ pub struct Output {
     /// with the largest rest x (then z): the tip of a cantilever.
     pub track: Option<[f64; 3]>,
 }
+
+crate::setters!(Output { every: usize, track: Option<[f64; 3]> });
 
 impl Default for Output {
     fn default() -> Self {
@@ -118,6 +138,7 @@ impl Default for Output {
 /// A simulation scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct Scene {
     /// Human-readable name (output folder name).
     pub name: String,
@@ -160,6 +181,39 @@ pub struct Scene {
     /// Outputs.
     #[serde(default)]
     pub output: Output,
+}
+
+crate::setters!(Scene { name: String, mesh: MeshSource, material: MaterialSpec, coefficients: Option<PathBuf>, mass_scale: Option<PathBuf>, density: f64, constraints: Vec<ConstraintSpec>, loads: Vec<LoadSpec>, contact: Option<ContactSpec>, integrator: IntegratorOptions, policy: PolicySpec, initial: Initial, steps: usize, output: Output });
+
+impl Scene {
+    /// A scene of `mesh` and `material` at `density` (kg/m^3) running `steps` steps, with
+    /// everything else as a scene file leaves it out: no constraints, loads or contact,
+    /// the default integrator options, solver policy, initial state and output. The
+    /// setters named like the fields change the rest: `Scene::new(...).constraints(...)`.
+    pub fn new(
+        name: impl Into<String>,
+        mesh: MeshSource,
+        material: MaterialSpec,
+        density: f64,
+        steps: usize,
+    ) -> Self {
+        Self {
+            name: name.into(),
+            mesh,
+            material,
+            coefficients: None,
+            mass_scale: None,
+            density,
+            constraints: Vec::new(),
+            loads: Vec::new(),
+            contact: None,
+            integrator: IntegratorOptions::default(),
+            policy: PolicySpec::default(),
+            initial: Initial::default(),
+            steps,
+            output: Output::default(),
+        }
+    }
 }
 
 /// Why a scene cannot be loaded or built; messages name the file and field.

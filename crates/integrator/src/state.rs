@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 /// Positions and velocities (flat `3N`) at time `t`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct State {
     /// Positions.
     pub x: Vec<f64>,
@@ -18,7 +19,12 @@ impl State {
     /// At rest at positions `x`, time 0.
     pub fn at_rest(x: Vec<f64>) -> Self {
         let v = vec![0.0; x.len()];
-        Self { x, v, t: 0.0 }
+        Self::new(x, v, 0.0)
+    }
+
+    /// Positions `x`, velocities `v` (flat, 3 per vertex) at time `t`.
+    pub fn new(x: Vec<f64>, v: Vec<f64>, t: f64) -> Self {
+        Self { x, v, t }
     }
 }
 

@@ -25,14 +25,11 @@ fn mesh_x(mesh: &TetMesh) -> Vec<f64> {
 }
 
 fn cube(lift: f64) -> TetMesh {
-    BoxGrid {
-        cells: [3, 3, 3],
-        size: [0.1, 0.1, 0.1],
-        origin: [0.0, 0.0, lift],
-        split: Default::default(),
-    }
-    .build()
-    .unwrap()
+    BoxGrid::new([3, 3, 3], [0.1, 0.1, 0.1])
+        .origin([0.0, 0.0, lift])
+        .split(Default::default())
+        .build()
+        .unwrap()
 }
 
 fn sim(mesh: &TetMesh, obstacles: Vec<Obstacle>, dt: f64, policy: &str) -> Integrator {
@@ -49,10 +46,7 @@ fn sim(mesh: &TetMesh, obstacles: Vec<Obstacle>, dt: f64, policy: &str) -> Integ
                 .build()
                 .unwrap(),
         )
-        .contact(ContactSpec {
-            obstacles,
-            ..Default::default()
-        })
+        .contact(ContactSpec::default().obstacles(obstacles))
         .build()
         .unwrap()
 }
@@ -262,10 +256,7 @@ fn sim_with_push(mesh: &TetMesh) -> Integrator {
             },
         }])
         .options(IntegratorOptions::default().dt(1e-3).max_retries(0))
-        .contact(ContactSpec {
-            obstacles: vec![GROUND],
-            ..Default::default()
-        })
+        .contact(ContactSpec::default().obstacles(vec![GROUND]))
         .build()
         .unwrap()
 }
@@ -309,15 +300,10 @@ fn point_triangle_distance(p: &Vector3<f64>, t: [Vector3<f64>; 3]) -> f64 {
 /// A block resting on an incline of 30 degrees (the ground, with gravity tilted by the
 /// incline's angle), released: the distance its centre of mass travels in `steps` steps.
 fn incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
-    let ground = ContactSpec {
-        obstacles: vec![GROUND],
-        friction: Some(deform_integrator::FrictionSpec {
-            mu: vec![mu],
-            velocity_threshold: 1e-3,
-            self_mu: None,
-        }),
-        ..Default::default()
-    };
+    let friction = deform_integrator::FrictionSpec::new(vec![mu]).velocity_threshold(1e-3);
+    let ground = ContactSpec::default()
+        .obstacles(vec![GROUND])
+        .friction(Some(friction));
     incline_travel_on(ground, mu, steps, dt)
 }
 
@@ -405,17 +391,11 @@ fn friction_on_a_mesh_incline_slides_or_sticks_as_coulomb_says() {
         "v -2 -2 0\nv 2 -2 0\nv 2 2 0\nv -2 2 0\nf 1 2 3\nf 1 3 4\n",
     )
     .unwrap();
-    let ground = |mu: f64| ContactSpec {
-        meshes: vec![deform_integrator::MeshObstacle {
-            file: path.clone(),
-            offset: [0.0, 0.0, 0.0],
-        }],
-        friction: Some(deform_integrator::FrictionSpec {
-            mu: vec![mu],
-            velocity_threshold: 1e-3,
-            self_mu: None,
-        }),
-        ..Default::default()
+    let ground = |mu: f64| {
+        let friction = deform_integrator::FrictionSpec::new(vec![mu]).velocity_threshold(1e-3);
+        ContactSpec::default()
+            .meshes(vec![deform_integrator::MeshObstacle::new(path.clone())])
+            .friction(Some(friction))
     };
     let (steps, dt) = (100, 5e-3);
     let (travel, expected) = incline_travel_on(ground(0.3), 0.3, steps, dt);

@@ -457,10 +457,7 @@ fn loads_change_momentum_by_their_impulse_until_they_stop() {
     let force = [3.0, -2.0, 5.0];
     let load = deform_integrator::Load {
         vertices: end,
-        force: deform_integrator::LoadForce {
-            force,
-            until: Some(3.0 * dt),
-        },
+        force: deform_integrator::LoadForce::new(force).until(Some(3.0 * dt)),
     };
     let mut s = Integrator::builder(&mesh, material(NH))
         .options(options)

@@ -19,14 +19,11 @@ use nalgebra::Vector3;
 
 /// A 10 cm cube of 2 x 2 x 2 cells, its bottom `height` above the ground.
 fn cube(height: f64) -> TetMesh {
-    BoxGrid {
-        cells: [2, 2, 2],
-        size: [0.1, 0.1, 0.1],
-        origin: [0.0, 0.0, height],
-        split: Default::default(),
-    }
-    .build()
-    .unwrap()
+    BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
+        .origin([0.0, 0.0, height])
+        .split(Default::default())
+        .build()
+        .unwrap()
 }
 
 /// A four-sided pyramid with its apex 6 cm up under a point of the cube's bottom face off
@@ -58,17 +55,14 @@ fn sim_with_offset(
                 .build()
                 .unwrap(),
         )
-        .contact(ContactSpec {
-            obstacles: vec![Obstacle::Plane {
-                point: [0.0; 3],
-                normal: [0.0, 0.0, 1.0],
-            }],
-            meshes: vec![MeshObstacle {
-                file: spike.to_owned(),
-                offset,
-            }],
-            ..Default::default()
-        })
+        .contact(
+            ContactSpec::default()
+                .obstacles(vec![Obstacle::Plane {
+                    point: [0.0; 3],
+                    normal: [0.0, 0.0, 1.0],
+                }])
+                .meshes(vec![MeshObstacle::new(spike.to_owned()).offset(offset)]),
+        )
         .build()
         .unwrap()
 }
@@ -179,13 +173,9 @@ fn unreadable_mesh_obstacles_name_the_field_and_file() {
         .build()
         .unwrap();
     let e = Integrator::builder(&mesh, MaterialField::Uniform(model))
-        .contact(ContactSpec {
-            meshes: vec![MeshObstacle {
-                file: path.clone(),
-                offset: [0.0; 3],
-            }],
-            ..Default::default()
-        })
+        .contact(
+            ContactSpec::default().meshes(vec![MeshObstacle::new(path.clone()).offset([0.0; 3])]),
+        )
         .build()
         .unwrap_err()
         .to_string();

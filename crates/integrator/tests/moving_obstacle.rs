@@ -18,14 +18,11 @@ mod common;
 
 /// A 10 cm cube of 2 x 2 x 2 cells, `lift` above the ground.
 fn cube(lift: f64) -> TetMesh {
-    BoxGrid {
-        cells: [2, 2, 2],
-        size: [0.1, 0.1, 0.1],
-        origin: [0.0, 0.0, lift],
-        split: Default::default(),
-    }
-    .build()
-    .unwrap()
+    BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
+        .origin([0.0, 0.0, lift])
+        .split(Default::default())
+        .build()
+        .unwrap()
 }
 
 fn sim(mesh: &TetMesh, contact: ContactSpec, gamma: f64) -> Integrator {
@@ -66,17 +63,15 @@ fn a_plane_coming_down_squeezes_a_cube_without_passing_into_it() {
     let mesh = cube(0.001);
     // The lid starts 2 mm above the cube and comes down 6 mm in 0.12 s, then stays.
     let (lid, speed, stop) = (0.103, 0.05, 0.12);
-    let contact = ContactSpec {
-        obstacles: vec![plane(0.0, true), plane(lid, false)],
-        motions: vec![ObstacleMotion {
-            obstacle: 1,
-            velocity: [0.0, 0.0, -speed],
-            start: 0.0,
-            stop: Some(stop),
-            ..Default::default()
-        }],
-        ..Default::default()
-    };
+    let contact = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true), plane(lid, false)])
+        .motions(vec![
+            ObstacleMotion::default()
+                .obstacle(1)
+                .velocity([0.0, 0.0, -speed])
+                .start(0.0)
+                .stop(Some(stop)),
+        ]);
     let mut sim = sim(&mesh, contact, 0.01);
     let mut s = sim.rest_state();
     for step in 0..80 {
@@ -114,22 +109,20 @@ fn a_plane_coming_down_squeezes_a_cube_without_passing_into_it() {
 fn a_sliding_ground_drags_a_cube_along_by_friction() {
     let mesh = cube(0.0005);
     let ground_speed = 0.2;
-    let contact = ContactSpec {
-        obstacles: vec![plane(0.0, true)],
-        motions: vec![ObstacleMotion {
-            obstacle: 0,
-            velocity: [ground_speed, 0.0, 0.0],
-            start: 0.0,
-            stop: None,
-            ..Default::default()
-        }],
-        friction: Some(FrictionSpec {
-            mu: vec![0.5],
-            velocity_threshold: 1e-3,
-            self_mu: None,
-        }),
-        ..Default::default()
-    };
+    let contact = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true)])
+        .motions(vec![
+            ObstacleMotion::default()
+                .obstacle(0)
+                .velocity([ground_speed, 0.0, 0.0])
+                .start(0.0)
+                .stop(None),
+        ])
+        .friction(Some(
+            FrictionSpec::new(vec![0.5])
+                .velocity_threshold(1e-3)
+                .self_mu(None),
+        ));
     let mut dragged = sim(&mesh, contact, 0.0);
     let mut s = dragged.rest_state();
     for step in 0..100 {
@@ -149,17 +142,15 @@ fn a_sliding_ground_drags_a_cube_along_by_friction() {
     // A frictionless ground slides under the cube without moving it.
     let mut still = sim(
         &mesh,
-        ContactSpec {
-            obstacles: vec![plane(0.0, true)],
-            motions: vec![ObstacleMotion {
-                obstacle: 0,
-                velocity: [ground_speed, 0.0, 0.0],
-                start: 0.0,
-                stop: None,
-                ..Default::default()
-            }],
-            ..Default::default()
-        },
+        ContactSpec::default()
+            .obstacles(vec![plane(0.0, true)])
+            .motions(vec![
+                ObstacleMotion::default()
+                    .obstacle(0)
+                    .velocity([ground_speed, 0.0, 0.0])
+                    .start(0.0)
+                    .stop(None),
+            ]),
         0.0,
     );
     let mut s = still.rest_state();
@@ -181,32 +172,28 @@ fn bad_motions_name_the_field() {
         .unwrap();
     for (motion, expected) in [
         (
-            ObstacleMotion {
-                obstacle: 3,
-                velocity: [0.0; 3],
-                start: 0.0,
-                stop: None,
-                ..Default::default()
-            },
+            ObstacleMotion::default()
+                .obstacle(3)
+                .velocity([0.0; 3])
+                .start(0.0)
+                .stop(None),
             "obstacle 3 does not exist",
         ),
         (
-            ObstacleMotion {
-                obstacle: 0,
-                velocity: [0.0; 3],
-                start: 1.0,
-                stop: Some(0.5),
-                ..Default::default()
-            },
+            ObstacleMotion::default()
+                .obstacle(0)
+                .velocity([0.0; 3])
+                .start(1.0)
+                .stop(Some(0.5)),
             "not before start",
         ),
     ] {
         let e = Integrator::builder(&mesh, MaterialField::Uniform(model.clone()))
-            .contact(ContactSpec {
-                obstacles: vec![plane(0.0, true)],
-                motions: vec![motion],
-                ..Default::default()
-            })
+            .contact(
+                ContactSpec::default()
+                    .obstacles(vec![plane(0.0, true)])
+                    .motions(vec![motion]),
+            )
             .build()
             .unwrap_err()
             .to_string();
@@ -253,27 +240,19 @@ fn a_mesh_lid_squeezes_the_cube_as_the_plane_lid_does() {
     // Its diagonal edge passes well clear of the cube: above the cube's top face it
     // would add edge-edge barriers to the face's.
     std::fs::write(&lid_file, square(0.6, (0.45, -0.35), lid)).unwrap();
-    let motion = |obstacle| ObstacleMotion {
-        obstacle,
-        velocity: [0.0, 0.0, -speed],
-        stop: Some(stop),
-        ..Default::default()
+    let motion = |obstacle| {
+        let m = ObstacleMotion::default().obstacle(obstacle);
+        m.velocity([0.0, 0.0, -speed]).stop(Some(stop))
     };
-    let planes = ContactSpec {
-        obstacles: vec![plane(0.0, true), plane(lid, false)],
-        motions: vec![motion(1)],
-        ..Default::default()
-    };
-    let meshes = ContactSpec {
-        obstacles: vec![plane(0.0, true)],
-        meshes: vec![deform_integrator::MeshObstacle {
-            file: lid_file,
-            offset: [0.0; 3],
-        }],
-        // The mesh is obstacle 1: after the one analytic obstacle.
-        motions: vec![motion(1)],
-        ..Default::default()
-    };
+    let planes = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true), plane(lid, false)])
+        .motions(vec![motion(1)]);
+    let meshes = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true)])
+        .meshes(vec![
+            deform_integrator::MeshObstacle::new(lid_file).offset([0.0; 3]),
+        ])
+        .motions(vec![motion(1)]);
     let (mut by_plane, mut by_mesh) = (sim(&mesh, planes, 0.01), sim(&mesh, meshes, 0.01));
     let (mut a, mut b) = (by_plane.rest_state(), by_mesh.rest_state());
     let mut gap = 0.0f64;
@@ -313,16 +292,14 @@ fn a_turning_paddle_sweeps_a_cube_along_the_ground() {
         min: [-0.03, -0.3, 0.0],
         max: [-0.005, 0.3, 0.15],
     };
-    let contact = ContactSpec {
-        obstacles: vec![plane(0.0, true), paddle],
-        motions: vec![ObstacleMotion {
-            obstacle: 1,
-            angular_velocity: [0.0, 0.0, -0.5],
-            pivot: Some([-0.0175, -0.6, 0.0]),
-            ..Default::default()
-        }],
-        ..Default::default()
-    };
+    let contact = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true), paddle])
+        .motions(vec![
+            ObstacleMotion::default()
+                .obstacle(1)
+                .angular_velocity([0.0, 0.0, -0.5])
+                .pivot(Some([-0.0175, -0.6, 0.0])),
+        ]);
     let mut sim = sim(&mesh, contact, 0.01);
     let mut s = sim.rest_state();
     let mut least = f64::INFINITY;
@@ -353,40 +330,30 @@ fn a_turntable_carries_a_cube_round_by_friction() {
     std::fs::write(&table, square(1.0, (0.0, 0.0), 0.0)).unwrap();
     // A 10 cm cube centred 0.3 m from the turntable's axis, the table turning at 1 rad/s
     // from the start: it needs 0.3 m/s^2 to go round, and friction gives up to mu g.
-    let mesh = BoxGrid {
-        cells: [2, 2, 2],
-        size: [0.1, 0.1, 0.1],
-        origin: [0.25, -0.05, 0.0005],
-        split: Default::default(),
-    }
-    .build()
-    .unwrap();
-    let spin = ObstacleMotion {
-        obstacle: 0,
-        angular_velocity: [0.0, 0.0, 1.0],
-        pivot: Some([0.0; 3]),
-        ..Default::default()
-    };
-    let friction = Some(FrictionSpec {
-        mu: vec![0.5],
-        velocity_threshold: 1e-3,
-        self_mu: None,
-    });
-    let as_plane = ContactSpec {
-        obstacles: vec![plane(0.0, true)],
-        motions: vec![spin.clone()],
-        friction: friction.clone(),
-        ..Default::default()
-    };
-    let as_mesh = ContactSpec {
-        meshes: vec![deform_integrator::MeshObstacle {
-            file: table,
-            offset: [0.0; 3],
-        }],
-        motions: vec![spin],
-        friction,
-        ..Default::default()
-    };
+    let mesh = BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
+        .origin([0.25, -0.05, 0.0005])
+        .split(Default::default())
+        .build()
+        .unwrap();
+    let spin = ObstacleMotion::default()
+        .obstacle(0)
+        .angular_velocity([0.0, 0.0, 1.0])
+        .pivot(Some([0.0; 3]));
+    let friction = Some(
+        FrictionSpec::new(vec![0.5])
+            .velocity_threshold(1e-3)
+            .self_mu(None),
+    );
+    let as_plane = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true)])
+        .motions(vec![spin.clone()])
+        .friction(friction.clone());
+    let as_mesh = ContactSpec::default()
+        .meshes(vec![
+            deform_integrator::MeshObstacle::new(table).offset([0.0; 3]),
+        ])
+        .motions(vec![spin])
+        .friction(friction);
     for (name, contact) in [("plane", as_plane), ("mesh", as_mesh)] {
         let mut sim = sim(&mesh, contact, 0.0);
         let mut s = sim.rest_state();
@@ -438,19 +405,16 @@ fn a_lid_too_fast_for_the_step_is_refused_not_passed_through() {
     let mesh = cube(0.001);
     // 40 m/s: 20 cm in one step of 5 ms, twice the cube's height; nothing carried with the
     // lid can stay above the ground.
-    let contact = ContactSpec {
-        obstacles: vec![plane(0.0, true)],
-        meshes: vec![deform_integrator::MeshObstacle {
-            file: lid_file,
-            offset: [0.0; 3],
-        }],
-        motions: vec![ObstacleMotion {
-            obstacle: 1,
-            velocity: [0.0, 0.0, -40.0],
-            ..Default::default()
-        }],
-        ..Default::default()
-    };
+    let contact = ContactSpec::default()
+        .obstacles(vec![plane(0.0, true)])
+        .meshes(vec![
+            deform_integrator::MeshObstacle::new(lid_file).offset([0.0; 3]),
+        ])
+        .motions(vec![
+            ObstacleMotion::default()
+                .obstacle(1)
+                .velocity([0.0, 0.0, -40.0]),
+        ]);
     let mut sim = sim(&mesh, contact, 0.01);
     let mut options = sim.options().clone();
     options.max_retries = 0;
@@ -473,15 +437,13 @@ fn a_lid_too_fast_for_the_step_is_refused_not_passed_through() {
 #[test]
 fn an_obstacle_too_fast_for_the_step_is_refused_as_such() {
     for speed in [1e3, 1e6] {
-        let contact = ContactSpec {
-            obstacles: vec![plane(0.0, true)],
-            motions: vec![ObstacleMotion {
-                obstacle: 0,
-                velocity: [0.0, 0.0, speed],
-                ..Default::default()
-            }],
-            ..Default::default()
-        };
+        let contact = ContactSpec::default()
+            .obstacles(vec![plane(0.0, true)])
+            .motions(vec![
+                ObstacleMotion::default()
+                    .obstacle(0)
+                    .velocity([0.0, 0.0, speed]),
+            ]);
         let mesh = cube(0.001);
         let mut sim = sim(&mesh, contact, 0.0);
         let mut s = sim.rest_state();

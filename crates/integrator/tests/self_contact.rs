@@ -30,12 +30,9 @@ fn cube(origin: [f64; 3]) -> BoxGrid {
 }
 
 fn box_grid(cells: [usize; 3], size: [f64; 3], origin: [f64; 3]) -> BoxGrid {
-    BoxGrid {
-        cells,
-        size,
-        origin,
-        split: Default::default(),
-    }
+    BoxGrid::new(cells, size)
+        .origin(origin)
+        .split(Default::default())
 }
 
 fn sim(mesh: &TetMesh, policy: &str) -> Integrator {
@@ -52,14 +49,14 @@ fn sim(mesh: &TetMesh, policy: &str) -> Integrator {
                 .build()
                 .unwrap(),
         )
-        .contact(ContactSpec {
-            obstacles: vec![Obstacle::Plane {
-                point: [0.0; 3],
-                normal: [0.0, 0.0, 1.0],
-            }],
-            self_contact: true,
-            ..Default::default()
-        })
+        .contact(
+            ContactSpec::default()
+                .obstacles(vec![Obstacle::Plane {
+                    point: [0.0; 3],
+                    normal: [0.0, 0.0, 1.0],
+                }])
+                .self_contact(true),
+        )
         .build()
         .unwrap()
 }
@@ -173,10 +170,7 @@ fn surfaces_closer_than_dhat_at_rest_are_refused_by_name() {
         .build()
         .unwrap();
     let err = Integrator::builder(&mesh, MaterialField::Uniform(model))
-        .contact(ContactSpec {
-            self_contact: true,
-            ..Default::default()
-        })
+        .contact(ContactSpec::default().self_contact(true))
         .build()
         .unwrap_err()
         .to_string();
@@ -209,15 +203,13 @@ fn slab_incline_travel(mu: f64, steps: usize, dt: f64) -> (f64, f64) {
             vertices: (0..n).collect(),
             motion: Motion::Fixed,
         }])
-        .contact(ContactSpec {
-            self_contact: true,
-            friction: Some(FrictionSpec {
-                mu: vec![],
-                velocity_threshold: 1e-3,
-                self_mu: Some(mu),
-            }),
-            ..Default::default()
-        })
+        .contact(
+            ContactSpec::default().self_contact(true).friction(Some(
+                FrictionSpec::new(vec![])
+                    .velocity_threshold(1e-3)
+                    .self_mu(Some(mu)),
+            )),
+        )
         .build()
         .unwrap();
     // Settled onto the slab by damped steps under the normal part of gravity (a static

@@ -14,7 +14,7 @@
 //!     density: 1000.0, constraints: [(select: Plane(point: (0.0, 0.0, 0.0), normal: (-1.0, 0.0, 0.0)))],
 //!     integrator: (dt: 0.01), steps: 3)"#;
 //! let fine = Scene::parse(text, Path::new("fine.ron")).unwrap();
-//! let coarse = Scene { mesh: deform_integrator::scene::MeshSource::Beam(1), ..fine.clone() };
+//! let coarse = fine.clone().mesh(deform_integrator::scene::MeshSource::Beam(1));
 //! let data = generate(&fine, Path::new("fine.ron"), &DatasetSpec::new(1, 3, 7), |_, _| ()).unwrap();
 //! let (coarse_data, report) = coarsen(&data, &coarse, Path::new("coarse.ron"), Constraints::FromFine).unwrap();
 //! assert_eq!((report.vertices, report.outside), (20, 0));
@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 
 use deform_fs::npy;
 use deform_integrator::scene::{ConstraintSpec, MeshSource};
-use deform_integrator::{LoadSpec, Scene, SceneError};
+use deform_integrator::{Scene, SceneError};
 use deform_mesh::embed::Embedding;
 use deform_mesh::io::{MshFormat, MshVersion};
 use deform_mesh::select::Selector;
@@ -131,18 +131,18 @@ pub fn coarsen_embedded(
         };
         let mut mapped = Vec::new();
         for (i, c) in fine_scene.constraints.iter().enumerate() {
-            mapped.push(ConstraintSpec {
-                select: carry(&c.select, format!("constraints[{i}].select"))?,
-                motion: c.motion.clone(),
-            });
+            mapped.push(
+                ConstraintSpec::new(carry(&c.select, format!("constraints[{i}].select"))?)
+                    .motion(c.motion.clone()),
+            );
         }
         coarse.constraints = mapped;
         let mut loads = Vec::new();
         for (i, l) in fine_scene.loads.iter().enumerate() {
-            loads.push(LoadSpec {
-                select: carry(&l.select, format!("loads[{i}].select"))?,
-                ..l.clone()
-            });
+            loads.push(
+                l.clone()
+                    .select(carry(&l.select, format!("loads[{i}].select"))?),
+            );
         }
         coarse.loads = loads;
     }

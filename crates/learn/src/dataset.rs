@@ -65,7 +65,7 @@ pub struct Trajectory {
     pub observed: Option<Observed>,
 }
 
-deform_integrator::setters!(Trajectory {
+deform_setters::setters!(Trajectory {
     start_time: f64,
     x: Vec<Vec<f64>>,
     v: Vec<Vec<f64>>,
@@ -147,7 +147,7 @@ pub struct Noise {
     pub seed: u64,
 }
 
-deform_integrator::setters!(Noise {
+deform_setters::setters!(Noise {
     position: f64,
     velocity: f64,
     seed: u64,
@@ -198,7 +198,7 @@ pub struct Variations {
     pub rest: bool,
 }
 
-deform_integrator::setters!(Variations {
+deform_setters::setters!(Variations {
     speed: f64,
     spin: f64,
     stretch: f64,
@@ -311,7 +311,7 @@ pub struct DatasetSpec {
     pub conditions: Vec<Conditions>,
 }
 
-deform_integrator::setters!(DatasetSpec {
+deform_setters::setters!(DatasetSpec {
     trajectories: usize,
     steps: usize,
     seed: u64,
@@ -420,17 +420,16 @@ fn draw_initial(scene: &Scene, variations: &Variations, rng: &mut Rng) -> Initia
     let spin = rng.range(0.0, variations.spin);
     let (d1, d2) = (dir(rng), dir(rng));
     let s = variations.stretch;
-    Initial {
-        velocity: (d1 * speed).into(),
-        angular_velocity: (d2 * spin).into(),
-        equilibrium: false,
-        scale: Some([
+    Initial::default()
+        .velocity((d1 * speed).into())
+        .angular_velocity((d2 * spin).into())
+        .equilibrium(false)
+        .scale(Some([
             rng.range(1.0 - s, 1.0 + s),
             rng.range(1.0 - s, 1.0 + s),
             rng.range(1.0 - s, 1.0 + s),
-        ]),
-        state: None,
-    }
+        ]))
+        .state(None)
 }
 
 /// Trajectory `k`: `steps` steps of `scene` from `initial` under `conditions`, by an
@@ -868,9 +867,5 @@ fn is_zero(v: &f64) -> bool {
 
 /// The state at step `n` of a trajectory.
 pub fn state_at(t: &Trajectory, n: usize, dt: f64) -> State {
-    State {
-        x: t.x[n].clone(),
-        v: t.v[n].clone(),
-        t: t.start_time + n as f64 * dt,
-    }
+    State::new(t.x[n].clone(), t.v[n].clone(), t.start_time + n as f64 * dt)
 }

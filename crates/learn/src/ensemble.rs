@@ -128,12 +128,12 @@ impl EnsembleFit {
             .members
             .iter()
             .filter(|m| m.kept())
-            .map(|m| EnsembleMember {
-                weight: 1.0,
-                model: m.model.spec(Moduli::Lame {
+            .map(|m| {
+                let lame = Moduli::Lame {
                     mu: m.mu,
                     lambda: m.lambda,
-                }),
+                };
+                EnsembleMember::new(1.0, m.model.spec(lame))
             })
             .collect();
         (!members.is_empty()).then_some(MaterialSpec::Ensemble(members))
@@ -222,10 +222,7 @@ pub fn fit_ensemble(
     variant.material = MaterialSpec::Ensemble(
         names
             .iter()
-            .map(|n| EnsembleMember {
-                weight: 1.0,
-                model: n.spec(start),
-            })
+            .map(|n| EnsembleMember::new(1.0, n.spec(start)))
             .collect(),
     );
     let built = variant.build(origin)?;
@@ -362,9 +359,9 @@ fn energy_shares(
 /// A member with its effective Lame pair (as an ensemble of one, so a volume-only pair is
 /// valid), or `None` when the pair is not a member's ([`Lame::try_member`]).
 fn model_of(member: Member, mu: f64, lambda: f64) -> Option<Model> {
-    let spec = MaterialSpec::Ensemble(vec![EnsembleMember {
-        weight: 1.0,
-        model: member.spec(Moduli::Lame { mu, lambda }),
-    }]);
+    let spec = MaterialSpec::Ensemble(vec![EnsembleMember::new(
+        1.0,
+        member.spec(Moduli::Lame { mu, lambda }),
+    )]);
     spec.build().ok()
 }

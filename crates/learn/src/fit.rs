@@ -52,7 +52,7 @@ pub struct EquationErrorOptions {
     pub friction: bool,
 }
 
-deform_integrator::setters!(EquationErrorOptions {
+deform_setters::setters!(EquationErrorOptions {
     damping: bool,
     by_region: bool,
     nonnegative: bool,
@@ -448,11 +448,9 @@ impl ContactForces {
             false => (unit, None),
             true => {
                 let eps = model.friction().map_or(1e-3, |(_, eps)| eps);
-                let spec = deform_integrator::FrictionSpec {
-                    mu: vec![1.0],
-                    velocity_threshold: eps,
-                    self_mu: None,
-                };
+                let spec = deform_integrator::FrictionSpec::new(vec![1.0])
+                    .velocity_threshold(eps)
+                    .self_mu(None);
                 let frictionless = unit.without_friction();
                 let friction = frictionless.clone().with_friction(&spec).map_err(invalid)?;
                 (frictionless, Some(friction))
@@ -488,15 +486,15 @@ impl ContactForces {
         if let Some(friction) = self.friction.as_ref().map(placed) {
             let lag = friction.lag_friction(x0, dt);
             for o in 0..friction.frictional() {
-                let part = deform_integrator::FrictionLag {
-                    pairs: lag
-                        .pairs
-                        .iter()
-                        .filter(|p| p.obstacle == o)
-                        .cloned()
-                        .collect(),
-                    threshold: lag.threshold,
-                };
+                let part = deform_integrator::FrictionLag::default()
+                    .pairs(
+                        lag.pairs
+                            .iter()
+                            .filter(|p| p.obstacle == o)
+                            .cloned()
+                            .collect(),
+                    )
+                    .threshold(lag.threshold);
                 let mut f = vec![0.0; x1.len()];
                 friction.add_friction(&part, x1, Some(&mut f), None);
                 columns.push(f);

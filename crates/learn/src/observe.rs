@@ -42,11 +42,7 @@ pub fn estimate_start(sim: &mut Integrator, t: &Trajectory) -> Result<State, Obs
         let mut shape = Penalised::new(sim, &observed.markers, t.start_time)?;
         let x = shape.least_strain(sim, &observed.positions[0])?;
         let v = shape.least_stiffness(sim, &x, &observed.first_velocities(dt))?;
-        Ok(State {
-            x,
-            v,
-            t: t.start_time,
-        })
+        Ok(State::new(x, v, t.start_time))
     })?
 }
 

@@ -80,7 +80,7 @@ impl PolicyOptions {
     }
 }
 
-deform_integrator::setters!(PolicyOptions {
+deform_setters::setters!(PolicyOptions {
     neighbours: usize,
     min_success: f64,
     weights: WorkWeights,

@@ -21,11 +21,10 @@ fn nested_beams_carry_the_fine_states_exactly_with_the_fine_constraints() {
     let data = generate(&fine, origin, &DatasetSpec::new(2, 4, 11), |_, _| ()).unwrap();
     let fine_mesh = BoxGrid::beam(4).build().unwrap();
     for n in [2, 1] {
-        let coarse = Scene {
-            mesh: MeshSource::Beam(n),
-            constraints: Vec::new(),
-            ..fine.clone()
-        };
+        let coarse = fine
+            .clone()
+            .mesh(MeshSource::Beam(n))
+            .constraints(Vec::new());
         let (mapped, report) = coarsen(&data, &coarse, origin, Constraints::FromFine).unwrap();
         let coarse_mesh = BoxGrid::beam(n).build().unwrap();
         assert_eq!(report.ratio, (4 / n).pow(3) as f64);
@@ -67,10 +66,7 @@ fn nested_beams_carry_the_fine_states_exactly_with_the_fine_constraints() {
         assert_eq!(mapped.meta.vertices, coarse_mesh.num_vertices());
     }
     // Its own selectors, when asked for, are kept.
-    let own = Scene {
-        mesh: MeshSource::Beam(1),
-        ..fine.clone()
-    };
+    let own = fine.clone().mesh(MeshSource::Beam(1));
     let (mapped, _) = coarsen(&data, &own, origin, Constraints::OwnSelectors).unwrap();
     assert_eq!(mapped.meta.scene.constraints, fine.constraints);
 }
@@ -90,11 +86,7 @@ fn a_saved_coarse_model_reloads_and_simulates_bit_identically() {
         ("from_file", MeshSource::File(msh.clone())),
         ("generated", MeshSource::Beam(1)),
     ] {
-        let scene = Scene {
-            name: name.into(),
-            mesh,
-            ..fine.clone()
-        };
+        let scene = fine.clone().name(name.into()).mesh(mesh);
         let mut sim = scene.build(origin).unwrap();
         let model = scene.material.build().unwrap();
         let mut rng = deform_learn::rng::Rng::new(9);
@@ -191,11 +183,7 @@ fn a_per_element_fit_finds_a_stiff_inclusion_the_coarse_elements_straddle() {
         )
         .split((0.67, 0.0));
     let data = generate(&fine, &origin, &spec, |_, _| ()).unwrap();
-    let coarse = Scene {
-        mesh: MeshSource::Beam(2),
-        coefficients: None,
-        ..fine.clone()
-    };
+    let coarse = fine.clone().mesh(MeshSource::Beam(2)).coefficients(None);
     let (data, _) = coarsen(&data, &coarse, &origin, Constraints::FromFine).unwrap();
     let mut sim = data.meta.scene.build(&origin).unwrap();
     let tets = sim.mesh.num_tets();
@@ -253,10 +241,9 @@ fn gmsh_meshes_of_one_shape_coarsen_with_the_clamp_mapped() {
     let mut fine = Scene::parse(FINE, origin).unwrap();
     fine.mesh = MeshSource::File(assets.join("beam_fine.msh"));
     let data = generate(&fine, origin, &DatasetSpec::new(1, 2, 3), |_, _| ()).unwrap();
-    let coarse = Scene {
-        mesh: MeshSource::File(assets.join("beam_coarse.msh")),
-        ..fine.clone()
-    };
+    let coarse = fine
+        .clone()
+        .mesh(MeshSource::File(assets.join("beam_coarse.msh")));
     let (mapped, report) = coarsen(&data, &coarse, origin, Constraints::FromFine).unwrap();
     assert!(report.ratio > 12.0, "{}", report.ratio);
     assert!(report.max_distance < 1e-12);

@@ -35,10 +35,9 @@ fn mixed() -> Vec<Conditions> {
         Conditions::default(),
         Conditions::default()
             .gravity(Some([0.0; 3]))
-            .loads(Some(vec![LoadForce {
-                force: [0.0, 40.0, 20.0],
-                until: Some(0.03),
-            }])),
+            .loads(Some(vec![
+                LoadForce::new([0.0, 40.0, 20.0]).until(Some(0.03)),
+            ])),
         Conditions::default()
             .gravity(Some([0.0, 6.0, 0.0]))
             .motions(Some(vec![Motion::Translate {
@@ -77,10 +76,7 @@ fn generated_trajectories_carry_their_conditions_through_disk_and_scenes() {
     assert_eq!(s.integrator.gravity, [0.0; 3]);
     assert_eq!(s.loads[0].force, [0.0, 40.0, 20.0]);
     let again = generate(
-        &Scene {
-            initial: s.initial.clone(),
-            ..s
-        },
+        &s,
         Path::new("again.ron"),
         &DatasetSpec::new(1, 3, 5).variations(deform_learn::Variations::default().rest(true)),
         |_, _| {},

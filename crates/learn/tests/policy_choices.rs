@@ -95,38 +95,20 @@ fn context(step: usize) -> PolicyContext<'static> {
 
 /// The report of a solve with these statistics.
 fn report(solver: &SolverSpec, factorised: bool, iterations: usize) -> IterationReport {
-    IterationReport {
-        iteration: 0,
-        residual: 1e-3,
-        energy: 0.0,
-        solver: solver.clone(),
-        setup: SetupStats {
-            analyzed: false,
-            reused: !factorised,
-            flops: if factorised { FACTOR as u64 } else { 0 },
-            factor_nnz: usize::from(factorised),
-            seconds: 0.0,
-        },
-        solve: SolveStats {
-            solver: solver.name(),
-            iterations,
-            residuals: Vec::new(),
-            rhs_norm: 1.0,
-            termination: Termination::Converged,
-            seconds: 0.0,
-            matvecs: iterations,
-            flops: (iterations as f64 * PER_ITERATION) as u64,
-            sweep_flops: 0,
-        },
-        fallback: false,
-        step_length: 1.0,
-        step_bound: 1.0,
-        update: 0.0,
-        seconds: 0.0,
-        stages: Default::default(),
-        candidates: Vec::new(),
-        discarded: Vec::new(),
-    }
+    let setup = SetupStats::default()
+        .analyzed(false)
+        .reused(!factorised)
+        .flops(if factorised { FACTOR as u64 } else { 0 })
+        .factor_nnz(usize::from(factorised))
+        .seconds(0.0);
+    let solve = SolveStats::new(solver.name(), 1.0)
+        .termination(Termination::Converged)
+        .iterations(iterations)
+        .matvecs(iterations)
+        .flops((iterations as f64 * PER_ITERATION) as u64);
+    IterationReport::new(0, solver.clone(), solve)
+        .residual(1e-3)
+        .setup(setup)
 }
 
 #[test]
@@ -178,7 +160,7 @@ fn first_choice(sweep: f64) -> SolverSpec {
         PolicyOptions::new(1e5)
             .neighbours(1)
             .min_success(0.5)
-            .weights(WorkWeights { factor: 1.0, sweep })
+            .weights(WorkWeights::factor(1.0).sweep(sweep))
             .forcing(None),
     );
     policy.choose(&context(0)).solver

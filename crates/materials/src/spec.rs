@@ -45,11 +45,19 @@ pub enum MaterialSpec {
 /// One member of an ensemble.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct EnsembleMember {
     /// Its weight (`>= 0`).
     pub weight: f64,
     /// Its model (not itself an ensemble).
     pub model: MaterialSpec,
+}
+
+impl EnsembleMember {
+    /// `model` with `weight`.
+    pub fn new(weight: f64, model: MaterialSpec) -> Self {
+        Self { weight, model }
+    }
 }
 
 impl MaterialSpec {

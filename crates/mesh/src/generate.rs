@@ -62,6 +62,7 @@ pub enum Split {
 /// A structured box of cells, see the module documentation for the exact numbering.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct BoxGrid {
     /// Cells along x, y, z.
     pub cells: [usize; 3],
@@ -75,7 +76,26 @@ pub struct BoxGrid {
     pub split: Split,
 }
 
+deform_setters::setters!(BoxGrid {
+    cells: [usize; 3],
+    size: [f64; 3],
+    origin: [f64; 3],
+    split: Split
+});
+
 impl BoxGrid {
+    /// A box of `cells` cubes (or bricks) over `size`, its lower corner at the origin, Kuhn
+    /// split.
+    pub fn new(cells: [usize; 3], size: [f64; 3]) -> Self {
+        let (origin, split) = ([0.0; 3], Split::Six);
+        Self {
+            cells,
+            size,
+            origin,
+            split,
+        }
+    }
+
     /// The beam of size parameter `n` from `BENCHMARKS.md`: `4n x n x n` cubes of edge
     /// `1 / (4n)` on `[0, 1] x [0, 0.25] x [0, 0.25]`, Kuhn split.
     pub fn beam(n: usize) -> Self {

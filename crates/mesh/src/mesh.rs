@@ -26,6 +26,7 @@ pub enum Unreferenced {
 /// Options of [`TetMesh::try_with_options`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct MeshOptions {
     /// A tetrahedron is degenerate when its volume is below this times its longest edge cubed.
     /// A regular tetrahedron has volume `0.118 L^3`; the default `1e-10` only rejects
@@ -38,6 +39,12 @@ pub struct MeshOptions {
     /// at most two elements; duplicate and overlapping elements are always rejected.
     pub allow_nonmanifold: bool,
 }
+
+deform_setters::setters!(MeshOptions {
+    degenerate_tolerance: f64,
+    unreferenced: Unreferenced,
+    allow_nonmanifold: bool
+});
 
 impl Default for MeshOptions {
     fn default() -> Self {

@@ -114,42 +114,14 @@ fn benchmark_beams_match_the_published_counts() {
 
 #[test]
 fn invalid_grids_are_rejected_naming_the_field() {
-    let ok = BoxGrid {
-        cells: [1, 1, 1],
-        size: [1.0; 3],
-        origin: [0.0; 3],
-        split: Split::Six,
-    };
+    let ok = BoxGrid::new([1, 1, 1], [1.0; 3])
+        .origin([0.0; 3])
+        .split(Split::Six);
     let cases = [
-        (
-            BoxGrid {
-                cells: [0, 1, 1],
-                ..ok
-            },
-            "cells",
-        ),
-        (
-            BoxGrid {
-                size: [1.0, -1.0, 1.0],
-                ..ok
-            },
-            "size",
-        ),
-        (
-            BoxGrid {
-                origin: [f64::NAN, 0.0, 0.0],
-                split: Split::Five,
-                ..ok
-            },
-            "origin",
-        ),
-        (
-            BoxGrid {
-                cells: [100_000, 100_000, 1000],
-                ..ok
-            },
-            "cells",
-        ),
+        (ok.cells([0, 1, 1]), "cells"),
+        (ok.size([1.0, -1.0, 1.0]), "size"),
+        (ok.origin([f64::NAN, 0.0, 0.0]).split(Split::Five), "origin"),
+        (ok.cells([100_000, 100_000, 1000]), "cells"),
     ];
     for (grid, expected) in cases {
         match grid.build() {
@@ -170,12 +142,7 @@ proptest! {
         sx in 0.1f64..3.0, sy in 0.1f64..3.0, sz in 0.1f64..3.0,
         five in any::<bool>(),
     ) {
-        check_grid(&BoxGrid {
-            cells: [nx, ny, nz],
-            size: [sx, sy, sz],
-            origin: [0.5, -1.0, 2.0],
-            split: if five { Split::Five } else { Split::Six },
-        });
+        check_grid(&BoxGrid::new([nx, ny, nz], [sx, sy, sz]).origin([0.5, -1.0, 2.0]).split(if five { Split::Five } else { Split::Six }));
     }
 
     #[test]

@@ -98,14 +98,11 @@ fn bundled_meshes_read_with_expected_counts_and_volumes() {
 }
 
 fn sample_mesh() -> TetMesh {
-    let mesh = BoxGrid {
-        cells: [3, 2, 2],
-        size: [1.5, 1.0, 0.7],
-        origin: [0.1, 0.2, -0.3],
-        split: Split::Five,
-    }
-    .build()
-    .unwrap();
+    let mesh = BoxGrid::new([3, 2, 2], [1.5, 1.0, 0.7])
+        .origin([0.1, 0.2, -0.3])
+        .split(Split::Five)
+        .build()
+        .unwrap();
     // Two regions so that tags round-trip too.
     let regions: Vec<u32> = (0..mesh.num_tets())
         .map(|e| if e % 3 == 0 { 4 } else { 2 })
@@ -598,10 +595,7 @@ fn duplicate_overlapping_and_nonmanifold_elements_are_refused_naming_them() {
         "{e}"
     );
     assert!(e.to_string().contains("file elements 1, 2, 3"), "{e}");
-    let allow = MeshOptions {
-        allow_nonmanifold: true,
-        ..MeshOptions::default()
-    };
+    let allow = MeshOptions::default().allow_nonmanifold(true);
     let raw = io::parse_msh(three.as_bytes(), Path::new("a.msh")).unwrap();
     assert_eq!(
         raw.into_mesh(Path::new("a.msh"), &allow)

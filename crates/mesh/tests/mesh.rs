@@ -80,10 +80,7 @@ fn unreferenced_vertices_are_dropped_or_reported() {
         Some(&[0, 2, 3, 4][..])
     );
     assert_eq!(mesh.rest_positions()[1], Vector3::x());
-    let strict = MeshOptions {
-        unreferenced: Unreferenced::Error,
-        ..Default::default()
-    };
+    let strict = MeshOptions::default().unreferenced(Unreferenced::Error);
     assert_eq!(
         TetMesh::try_with_options(p, t, None, &strict),
         Err(MeshError::UnreferencedVertices { count: 1, first: 1 })
@@ -92,14 +89,11 @@ fn unreferenced_vertices_are_dropped_or_reported() {
 
 #[test]
 fn deformation_gradient_of_an_affine_map_is_its_matrix() {
-    let mesh = BoxGrid {
-        cells: [2, 3, 2],
-        size: [1.0, 2.0, 0.5],
-        origin: [0.1, -0.2, 0.3],
-        split: Split::Five,
-    }
-    .build()
-    .unwrap();
+    let mesh = BoxGrid::new([2, 3, 2], [1.0, 2.0, 0.5])
+        .origin([0.1, -0.2, 0.3])
+        .split(Split::Five)
+        .build()
+        .unwrap();
     let a = Matrix3::new(1.1, 0.2, -0.3, 0.05, 0.9, 0.1, -0.2, 0.3, 1.3);
     let b = Vector3::new(0.3, -1.0, 2.0);
     let x: Vec<f64> = mesh
@@ -154,14 +148,11 @@ fn lumped_and_consistent_mass_agree_on_rigid_motion() {
 
 #[test]
 fn block_pattern_is_symmetric_and_covers_every_element_pair() {
-    let mesh = BoxGrid {
-        cells: [3, 2, 2],
-        size: [1.0; 3],
-        origin: [0.0; 3],
-        split: Split::Five,
-    }
-    .build()
-    .unwrap();
+    let mesh = BoxGrid::new([3, 2, 2], [1.0; 3])
+        .origin([0.0; 3])
+        .split(Split::Five)
+        .build()
+        .unwrap();
     let p = BlockPattern::new(&mesh);
     assert_eq!(p.num_blocks(), mesh.num_vertices() + 2 * edges(&mesh).len());
     for i in 0..p.num_rows() {

@@ -94,10 +94,7 @@ impl LearnedPolicy {
         let options = PolicyOptions::new(young)
             .neighbours(neighbours)
             .min_success(min_success)
-            .weights(deform_solvers::WorkWeights {
-                factor: factor_weight,
-                sweep: sweep_weight,
-            })
+            .weights(deform_solvers::WorkWeights::factor(factor_weight).sweep(sweep_weight))
             .forcing(forcing);
         let policy = deform_learn::policy::LearnedPolicy::train(&data.data, options);
         Ok(Self { policy })

@@ -16,6 +16,7 @@ use crate::{LinearSolver, SolverError};
 /// Stopping rule: converged when `||b - A x|| <= max(abs, rel ||b||)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct Tolerance {
     /// Relative tolerance on the residual norm.
     pub rel: f64,
@@ -24,6 +25,12 @@ pub struct Tolerance {
     /// Iteration cap.
     pub max_iterations: usize,
 }
+
+deform_setters::setters!(Tolerance {
+    rel: f64,
+    abs: f64,
+    max_iterations: usize
+});
 
 impl Default for Tolerance {
     fn default() -> Self {

@@ -19,6 +19,7 @@ pub enum Termination {
 
 /// What a solve did and what it cost.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct SolveStats {
     /// The solver's name.
     pub solver: String,
@@ -42,6 +43,8 @@ pub struct SolveStats {
     #[serde(default)]
     pub sweep_flops: u64,
 }
+
+deform_setters::setters!(SolveStats { solver: String, iterations: usize, residuals: Vec<f64>, rhs_norm: f64, termination: Termination, seconds: f64, matvecs: usize, flops: u64, sweep_flops: u64 });
 
 impl SolveStats {
     /// Empty statistics of a solve by `solver` of a right-hand side of norm `rhs_norm`, for
@@ -86,6 +89,7 @@ impl SolveStats {
 /// their measured rates, see docs/benchmarks.md. Plain flops are `WorkWeights::default()`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct WorkWeights {
     /// A factorisation flop: a dense supernodal Cholesky runs at many more flops per second,
     /// so this is below 1.
@@ -94,6 +98,8 @@ pub struct WorkWeights {
     /// one core and a dependent chain per row, so this is above 1.
     pub sweep: f64,
 }
+
+deform_setters::setters!(WorkWeights { sweep: f64 });
 
 impl Default for WorkWeights {
     fn default() -> Self {
@@ -133,6 +139,7 @@ impl WorkWeights {
 
 /// What a `factorize` call did and what it cost.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct SetupStats {
     /// The symbolic analysis was (re)done, because the pattern was new.
     pub analyzed: bool,
@@ -147,6 +154,14 @@ pub struct SetupStats {
     /// Wall time in seconds.
     pub seconds: f64,
 }
+
+deform_setters::setters!(SetupStats {
+    analyzed: bool,
+    reused: bool,
+    flops: u64,
+    factor_nnz: usize,
+    seconds: f64
+});
 
 impl SetupStats {
     /// Work of the set-up with factorisation flops weighted by `weights.factor`: a dense

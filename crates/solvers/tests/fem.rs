@@ -112,11 +112,10 @@ fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
 fn pcg(p: PreconditionerSpec) -> Iterative {
     Iterative::try_new(
         Method::Pcg(p),
-        Tolerance {
-            rel: 1e-8,
-            abs: 0.0,
-            max_iterations: 20_000,
-        },
+        Tolerance::default()
+            .rel(1e-8)
+            .abs(0.0)
+            .max_iterations(20_000),
     )
     .unwrap()
 }
@@ -481,10 +480,7 @@ fn factorisations_and_sweeps_are_weighted_in_work() {
     let a = newton_matrix(&mesh, &bent(&mesh, 0.0), 100.0);
     let (factor, sweep) = (
         WorkWeights::factor(0.1),
-        WorkWeights {
-            factor: 1.0,
-            sweep: 3.0,
-        },
+        WorkWeights::factor(1.0).sweep(3.0),
     );
     let mut direct = Cholesky::new(Ordering::NestedDissection, Indefinite::Error);
     let setup = direct.factorize(&a).unwrap();

@@ -3,7 +3,6 @@
 //! trajectories, and each model alone against the ensemble by rollout error (validation to
 //! select, test to report).
 
-use deform_integrator::Scene;
 use deform_materials::MaterialSpec;
 use serde::{Deserialize, Serialize};
 
@@ -117,10 +116,7 @@ pub fn run(
         let Some(spec) = refined.spec() else {
             return Ok((refined, Some(stage2), None));
         };
-        let scene = Scene {
-            material: spec,
-            ..cx.scene.clone()
-        };
+        let scene = cx.scene.clone().material(spec);
         let mut sim = scene.build(origin)?.integrator;
         let validation = cx.data.split(Split::Validation);
         let sets = [train.as_slice(), validation.as_slice()];
@@ -172,10 +168,7 @@ pub fn run(
         mean_rollout(&cx.scene, origin, &cx.data, Split::Test)?,
     )];
     if let Some(spec) = ensemble.spec() {
-        let s = Scene {
-            material: spec,
-            ..cx.scene.clone()
-        };
+        let s = cx.scene.clone().material(spec);
         rollouts.push(Series::new(
             "fitted ensemble",
             mean_rollout(&s, origin, &cx.data, Split::Test)?,

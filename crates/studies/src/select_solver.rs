@@ -317,10 +317,7 @@ pub fn run(
     else {
         unreachable!("dispatched on the task")
     };
-    let weights = &WorkWeights {
-        factor: *factor_weight,
-        sweep: *sweep_weight,
-    };
+    let weights = &WorkWeights::factor(*factor_weight).sweep(*sweep_weight);
     let origin = cx.experiment.scene.as_path();
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
     let variant = |k: usize| cx.data.scene_of(k, &cx.scene);

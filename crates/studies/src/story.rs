@@ -186,10 +186,7 @@ pub fn run(
     else {
         unreachable!("dispatched on the task")
     };
-    let weights = &WorkWeights {
-        factor: *factor_weight,
-        sweep: *sweep_weight,
-    };
+    let weights = &WorkWeights::factor(*factor_weight).sweep(*sweep_weight);
     let origin = cx.experiment.scene.as_path();
     let (solver_data, frames) = (cx.path("solver_data"), cx.path("frames"));
     let train = cx.data.split(Split::Train);

@@ -63,10 +63,7 @@ pub fn run(cx: Context<'_>) -> Result<TuneSolverReport, LearnError> {
     else {
         unreachable!("dispatched on the task")
     };
-    let weights = &WorkWeights {
-        factor: *factor_weight,
-        sweep: *sweep_weight,
-    };
+    let weights = &WorkWeights::factor(*factor_weight).sweep(*sweep_weight);
     let steps = cx.data.meta.trajectories.first().map_or(0, |t| t.steps);
     // The scene's own motion; imported data have none written, so their first trajectory's.
     let scene = match cx.experiment.data {

@@ -25,14 +25,16 @@ fn coarsen_runs_on_imported_trajectories_of_mixed_conditions_with_a_given_embedd
     };
     let fine_path = data("small_beam.ron");
     let mut fine = Scene::load(&fine_path).unwrap();
-    fine.loads = vec![deform_integrator::LoadSpec {
-        select: deform_mesh::select::Selector::Plane {
-            point: [1.0, 0.0, 0.0],
-            normal: [1.0, 0.0, 0.0],
-        },
-        force: [0.0; 3],
-        until: None,
-    }];
+    fine.loads = vec![
+        deform_integrator::LoadSpec::new(
+            deform_mesh::select::Selector::Plane {
+                point: [1.0, 0.0, 0.0],
+                normal: [1.0, 0.0, 0.0],
+            },
+            [0.0; 3],
+        )
+        .until(None),
+    ];
     let conditions = [
         "()",
         "(gravity: Some((0.0, 0.0, 0.0)), loads: Some([(force: (0.0, 30.0, 10.0), until: Some(0.03))]))",
@@ -175,11 +177,7 @@ fn the_coarse_fits_are_a_library_function_with_the_experiments_figures() {
         panic!("generated data")
     };
     let data = generate(&fine, &experiment.scene, spec, |_, _| {}).unwrap();
-    let coarse = Scene {
-        name: "coarse".into(),
-        mesh: MeshSource::Beam(1),
-        ..fine.clone()
-    };
+    let coarse = fine.clone().name("coarse".into()).mesh(MeshSource::Beam(1));
     let (coarse_data, _) =
         coarsen(&data, &coarse, &experiment.scene, Constraints::FromFine).unwrap();
     let fits =

@@ -754,17 +754,14 @@ fn a_coarse_ensemble_fits_every_members_pair_per_element_and_keeps_the_base_untu
     use deform_materials::{EnsembleMember, MaterialSpec, Moduli};
     let moduli = Moduli::Young { e: 1e5, nu: 0.4 };
     let ensemble = MaterialSpec::Ensemble(vec![
-        EnsembleMember {
-            weight: 0.5,
-            model: MaterialSpec::CorotatedLinear {
+        EnsembleMember::new(
+            0.5,
+            MaterialSpec::CorotatedLinear {
                 moduli,
                 lagged_rotation: false,
             },
-        },
-        EnsembleMember {
-            weight: 0.5,
-            model: MaterialSpec::NeoHookean(moduli),
-        },
+        ),
+        EnsembleMember::new(0.5, MaterialSpec::NeoHookean(moduli)),
     ]);
     *material = Some(ensemble.clone());
     let report = run(&e, Some(dir.path()), &mut NoProgress).unwrap();

@@ -318,10 +318,9 @@ impl StepContact<'_> {
         };
         for (o, g) in grad.iter_mut().enumerate().filter(|&(o, _)| mu[o] > 0.0) {
             let pairs = self.lag.pairs.iter().filter(|p| p.obstacle == o);
-            let lag = deform_integrator::FrictionLag {
-                pairs: pairs.cloned().collect(),
-                threshold: self.lag.threshold,
-            };
+            let lag = deform_integrator::FrictionLag::default()
+                .pairs(pairs.cloned().collect())
+                .threshold(self.lag.threshold);
             let mut f = vec![0.0; x1.len()];
             self.model.add_friction(&lag, x1, Some(&mut f), None);
             let work: f64 = lambda.iter().zip(&f).map(|(l, f)| l * f).sum();

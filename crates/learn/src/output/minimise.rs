@@ -368,7 +368,7 @@ pub struct Field {
     pub friction: bool,
 }
 
-deform_integrator::setters!(Field {
+deform_setters::setters!(Field {
     labels: Vec<u32>,
     basis: Option<Basis>,
     initial: Option<Vec<f64>>,

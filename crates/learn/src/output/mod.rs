@@ -105,7 +105,7 @@ pub struct OutputErrorOptions {
     pub starts: Option<StartPrior>,
 }
 
-deform_integrator::setters!(OutputErrorOptions {
+deform_setters::setters!(OutputErrorOptions {
     velocity_weight: f64,
     rollout: usize,
     max_iterations: u64,

@@ -61,12 +61,8 @@ pub fn slab_and_cube(
     (cells, size, origin): ([usize; 3], [f64; 3], [f64; 3]),
     gap: f64,
 ) -> std::path::PathBuf {
-    let grid = |cells, size, origin| deform_mesh::generate::BoxGrid {
-        cells,
-        size,
-        origin,
-        split: Default::default(),
-    };
+    let grid =
+        |cells, size, origin| deform_mesh::generate::BoxGrid::new(cells, size).origin(origin);
     let mesh = deform_mesh::generate::boxes(&[
         grid(cells, size, origin),
         grid([2, 2, 2], [0.1, 0.1, 0.1], [0.0, 0.0, gap]),

@@ -85,10 +85,7 @@ pub fn bench_coarse_fits(b: &CoarsenBench) -> Result<CoarsenTimings, LearnError>
     let started = Instant::now();
     let data = deform_learn::dataset::generate(&fine, origin, &spec, |_, _| {})?;
     let generate_seconds = started.elapsed().as_secs_f64();
-    let coarse = Scene {
-        mesh: MeshSource::Beam(b.coarse),
-        ..fine.clone()
-    };
+    let coarse = fine.clone().mesh(MeshSource::Beam(b.coarse));
     let (data, mapping) = coarsen(&data, &coarse, origin, Constraints::FromFine)?;
     let options = OutputErrorOptions::default().rollout(b.rollout);
     let settings = CoarseSettings::new(fine.integrator.newton.max_iterations, options)

@@ -263,7 +263,7 @@ pub struct CoarseSettings {
     pub options: OutputErrorOptions,
 }
 
-deform_integrator::setters!(CoarseSettings {
+deform_setters::setters!(CoarseSettings {
     regions: u32,
     tags: Option<Vec<u32>>,
     regularisation: Vec<f64>,
@@ -354,11 +354,7 @@ pub fn run(
     let built = cx.base.build(origin)?;
     let (fine_mesh, mut fine) = (built.mesh, built.integrator);
     let fine_tests: Vec<&Trajectory> = test_data.trajectories.iter().collect();
-    let coarse = Scene {
-        name: "coarse".into(),
-        mesh: mesh.clone(),
-        ..cx.base.clone()
-    };
+    let coarse = cx.base.clone().name("coarse".into()).mesh(mesh.clone());
     let coarse_mesh = coarse.build_mesh(origin)?;
     let embedding = match embedding {
         Some(files) => Some(deform_learn::coarsen::read_embedding(
@@ -406,10 +402,11 @@ pub fn run(
         let (mut case, fits, fine_cost) = cased;
         case.rows.insert(0, fine_row(&case, fine_cost, &cx.base));
         if let Some(out) = cx.out {
-            let scene = Scene {
-                material: material.clone().unwrap_or(data.meta.scene.material.clone()),
-                ..data.meta.scene.clone()
-            };
+            let scene = data
+                .meta
+                .scene
+                .clone()
+                .material(material.clone().unwrap_or(data.meta.scene.material.clone()));
             case.files = save_case(&scene, &case, &fits, out)?;
             files.extend(case.files.iter().cloned());
         }
@@ -862,11 +859,10 @@ impl CoarseFits {
     /// [`LearnError`] naming the file that could not be written.
     pub fn save(&self, scene: &Scene, name: &str, out: &Path) -> Result<Vec<PathBuf>, LearnError> {
         let per_element = self.models.last().expect("the per-element model is last");
-        let model = Scene {
-            name: name.to_owned(),
-            integrator: per_element.options.clone(),
-            ..scene.clone()
-        };
+        let model = scene
+            .clone()
+            .name(name.to_owned())
+            .integrator(per_element.options.clone());
         let written = save_model(
             &model,
             &self.coefficients,
