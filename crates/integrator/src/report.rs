@@ -80,6 +80,7 @@ fn one() -> f64 {
 
 /// Wall time of each stage of a Newton iteration, seconds.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct StageSeconds {
     /// The residual, with the assembly of energy, forces and K (energy and forces come
     /// from the line search's accepted trial when the residual needs no K: without
@@ -131,6 +132,7 @@ impl IterationReport {
 
 /// What a counterfactual candidate solver did on an iteration's linear system.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct CandidateOutcome {
     /// Its configuration.
     pub solver: SolverSpec,

@@ -48,6 +48,7 @@ pub enum Constraints {
 
 /// What the mapping did.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Mapping {
     /// Coarse vertices.
     pub vertices: usize,

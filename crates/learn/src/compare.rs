@@ -40,6 +40,7 @@ impl Case<'_> {
 
 /// A policy's totals on a case.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Measured {
     /// Deterministic flops (set-up plus solves).
     pub flops: f64,
@@ -70,6 +71,7 @@ pub struct Measured {
 
 /// The solver a Newton iteration used.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Choice {
     /// The solver (the direct one when `fallback`).
     pub solver: SolverSpec,

@@ -105,6 +105,7 @@ impl Trajectory {
 
 /// What a trajectory started from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct TrajectoryMeta {
     /// Folder name inside the dataset.
     pub name: String,
@@ -155,6 +156,7 @@ deform_setters::setters!(Noise {
 
 /// Everything needed to reproduce or reinterpret a dataset.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct DatasetMeta {
     /// Format version of this layout.
     pub format: u32,
@@ -176,11 +178,20 @@ pub struct DatasetMeta {
 
 /// A dataset in memory.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct Dataset {
     /// Metadata.
     pub meta: DatasetMeta,
     /// Trajectories, in the order of `meta.trajectories`.
     pub trajectories: Vec<Trajectory>,
+}
+
+impl Dataset {
+    /// The dataset of `trajectories` described by `meta` (one entry per trajectory, in their
+    /// order).
+    pub fn new(meta: DatasetMeta, trajectories: Vec<Trajectory>) -> Self {
+        Self { meta, trajectories }
+    }
 }
 
 /// How to vary the initial conditions between trajectories.

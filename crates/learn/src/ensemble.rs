@@ -71,6 +71,7 @@ impl std::fmt::Display for Member {
 
 /// One fitted member.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct FittedMember {
     /// The model.
     pub model: Member,
@@ -93,6 +94,7 @@ impl FittedMember {
 
 /// A candidate model left out of an ensemble because the data leave its domain.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Excluded {
     /// The model.
     pub model: Member,
@@ -109,7 +111,8 @@ pub struct Excluded {
 }
 
 /// The fitted ensemble.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct EnsembleFit {
     /// The members, in the order of `names` (without the excluded ones).
     pub members: Vec<FittedMember>,

@@ -72,6 +72,7 @@ impl Default for EquationErrorOptions {
 
 /// The fitted coefficients and how well they explain the data.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct EquationErrorFit {
     /// Coefficients, `groups x terms`, group-major (for one model per group: `[mu, lambda]`).
     pub coefficients: Vec<f64>,

@@ -57,6 +57,7 @@ impl MarkerFiles {
 /// One imported trajectory.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct ImportedTrajectory {
     /// Positions, an `.npy` of shape (steps + 1, vertices, 3), relative to the experiment file.
     pub positions: PathBuf,
@@ -80,12 +81,29 @@ pub struct ImportedTrajectory {
     pub markers: Option<MarkerFiles>,
 }
 
+deform_setters::setters!(ImportedTrajectory { positions: PathBuf, velocities: VelocitySource, exact_start: bool, conditions: Conditions, markers: Option<MarkerFiles> });
+
+impl ImportedTrajectory {
+    /// The positions in `positions` with velocities from `velocities`, made under the
+    /// import's conditions.
+    pub fn new(positions: impl Into<PathBuf>, velocities: VelocitySource) -> Self {
+        Self {
+            positions: positions.into(),
+            velocities,
+            exact_start: false,
+            conditions: Conditions::default(),
+            markers: None,
+        }
+    }
+}
+
 /// A dataset made elsewhere. Nothing about how the data were made is assumed: `dt`,
 /// `gravity` (`(0, 0, 0)` for none) and `mass` are required and replace the scene's; each
 /// trajectory may have been made under other conditions
 /// ([`ImportedTrajectory::conditions`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct ImportSpec {
     /// The data's time step (s).
     pub dt: f64,
@@ -104,6 +122,29 @@ pub struct ImportSpec {
     /// Learn a model that steps `subsample` times coarser than the data.
     #[serde(default = "dataset::one")]
     pub subsample: usize,
+}
+
+deform_setters::setters!(ImportSpec { dt: f64, gravity: [f64; 3], mass: MassKind, trajectories: Vec<ImportedTrajectory>, split: (f64, f64), noise: Option<Noise>, subsample: usize });
+
+impl ImportSpec {
+    /// Trajectories made at step `dt` (s) under `gravity` with `mass`, split (0.6, 0.2),
+    /// without added noise or subsampling.
+    pub fn new(
+        dt: f64,
+        gravity: [f64; 3],
+        mass: MassKind,
+        trajectories: Vec<ImportedTrajectory>,
+    ) -> Self {
+        Self {
+            dt,
+            gravity,
+            mass,
+            trajectories,
+            split: dataset::default_split(),
+            noise: None,
+            subsample: 1,
+        }
+    }
 }
 
 impl ImportSpec {

@@ -38,7 +38,8 @@ pub const FEATURES: [&str; 9] = [
 ];
 
 /// One candidate's outcome on one system.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Outcome {
     /// Deterministic work: set-up plus solve flops.
     pub flops: f64,
@@ -63,8 +64,21 @@ pub struct Outcome {
     pub age: f64,
 }
 
+deform_setters::setters!(Outcome {
+    flops: f64,
+    setup_flops: f64,
+    sweep_flops: f64,
+    reused: bool,
+    seconds: f64,
+    ok: bool,
+    relative_residual: f64,
+    iterations: f64,
+    age: f64
+});
+
 /// The metadata of a solver dataset.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct SolverMeta {
     /// Feature names (columns of `features.npy`).
     pub features: Vec<String>,
@@ -74,6 +88,24 @@ pub struct SolverMeta {
     pub scene: Scene,
     /// Steps simulated.
     pub steps: usize,
+}
+
+impl SolverMeta {
+    /// Logs of `candidates` on `steps` steps of `scene`, each system described by the
+    /// `features` named.
+    pub fn new(
+        features: Vec<String>,
+        candidates: Vec<SolverSpec>,
+        scene: Scene,
+        steps: usize,
+    ) -> Self {
+        Self {
+            features,
+            candidates,
+            scene,
+            steps,
+        }
+    }
 }
 
 /// Samples: one per Newton iteration.

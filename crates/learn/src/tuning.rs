@@ -31,6 +31,7 @@ use crate::fit::FitError;
 
 /// One evaluated parameter vector.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct TuningSample {
     /// `log10` of each parameter (a relative tolerance, a forcing term, ...), clamped to
     /// its range.
@@ -45,6 +46,7 @@ pub struct TuningSample {
 
 /// The result of tuning.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct TuningResult {
     /// The best `log10` parameter values.
     pub log10_values: Vec<f64>,

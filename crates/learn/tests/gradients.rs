@@ -382,11 +382,10 @@ fn a_regularised_field_gradient_equals_finite_differences() {
     );
     let trajectories = data.split(Split::Train);
     let options = deform_learn::OutputErrorOptions::default().rollout(3);
-    let regularisation = deform_learn::Regularisation {
-        towards: 0.3,
-        smooth: 0.2,
-        neighbours,
-    };
+    let regularisation = deform_learn::Regularisation::default()
+        .towards(0.3)
+        .smooth(0.2)
+        .neighbours(neighbours);
     let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
         .unwrap()
         .with_field(&labels)
@@ -493,10 +492,7 @@ fn the_mass_scale_gradient_equals_finite_differences() {
     let options = deform_learn::OutputErrorOptions::default()
         .rollout(4)
         .velocity_weight(0.5);
-    let regularisation = deform_learn::Regularisation {
-        towards: 0.2,
-        ..Default::default()
-    };
+    let regularisation = deform_learn::Regularisation::default().towards(0.2);
     let objective = deform_learn::OutputError::new(&mut sim, &trajectories, options, |_, _| {})
         .unwrap()
         .with_field(&labels)

@@ -28,17 +28,15 @@ fn stale_iterations(age: usize) -> usize {
 
 /// One candidate's logged outcome.
 fn outcome(setup: f64, solve: f64, sweep: f64, iterations: f64, age: usize) -> Outcome {
-    Outcome {
-        flops: setup + solve,
-        setup_flops: setup,
-        sweep_flops: sweep,
-        reused: age > 0,
-        seconds: 0.0,
-        ok: true,
-        relative_residual: 1e-11,
-        iterations,
-        age: age as f64,
-    }
+    Outcome::default()
+        .flops(setup + solve)
+        .setup_flops(setup)
+        .sweep_flops(sweep)
+        .reused(age > 0)
+        .ok(true)
+        .relative_residual(1e-11)
+        .iterations(iterations)
+        .age(age as f64)
 }
 
 /// A dataset of `candidates` (RON) with `outcomes`, every sample at the same features.
@@ -46,15 +44,15 @@ fn synthetic(candidates: &[&str], outcomes: Vec<Vec<Outcome>>) -> SolverDataset 
     let scene_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/scenes/fit_beam.ron");
     let features = vec![0.0, 0.0, -3.0, 0.0, 0.0, 0.01, 3.0, 5.0, 0.0];
     SolverDataset {
-        meta: SolverMeta {
-            features: FEATURES.iter().map(|s| (*s).to_owned()).collect(),
-            candidates: candidates
+        meta: SolverMeta::new(
+            FEATURES.iter().map(|s| (*s).to_owned()).collect(),
+            candidates
                 .iter()
                 .map(|t| ron::from_str(t).unwrap())
                 .collect(),
-            scene: Scene::load(&scene_path).unwrap(),
-            steps: 1,
-        },
+            Scene::load(&scene_path).unwrap(),
+            1,
+        ),
         features: vec![features; outcomes.len()],
         outcomes,
     }

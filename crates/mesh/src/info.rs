@@ -9,6 +9,7 @@ use crate::topology::{edges, faces};
 
 /// Summary of a mesh ([`MeshInfo::of`]); `Display` prints one labelled line per figure.
 #[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
 pub struct MeshInfo {
     /// Vertices.
     pub vertices: usize,

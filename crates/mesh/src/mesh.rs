@@ -58,6 +58,7 @@ impl Default for MeshOptions {
 
 /// What construction changed in its input.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[non_exhaustive]
 pub struct BuildReport {
     /// Number of negatively oriented tetrahedra that were reoriented (local vertices 1 and 2 swapped).
     pub reoriented: usize,

@@ -8,6 +8,7 @@ use crate::topology::TET_FACES;
 
 /// Summary statistics of element quality.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Quality {
     /// Smallest dihedral angle over all elements, degrees (70.53 for a regular tet).
     pub min_dihedral_deg: f64,

@@ -739,7 +739,7 @@ fn from_bytes(bytes: &[u8]) -> Result<deform_learn::Dataset, String> {
                 .observed(observed),
         );
     }
-    Ok(deform_learn::Dataset { meta, trajectories })
+    Ok(deform_learn::Dataset::new(meta, trajectories))
 }
 
 /// An experiment file.

@@ -247,6 +247,7 @@ fn twenty_usize() -> usize {
 /// first training trajectory and `scenes` within `accuracy`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct PolicyTune {
     /// Relative max-norm position error allowed against the direct reference.
     #[serde(default = "accuracy")]
@@ -264,6 +265,20 @@ pub struct PolicyTune {
     pub projections: Vec<deform_integrator::Projection>,
 }
 
+deform_setters::setters!(PolicyTune { accuracy: f64, max_iterations: u64, scenes: Vec<SceneRun>, projections: Vec<deform_integrator::Projection> });
+
+impl Default for PolicyTune {
+    /// The defaults of an experiment file's `tune: Some(())`.
+    fn default() -> Self {
+        Self {
+            accuracy: accuracy(),
+            max_iterations: twelve(),
+            scenes: Vec::new(),
+            projections: Vec::new(),
+        }
+    }
+}
+
 fn twelve() -> u64 {
     12
 }
@@ -271,11 +286,25 @@ fn twelve() -> u64 {
 /// A scene file and how many steps to simulate it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct SceneRun {
     /// Scene file, relative to the experiment file.
     pub scene: PathBuf,
     /// Steps to simulate.
     pub steps: usize,
+}
+
+deform_setters::setters!(SceneRun {
+    scene: PathBuf,
+    steps: usize
+});
+
+impl SceneRun {
+    /// `steps` steps of the scene file `scene`.
+    pub fn new(scene: impl Into<PathBuf>, steps: usize) -> Self {
+        let scene = scene.into();
+        Self { scene, steps }
+    }
 }
 
 fn unit() -> f64 {
@@ -340,6 +369,7 @@ impl Data {
 /// An experiment.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "ExperimentFile", into = "ExperimentFile")]
+#[non_exhaustive]
 pub struct Experiment {
     /// Name (results folder).
     pub name: String,
@@ -350,6 +380,26 @@ pub struct Experiment {
     pub data: Data,
     /// What to learn.
     pub task: Task,
+}
+
+deform_setters::setters!(Experiment {
+    name: String,
+    scene: PathBuf,
+    data: Data,
+    task: Task
+});
+
+impl Experiment {
+    /// The experiment `name` running `task` on `data` for the scene file `scene` (what an
+    /// experiment file holds; [`Experiment::load`] reads one).
+    pub fn new(name: impl Into<String>, scene: impl Into<PathBuf>, data: Data, task: Task) -> Self {
+        Self {
+            name: name.into(),
+            scene: scene.into(),
+            data,
+            task,
+        }
+    }
 }
 
 /// An experiment as its file states it: `dataset` (generate) or `import`, exactly one.
@@ -423,11 +473,25 @@ impl From<Experiment> for ExperimentFile {
 /// A given embedding of a coarse mesh's vertices in a fine mesh ([`Task::Coarsen`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+#[non_exhaustive]
 pub struct EmbeddingFiles {
     /// The fine element of each coarse vertex, an `.npy` of integers (vertices,).
     pub elements: PathBuf,
     /// Its barycentric weights in that element's vertex order, (vertices, 4).
     pub weights: PathBuf,
+}
+
+deform_setters::setters!(EmbeddingFiles {
+    elements: PathBuf,
+    weights: PathBuf
+});
+
+impl EmbeddingFiles {
+    /// The embedding's element and weight files.
+    pub fn new(elements: impl Into<PathBuf>, weights: impl Into<PathBuf>) -> Self {
+        let (elements, weights) = (elements.into(), weights.into());
+        Self { elements, weights }
+    }
 }
 
 impl Experiment {

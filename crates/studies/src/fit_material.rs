@@ -44,6 +44,7 @@ impl Estimate {
 
 /// One estimate of the moduli.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct ModuliRow {
     /// Which.
     pub estimate: Estimate,
@@ -57,6 +58,7 @@ pub struct ModuliRow {
 
 /// What a material fit found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct FitMaterialReport {
     /// Truth (or the scene's guess), stage 1 and (when run) stage 2, in that order; an
     /// estimate that is no material is left out (`stage1_unusable` says why).
@@ -88,6 +90,7 @@ pub struct FitMaterialReport {
 /// stage 1 fitted them (`None` where it did not: contact the data never touch, friction
 /// not asked for).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct ContactParameters {
     /// The barrier's stiffness (N/m): the scene's, stage 1's.
     pub kappa: (f64, Option<f64>),

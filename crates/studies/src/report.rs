@@ -112,6 +112,7 @@ impl Plot {
 
 /// An experiment's results.
 #[derive(Debug, Clone, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct ExperimentReport {
     /// The experiment's name.
     pub name: String,

@@ -15,6 +15,7 @@ use deform_learn::rollout::{mean_error, stable_or};
 
 /// A model (one member alone, or the ensemble) and its mean rollout errors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct ModelErrors {
     /// The member, or `None` for the ensemble.
     pub member: Option<Member>,
@@ -30,6 +31,7 @@ pub struct ModelErrors {
 
 /// What model selection found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct SelectModelReport {
     /// The ensemble (after stage 2 when it ran), energy shares on the test trajectories.
     pub ensemble: EnsembleFit,
@@ -191,11 +193,7 @@ mod tests {
     fn a_report_whose_single_models_all_failed_names_none_best() {
         let names = [Member::CorotatedLinear, Member::NeoHookean];
         let mut report = SelectModelReport {
-            ensemble: EnsembleFit {
-                members: Vec::new(),
-                relative_residual: 0.0,
-                excluded: Vec::new(),
-            },
+            ensemble: EnsembleFit::default(),
             stage2: None,
             models: names
                 .iter()

@@ -24,6 +24,7 @@ use deform_learn::tuning::{Tuning, TuningSample, tune_policy};
 /// The learned policy's tuned settings: Newton's relative tolerance, the largest forcing
 /// term and the tangent projection.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct TunedLearned {
     /// Newton's relative tolerance.
     pub newton_rel: f64,
@@ -139,6 +140,7 @@ impl Contender {
 
 /// A policy's totals on a case.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct PolicyRow {
     /// The policy.
     pub contender: Contender,
@@ -173,6 +175,7 @@ impl Key {
 
 /// The policies on one case.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct CaseReport {
     /// The case (`test trajectories of ...`, `held-out ...`).
     pub label: String,
@@ -256,6 +259,7 @@ impl PolicyRow {
 
 /// How the learned policy's settings were tuned.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct PolicyTuning {
     /// The chosen settings.
     pub settings: TunedLearned,
@@ -273,6 +277,7 @@ pub struct PolicyTuning {
 
 /// What solver selection found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct SelectSolverReport {
     /// The candidates.
     pub candidates: Vec<SolverSpec>,

@@ -47,6 +47,7 @@ pub enum StoryModel {
 
 /// One model on the test trajectories.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct StoryRow {
     /// Which model.
     pub model: StoryModel,
@@ -86,6 +87,7 @@ impl StoryRow {
 
 /// Model selection inside the story.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct Selection {
     /// The ensemble's members after both stages.
     pub members: Vec<FittedMember>,
@@ -103,6 +105,7 @@ pub struct Selection {
 
 /// What the story found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct StoryReport {
     /// Base steps per coarse step.
     pub subsample: usize,

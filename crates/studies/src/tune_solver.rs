@@ -10,6 +10,7 @@ use deform_learn::tuning::{SolverParameter, SolverTuning, TuningResult, tune_sol
 
 /// What solver tuning found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct TuneSolverReport {
     /// The solver as configured.
     pub solver: SolverSpec,

@@ -266,27 +266,17 @@ fn generated_and_imported(name: &str) -> (TaskReport, TaskReport) {
     };
     let folder = |k: usize| out.join(format!("dataset/traj_{k:03}"));
     let trajectories = (0..spec.trajectories)
-        .map(|k| ImportedTrajectory {
-            positions: folder(k).join("x.npy"),
-            velocities: VelocitySource::File(folder(k).join("v.npy")),
-            exact_start: false,
-            conditions: Default::default(),
-            markers: None,
+        .map(|k| {
+            let v = VelocitySource::File(folder(k).join("v.npy"));
+            ImportedTrajectory::new(folder(k).join("x.npy"), v)
         })
         .collect();
     let scene = Scene::load(&generated.scene).unwrap();
-    let imported = Experiment {
-        data: Data::Import(ImportSpec {
-            dt: scene.integrator.dt,
-            gravity: scene.integrator.gravity,
-            mass: scene.integrator.mass,
-            trajectories,
-            split: spec.split,
-            noise: None,
-            subsample: spec.subsample,
-        }),
-        ..generated.clone()
-    };
+    let i = &scene.integrator;
+    let import = ImportSpec::new(i.dt, i.gravity, i.mass, trajectories)
+        .split(spec.split)
+        .subsample(spec.subsample);
+    let imported = generated.clone().data(Data::Import(import));
     let again = run(&imported, None, &mut NoProgress).unwrap();
     (first.task, again.task)
 }

@@ -124,6 +124,7 @@ deform_setters::setters!(OutputErrorOptions {
 /// noise's (1/2 for velocities differenced from positions as noisy).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
+#[non_exhaustive]
 pub struct StartPrior {
     /// Weight of the start's position offset.
     pub position: f64,
@@ -135,6 +136,12 @@ pub struct StartPrior {
     /// markers (tests/observed.rs, 150 evaluations), 0.01 fitted E to 0.12 % and 1 to 0.81 %.
     pub unobserved: f64,
 }
+
+deform_setters::setters!(StartPrior {
+    position: f64,
+    velocity: f64,
+    unobserved: f64
+});
 
 impl Default for StartPrior {
     fn default() -> Self {
@@ -209,6 +216,7 @@ impl Termination {
 
 /// One optimiser iteration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct FitIteration {
     /// Iteration index.
     pub iteration: u64,
@@ -220,6 +228,7 @@ pub struct FitIteration {
 
 /// The result of an output-error fit.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct OutputErrorFit {
     /// Fitted coefficients (`mu, lambda` for a single model).
     pub coefficients: Vec<f64>,

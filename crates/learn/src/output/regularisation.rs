@@ -9,6 +9,7 @@ use super::*;
 /// from), plus `smooth` times the mean over `neighbours` (pairs of groups sharing a face) of
 /// `sum_k (ln c_gk - ln c_hk)^2`. Both weights are chosen on validation data.
 #[derive(Debug, Clone, PartialEq, Default)]
+#[non_exhaustive]
 pub struct Regularisation {
     /// Weight of the pull towards the base material.
     pub towards: f64,
@@ -17,6 +18,8 @@ pub struct Regularisation {
     /// Pairs of neighbouring groups (see [`face_neighbours`]).
     pub neighbours: Vec<[usize; 2]>,
 }
+
+deform_setters::setters!(Regularisation { towards: f64, smooth: f64, neighbours: Vec<[usize; 2]> });
 
 impl Regularisation {
     /// The penalty at `c` (terms per group `base.len()`); adds its gradient to `grad`.

@@ -64,6 +64,7 @@ impl CoarseModel {
 
 /// What a fit took.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct FitSummary {
     /// Coefficients fitted (term coefficients and damping).
     pub coefficients: usize,
@@ -86,6 +87,7 @@ pub struct FitSummary {
 
 /// One model measured on the held-out motions.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct CoarseRow {
     /// Which.
     pub model: CoarseModel,
@@ -116,6 +118,7 @@ impl CoarseRow {
 
 /// The coarse mesh at one time step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct CoarsenCase {
     /// The coarse step over the base's.
     pub dt_factor: usize,
@@ -158,6 +161,7 @@ impl CoarsenCase {
 
 /// What the coarse models learnt.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[non_exhaustive]
 pub struct CoarsenReport {
     /// How the coarse mesh sits in the fine one.
     pub mapping: Mapping,

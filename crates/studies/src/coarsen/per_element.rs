@@ -32,11 +32,10 @@ impl PerElement<'_> {
         observer: &mut dyn ExperimentObserver,
     ) -> Result<WeightFit, LearnError> {
         restore(sim, self.homogeneous)?;
-        let regularisation = Regularisation {
-            towards: w,
-            smooth: w,
-            neighbours: self.neighbours.clone(),
-        };
+        let regularisation = Regularisation::default()
+            .towards(w)
+            .smooth(w)
+            .neighbours(self.neighbours.clone());
         let field = self
             .settings
             .field(self.labels.to_vec(), regularisation)
