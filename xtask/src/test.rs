@@ -72,14 +72,33 @@ pub(crate) fn python_env(root: &Path, python: &str, requirements: &[&str]) -> Re
     Ok(bin)
 }
 
+/// Builds and runs `tests/api-user`, a crate outside the workspace that sets up deform's
+/// public options and specs as a user's crate does (no struct literals), so a new field
+/// that would break users fails here. It shares the workspace's lock file and build folder,
+/// so only the crate itself and what it enables differently are compiled.
+fn api_user(root: &Path, cargo: &std::ffi::OsStr) -> Result<()> {
+    let dir = root.join("tests").join("api-user");
+    std::fs::copy(root.join("Cargo.lock"), dir.join("Cargo.lock"))
+        .context("copying Cargo.lock for tests/api-user")?;
+    let mut cmd = Command::new(cargo);
+    cmd.current_dir(&dir)
+        .args(["run", "--quiet", "--target-dir"])
+        .arg(root.join("target"));
+    run_command(
+        cmd,
+        "the public API from a crate outside the workspace: tests/api-user",
+    )
+}
+
 /// Runs the suites.
 pub fn run(args: TestArgs) -> Result<()> {
     let root = root();
     if !args.python_only {
         let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-        let mut cmd = Command::new(cargo);
+        let mut cmd = Command::new(&cargo);
         cmd.current_dir(&root).args(["test", "--workspace"]);
         run_command(cmd, "Rust tests: cargo test --workspace")?;
+        api_user(&root, &cargo)?;
     }
     if args.rust_only {
         return Ok(());
