@@ -409,8 +409,7 @@ fn numeric_ldlt(
     setup: SetupStats,
     start: Instant,
 ) -> Result<(), SolverError> {
-    values.clear();
-    values.resize(symbolic.len_val(), 0.0);
+    crate::llt::zeroed(values, symbolic.len_val())?;
     let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
     let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
     let factor = || {

@@ -9,6 +9,21 @@ use faer::{Par, Side};
 
 use crate::SolverError;
 
+/// `values` as `len` zeros, or [`SolverError::OutOfMemory`] when they do not fit: a large
+/// factor under an address-space limit (`ulimit -v`) is refused as an error instead of
+/// aborting the process.
+pub(crate) fn zeroed<T: Default + Clone>(
+    values: &mut Vec<T>,
+    len: usize,
+) -> Result<(), SolverError> {
+    values.clear();
+    values
+        .try_reserve_exact(len)
+        .map_err(|_| SolverError::OutOfMemory)?;
+    values.resize(len, T::default());
+    Ok(())
+}
+
 /// `L L^T` of `matrix` into `values` (sized to the analysis), in the precision of `T`; the
 /// outer error is an allocation failure, the inner one faer's non-positive pivot.
 pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy + Send + Sync>(
@@ -17,8 +32,7 @@ pub(crate) fn numeric_llt<T: faer::traits::ComplexField + Default + Copy + Send 
     matrix: SparseColMatRef<'_, usize, T>,
     par: Par,
 ) -> Result<Result<(), faer::linalg::cholesky::llt::factor::LltError>, SolverError> {
-    values.clear();
-    values.resize(symbolic.len_val(), T::default());
+    zeroed(values, symbolic.len_val())?;
     let req = symbolic.factorize_numeric_llt_scratch::<T>(par, Default::default());
     let mut mem = MemBuffer::try_new(req).map_err(|_| SolverError::OutOfMemory)?;
     let factor = || {
@@ -74,3 +88,20 @@ pub(crate) fn factor_counts(symbolic: &SymbolicCholesky<usize>) -> (usize, u64) 
 /// parallel kernels partition by this number, so fixing it (rather than asking rayon for its
 /// thread count) makes the factor's bits independent of the thread count.
 pub(crate) const PARALLEL_TASKS: usize = 2;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A factor too large for the address space is an error, not an abort.
+    #[test]
+    fn a_factor_that_cannot_be_allocated_is_an_error() {
+        let mut values: Vec<f64> = vec![1.0; 4];
+        assert!(matches!(
+            zeroed(&mut values, usize::MAX / 4),
+            Err(SolverError::OutOfMemory)
+        ));
+        zeroed(&mut values, 3).unwrap();
+        assert_eq!(values, [0.0; 3]);
+    }
+}
