@@ -128,7 +128,7 @@ pub fn run(task: MeshTask) -> Result<()> {
                 Shape::Beam => cells.map(|c| c as f64 / cells[0] as f64),
                 Shape::Box => [1.0; 3],
             });
-            let grid = BoxGrid::new(cells, size).origin([0.0; 3]).split(split);
+            let grid = BoxGrid::new(cells, size).split(split);
             write(&out, &grid.build().context("invalid grid")?, &msh)
         }
     }

@@ -179,7 +179,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3);
         let m = frictional_model(&spec, turning);
         let start = positions(t);
         let dt = 0.01;
@@ -244,7 +244,7 @@ proptest! {
         step in proptest::collection::vec(-1.0f64..1.0, 12),
         back in 0.0f64..3.0,
     ) {
-        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3);
         let m = frictional_model(&spec, false);
         let start = positions(t);
         let lag = m.lag_friction(&start, 0.01);
@@ -330,7 +330,7 @@ proptest! {
             .unwrap()
             .with_mesh_obstacles(faces.clone(), &start, vec![(fixed, faces)])
             .unwrap()
-            .with_friction(&deform_contact::FrictionSpec::new(vec![0.4]).velocity_threshold(1e-3).self_mu(None))
+            .with_friction(&deform_contact::FrictionSpec::new(vec![0.4]).velocity_threshold(1e-3))
             .unwrap();
         let dt = 0.01;
         let lag = m.lag_friction(&start, dt);
@@ -479,7 +479,7 @@ proptest! {
         far in proptest::bool::ANY,
         turning in proptest::bool::ANY,
     ) {
-        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3).self_mu(None);
+        let spec = deform_contact::FrictionSpec::new(vec![0.5, 0.3, 0.8, 0.6]).velocity_threshold(1e-3);
         let m = frictional_model(&spec, turning);
         let x0 = positions(t);
         let scale = if far { 1e-3 } else { 1e-5 };

@@ -27,7 +27,6 @@ fn mesh_x(mesh: &TetMesh) -> Vec<f64> {
 fn cube(lift: f64) -> TetMesh {
     BoxGrid::new([3, 3, 3], [0.1, 0.1, 0.1])
         .origin([0.0, 0.0, lift])
-        .split(Default::default())
         .build()
         .unwrap()
 }

@@ -21,7 +21,6 @@ use nalgebra::Vector3;
 fn cube(height: f64) -> TetMesh {
     BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
         .origin([0.0, 0.0, height])
-        .split(Default::default())
         .build()
         .unwrap()
 }

@@ -20,7 +20,6 @@ mod common;
 fn cube(lift: f64) -> TetMesh {
     BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
         .origin([0.0, 0.0, lift])
-        .split(Default::default())
         .build()
         .unwrap()
 }
@@ -69,7 +68,6 @@ fn a_plane_coming_down_squeezes_a_cube_without_passing_into_it() {
             ObstacleMotion::default()
                 .obstacle(1)
                 .velocity([0.0, 0.0, -speed])
-                .start(0.0)
                 .stop(Some(stop)),
         ]);
     let mut sim = sim(&mesh, contact, 0.01);
@@ -109,20 +107,15 @@ fn a_plane_coming_down_squeezes_a_cube_without_passing_into_it() {
 fn a_sliding_ground_drags_a_cube_along_by_friction() {
     let mesh = cube(0.0005);
     let ground_speed = 0.2;
-    let contact = ContactSpec::default()
+    let sliding = ContactSpec::default()
         .obstacles(vec![plane(0.0, true)])
-        .motions(vec![
-            ObstacleMotion::default()
-                .obstacle(0)
-                .velocity([ground_speed, 0.0, 0.0])
-                .start(0.0)
-                .stop(None),
-        ])
-        .friction(Some(
-            FrictionSpec::new(vec![0.5])
-                .velocity_threshold(1e-3)
-                .self_mu(None),
-        ));
+        .motions(vec![ObstacleMotion::default().obstacle(0).velocity([
+            ground_speed,
+            0.0,
+            0.0,
+        ])]);
+    let friction = FrictionSpec::new(vec![0.5]).velocity_threshold(1e-3);
+    let contact = sliding.clone().friction(Some(friction));
     let mut dragged = sim(&mesh, contact, 0.0);
     let mut s = dragged.rest_state();
     for step in 0..100 {
@@ -140,19 +133,7 @@ fn a_sliding_ground_drags_a_cube_along_by_friction() {
         "mean velocity {mean_vx} against the ground's {ground_speed}"
     );
     // A frictionless ground slides under the cube without moving it.
-    let mut still = sim(
-        &mesh,
-        ContactSpec::default()
-            .obstacles(vec![plane(0.0, true)])
-            .motions(vec![
-                ObstacleMotion::default()
-                    .obstacle(0)
-                    .velocity([ground_speed, 0.0, 0.0])
-                    .start(0.0)
-                    .stop(None),
-            ]),
-        0.0,
-    );
+    let mut still = sim(&mesh, sliding, 0.0);
     let mut s = still.rest_state();
     for _ in 0..20 {
         still.step(&mut s).unwrap();
@@ -172,11 +153,7 @@ fn bad_motions_name_the_field() {
         .unwrap();
     for (motion, expected) in [
         (
-            ObstacleMotion::default()
-                .obstacle(3)
-                .velocity([0.0; 3])
-                .start(0.0)
-                .stop(None),
+            ObstacleMotion::default().obstacle(3).velocity([0.0; 3]),
             "obstacle 3 does not exist",
         ),
         (
@@ -332,18 +309,13 @@ fn a_turntable_carries_a_cube_round_by_friction() {
     // from the start: it needs 0.3 m/s^2 to go round, and friction gives up to mu g.
     let mesh = BoxGrid::new([2, 2, 2], [0.1, 0.1, 0.1])
         .origin([0.25, -0.05, 0.0005])
-        .split(Default::default())
         .build()
         .unwrap();
     let spin = ObstacleMotion::default()
         .obstacle(0)
         .angular_velocity([0.0, 0.0, 1.0])
         .pivot(Some([0.0; 3]));
-    let friction = Some(
-        FrictionSpec::new(vec![0.5])
-            .velocity_threshold(1e-3)
-            .self_mu(None),
-    );
+    let friction = Some(FrictionSpec::new(vec![0.5]).velocity_threshold(1e-3));
     let as_plane = ContactSpec::default()
         .obstacles(vec![plane(0.0, true)])
         .motions(vec![spin.clone()])

@@ -30,9 +30,7 @@ fn cube(origin: [f64; 3]) -> BoxGrid {
 }
 
 fn box_grid(cells: [usize; 3], size: [f64; 3], origin: [f64; 3]) -> BoxGrid {
-    BoxGrid::new(cells, size)
-        .origin(origin)
-        .split(Default::default())
+    BoxGrid::new(cells, size).origin(origin)
 }
 
 fn sim(mesh: &TetMesh, policy: &str) -> Integrator {

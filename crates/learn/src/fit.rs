@@ -449,9 +449,7 @@ impl ContactForces {
             false => (unit, None),
             true => {
                 let eps = model.friction().map_or(1e-3, |(_, eps)| eps);
-                let spec = deform_integrator::FrictionSpec::new(vec![1.0])
-                    .velocity_threshold(eps)
-                    .self_mu(None);
+                let spec = deform_integrator::FrictionSpec::new(vec![1.0]).velocity_threshold(eps);
                 let frictionless = unit.without_friction();
                 let friction = frictionless.clone().with_friction(&spec).map_err(invalid)?;
                 (frictionless, Some(friction))

@@ -114,9 +114,7 @@ fn benchmark_beams_match_the_published_counts() {
 
 #[test]
 fn invalid_grids_are_rejected_naming_the_field() {
-    let ok = BoxGrid::new([1, 1, 1], [1.0; 3])
-        .origin([0.0; 3])
-        .split(Split::Six);
+    let ok = BoxGrid::new([1, 1, 1], [1.0; 3]).split(Split::Six);
     let cases = [
         (ok.cells([0, 1, 1]), "cells"),
         (ok.size([1.0, -1.0, 1.0]), "size"),

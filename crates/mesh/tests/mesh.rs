@@ -149,7 +149,6 @@ fn lumped_and_consistent_mass_agree_on_rigid_motion() {
 #[test]
 fn block_pattern_is_symmetric_and_covers_every_element_pair() {
     let mesh = BoxGrid::new([3, 2, 2], [1.0; 3])
-        .origin([0.0; 3])
         .split(Split::Five)
         .build()
         .unwrap();

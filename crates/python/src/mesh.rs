@@ -147,9 +147,7 @@ fn beam(n: usize) -> PyResult<Mesh> {
 #[pyfunction]
 #[pyo3(signature = (cells, size, origin = [0.0, 0.0, 0.0]))]
 fn box_mesh(cells: [usize; 3], size: [f64; 3], origin: [f64; 3]) -> PyResult<Mesh> {
-    let grid = BoxGrid::new(cells, size)
-        .origin(origin)
-        .split(Default::default());
+    let grid = BoxGrid::new(cells, size).origin(origin);
     let mesh = grid.build().map_err(errors::mesh)?;
     Ok(Mesh { mesh })
 }

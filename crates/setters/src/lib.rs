@@ -1,8 +1,8 @@
 //! Chainable setters for the public fields of options and data structs, so that they can be
 //! `#[non_exhaustive]` (a new field breaks no user's code) and still be built outside their
 //! crate, where a struct literal cannot be written:
-//! `NewtonOptions::default().rel(1e-8).max_iterations(50)`. Every deform crate that defines
-//! such a struct uses it; `deform_integrator::setters!` names the same macro.
+//! `NewtonOptions::default().rel(1e-8).max_iterations(50)`. Every deform crate that gives
+//! its structs setters uses it; `deform_integrator::setters!` names the same macro.
 //!
 //! ```
 //! #[derive(Default)]

@@ -25,16 +25,13 @@ fn coarsen_runs_on_imported_trajectories_of_mixed_conditions_with_a_given_embedd
     };
     let fine_path = data("small_beam.ron");
     let mut fine = Scene::load(&fine_path).unwrap();
-    fine.loads = vec![
-        deform_integrator::LoadSpec::new(
-            deform_mesh::select::Selector::Plane {
-                point: [1.0, 0.0, 0.0],
-                normal: [1.0, 0.0, 0.0],
-            },
-            [0.0; 3],
-        )
-        .until(None),
-    ];
+    fine.loads = vec![deform_integrator::LoadSpec::new(
+        deform_mesh::select::Selector::Plane {
+            point: [1.0, 0.0, 0.0],
+            normal: [1.0, 0.0, 0.0],
+        },
+        [0.0; 3],
+    )];
     let conditions = [
         "()",
         "(gravity: Some((0.0, 0.0, 0.0)), loads: Some([(force: (0.0, 30.0, 10.0), until: Some(0.03))]))",

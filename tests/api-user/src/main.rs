@@ -35,7 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             point: [0.0, 0.0, -0.5],
             normal: [0.0, 0.0, 1.0],
         }])
-        .friction(Some(FrictionSpec::new(vec![0.3]).self_mu(None)))
+        .friction(Some(FrictionSpec::new(vec![0.3])))
         .motions(vec![
             ObstacleMotion::default().obstacle(0).velocity([0.0; 3]),
         ]);
